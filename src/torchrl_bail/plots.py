@@ -1,0 +1,58 @@
+"""Figures a person would rather look at than read: learning curves (the envelope plot is in
+:mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+__all__ = ["save_figure", "plot_learning_curve"]
+
+
+def save_figure(fig, path: Path, dpi: int = 120) -> Path:
+    """Saves ``fig`` to ``path`` atomically and closes it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def plot_learning_curve(
+    epochs: Sequence[float],
+    returns: Sequence[float],
+    path: Path,
+    *,
+    dataset_mean: float | None = None,
+    title: str | None = None,
+    start_epoch: float = 0.0,
+) -> Path:
+    """Evaluation return against epochs (10^6 samples), with the batch's mean episode return as a line.
+
+    ``start_epoch`` shifts the x axis (the paper starts BAIL's curve at epoch 50, after the envelope).
+    """
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    ax.plot([start_epoch + e for e in epochs], returns, marker="o", markersize=3, label="evaluation return")
+    if dataset_mean is not None:
+        ax.axhline(dataset_mean, color="gray", linestyle="--", label="batch mean episode return")
+    ax.set_xlabel("epoch (10^6 samples)")
+    ax.set_ylabel("average return (deterministic)")
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best")
+    return save_figure(fig, path)

@@ -1,0 +1,200 @@
+"""Train an offline RL algorithm on a batch: ``python -m torchrl_bail.train +exp=hopper_ddpg05``.
+
+Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
+-> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
+The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_bail import config_dir
+from torchrl_bail.algorithms import ALGORITHMS, PrepareContext, build_algorithm
+from torchrl_bail.data import load_batch, monte_carlo_returns, write_json_atomic
+from torchrl_bail.evaluation import Evaluator
+from torchrl_bail.plots import plot_learning_curve
+from torchrl_bail.trainer import save_checkpoint, train
+
+__all__ = ["run", "main", "ConfigError"]
+
+log = logging.getLogger("torchrl_bail")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing or out of range; the message names the key."""
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Checks the values every run depends on, before any work starts."""
+
+    def need(cond: bool, key: str, expected: str) -> None:
+        if not cond:
+            raise ConfigError(f"config key {key} = {OmegaConf.select(cfg, key)!r}: expected {expected}")
+
+    need(cfg.algo.name in ALGORITHMS, "algo.name", f"one of {sorted(ALGORITHMS)}")
+    need(0 < cfg.returns.gamma <= 1, "returns.gamma", "a discount in (0, 1]")
+    need(cfg.returns.horizon >= 1, "returns.horizon", "an integer >= 1")
+    need(cfg.returns.augment in ("gain", "none", "oracle"), "returns.augment", "gain | none | oracle")
+    need(cfg.samples_per_epoch >= 1, "samples_per_epoch", "a positive integer")
+    need(cfg.eval.episodes >= 1, "eval.episodes", "a positive integer")
+    need(cfg.eval.every_epochs > 0, "eval.every_epochs", "a positive number of epochs")
+    need(cfg.eval.final_window >= 1, "eval.final_window", "a positive integer")
+    need(cfg.algo.batch_size >= 1, "algo.batch_size", "a positive integer")
+    need(cfg.algo.epochs > 0, "algo.epochs", "a positive number of epochs")
+    need(cfg.device in ("cpu", "cuda", "auto") or str(cfg.device).startswith("cuda:"), "device",
+         "cpu | cuda | cuda:N | auto")
+    if str(cfg.device).startswith("cuda"):
+        need(torch.cuda.is_available(), "device", "a CUDA device, but torch sees none (use device=cpu or auto)")
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> torch.Generator:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    return torch.Generator().manual_seed(seed)
+
+
+def load_training_batch(cfg: DictConfig):
+    """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch."""
+    if cfg.get("dataset"):
+        from torchrl_bail.data.importers import import_dataset
+
+        return import_dataset(Path(hydra.utils.to_absolute_path(str(cfg.dataset))), env_id=cfg.env.id)
+    from torchrl_bail.data.collection import ensure_batch
+
+    return ensure_batch(cfg, progress=cfg.progress)
+
+
+def _make_logger(cfg: DictConfig, run_dir: Path):
+    from torchrl.record.loggers import get_logger
+
+    return get_logger(cfg.logger.backend, logger_name=str(run_dir), experiment_name="logs",
+                      **({"project": cfg.logger.project} if cfg.logger.backend == "wandb" else {}))
+
+
+def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary."""
+    start = time.perf_counter()
+    validate_config(cfg)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    device = _device(cfg.device)
+    generator = seed_everything(int(cfg.seed))
+
+    batch = load_training_batch(cfg)
+    evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
+                          max_episode_steps=cfg.env.get("max_episode_steps"), device="cpu")
+    try:
+        obs_dim, act_dim = evaluator.obs_dim, evaluator.action_spec.shape[-1]
+        if (batch.obs_dim, batch.act_dim) != (obs_dim, act_dim):
+            raise ConfigError(
+                f"batch {batch.path} has observation/action sizes ({batch.obs_dim}, {batch.act_dim}) but env "
+                f"{cfg.env.id} has ({obs_dim}, {act_dim}); pick the matching env= for this dataset"
+            )
+        data = batch.data
+        returns = monte_carlo_returns(data, gamma=cfg.returns.gamma, horizon=cfg.returns.horizon,
+                                      augment=cfg.returns.augment)
+        data = data.select("observation", "action", "next", "episode").clone(False)
+        data.set("return", returns)
+
+        logger = _make_logger(cfg, run_dir)
+        algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
+        ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
+        train_data = algorithm.prepare(data, ctx)
+        history = train(
+            algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
+            eval_every_epochs=cfg.eval.every_epochs, logger=logger,
+            checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
+            progress=cfg.progress,
+        )
+    finally:
+        evaluator.close()
+
+    save_checkpoint(run_dir / "policy.pt", {"policy": algorithm.policy.state_dict(), "algo": cfg.algo.name,
+                                            "env_id": cfg.env.id})
+    episode_returns = batch.episode_returns()
+    summary = {
+        "algo": cfg.algo.name,
+        "env": cfg.env.id,
+        "batch": batch.metadata.get("name", Path(str(batch.path)).name if batch.path else None),
+        "batch_kind": None if cfg.get("dataset") else cfg.batch.kind,
+        "batch_index": None if cfg.get("dataset") else int(cfg.batch.index),
+        "seed": int(cfg.seed),
+        "final_return": history.final_return(cfg.eval.final_window),
+        "best_return": history.best_return(),
+        "dataset_mean_episode_return": float(episode_returns.mean()),
+        "dataset_max_episode_return": float(episode_returns.max()),
+        "num_transitions": int(batch.num_transitions),
+        "num_episodes": int(batch.num_episodes),
+        "iterations": history.iterations,
+        "epochs": algorithm.epochs,
+        "eval_failures": sum(e.failures for e in history.evaluations),
+        "returns_augment": cfg.returns.augment,
+        **algorithm.summary(),
+        "wall_time_s": time.perf_counter() - start,
+        "run_dir": str(run_dir),
+        "batch_path": str(batch.path),
+    }
+    _add_normalized_scores(summary, cfg.env.id)
+    write_json_atomic(run_dir / "summary.json", summary)
+    plot_learning_curve(
+        [e.epoch for e in history.evaluations], [e.mean_return for e in history.evaluations],
+        run_dir / "learning_curve.png", dataset_mean=summary["dataset_mean_episode_return"],
+        title=f"{cfg.algo.name} on {summary['batch']} (seed {cfg.seed})",
+    )
+    log.info("final_return %.1f (best %.1f, batch mean %.1f) -> %s", summary["final_return"],
+             summary["best_return"], summary["dataset_mean_episode_return"], run_dir / "summary.json")
+    return summary
+
+
+def _add_normalized_scores(summary: dict, env_id: str) -> None:
+    try:
+        from torchrl_bail.data.importers import normalized_score
+    except ImportError:
+        return
+    for key in ("final_return", "best_return"):
+        score = normalized_score(env_id, summary[key])
+        if score is not None:
+            summary[f"{key}_normalized"] = score
+
+
+@hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> float:
+    from hydra.core.hydra_config import HydraConfig
+
+    from torchrl_bail.data import BatchValidationError
+
+    try:
+        summary = run(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except (ConfigError, BatchValidationError, FileNotFoundError) as err:  # a clear message, not a traceback
+        print(f"torchrl_bail: {type(err).__name__}: {err}", file=sys.stderr)
+        sys.exit(2)
+    return summary["final_return"]
+
+
+def main() -> None:
+    """Console entry point (``torchrl-bail-train``)."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
