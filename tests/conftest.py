@@ -8,7 +8,6 @@ import warnings
 import pytest
 
 os.environ.setdefault("RL_WARNINGS", "0")
-os.environ.setdefault("MUJOCO_GL", "egl")
 warnings.filterwarnings("ignore", category=DeprecationWarning)
 
 

@@ -109,8 +109,9 @@ def train(
     if len(data) == 0:
         raise ValueError("the training data is empty: nothing to sample mini-batches from")
     batch_size = algorithm.batch_size
-    iterations = max(1, math.ceil(algorithm.epochs * samples_per_epoch / batch_size))
-    eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / batch_size))
+    per_update = algorithm.samples_per_update
+    iterations = max(1, math.ceil(algorithm.epochs * samples_per_epoch / per_update))
+    eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / per_update))
     data = data.to(algorithm.device)
     buffer = TensorDictReplayBuffer(
         storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch_size
@@ -130,7 +131,7 @@ def train(
         elif logger is None and it % log_every == 0:
             sums.clear()
         if evaluate is not None and (it % eval_interval == 0 or it == iterations):
-            point = _evaluate(evaluate, algorithm, it, it * batch_size / samples_per_epoch)
+            point = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
             history.evaluations.append(point)
             if logger is not None:
                 logger.log_scalar("eval/return", point.mean_return, step=it)

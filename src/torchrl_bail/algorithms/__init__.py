@@ -5,8 +5,10 @@ from __future__ import annotations
 from torchrl_bail.algorithms.bail import BAIL
 from torchrl_bail.algorithms.base import Algorithm, PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.algorithms.pbail import ProgressiveBAIL
 
-__all__ = ["ALGORITHMS", "Algorithm", "BAIL", "BehaviourCloning", "PrepareContext", "build_algorithm"]
+__all__ = ["ALGORITHMS", "Algorithm", "BAIL", "BehaviourCloning", "PrepareContext", "ProgressiveBAIL",
+           "build_algorithm"]
 
 
 def _bc(cfg, obs_dim, action_spec, device):
@@ -21,8 +23,16 @@ def _bail(cfg, obs_dim, action_spec, device):
                 nonpositive_value=cfg.selection.nonpositive_value, device=device)
 
 
+def _pbail(cfg, obs_dim, action_spec, device):
+    return ProgressiveBAIL(obs_dim=obs_dim, action_spec=action_spec, hidden=tuple(cfg.policy.hidden),
+                           lr=cfg.policy.lr, batch_size=cfg.batch_size, epochs=cfg.epochs,
+                           envelope=dict(cfg.envelope), percentile=cfg.selection.percentile,
+                           best_envelope=cfg.best_envelope, v_projection=cfg.v_projection,
+                           validation=cfg.validation, device=device)
+
+
 #: ``algo.name`` -> builder ``(algo_cfg, obs_dim, action_spec, device) -> Algorithm``
-ALGORITHMS = {"bail": _bail, "bc": _bc}
+ALGORITHMS = {"bail": _bail, "pbail": _pbail, "bc": _bc}
 
 
 def build_algorithm(cfg, obs_dim: int, action_spec, device) -> Algorithm:

@@ -60,6 +60,8 @@ class Algorithm(ABC):
             raise ValueError(f"algo.epochs must be > 0, got {epochs}")
         self.batch_size = int(batch_size)
         self.epochs = float(epochs)
+        #: samples one update counts towards an epoch (Progressive BAIL counts only its envelope's share)
+        self.samples_per_update = float(batch_size)
         self.device = torch.device(device)
         self.modules: dict[str, nn.Module] = {}
         self.optimizers: dict[str, torch.optim.Optimizer] = {}

@@ -30,14 +30,16 @@ from torchrl_bail.modules import make_deterministic_actor
 __all__ = ["BehaviourCloning", "make_bc_loss"]
 
 
-def make_bc_loss(actor) -> BCLoss:
+def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
     """TorchRL's :class:`~torchrl.objectives.BCLoss` with MSE on a deterministic actor.
 
-    Its mean runs over batch x action dimensions, exactly the authors' imitation loss (spec 5).
+    With ``reduction="mean"`` its mean runs over batch x action dimensions, exactly the authors' imitation
+    loss (spec 5); ``"none"`` gives the per-element squared errors ``[B, |A|]``. Several losses built on one
+    actor share its parameters.
     """
     with warnings.catch_warnings():  # BCLoss lacks a target-params annotation and warns on construction
         warnings.filterwarnings("ignore", message=".*target_actor_network_params.*")
-        return BCLoss(actor, loss_function="l2")
+        return BCLoss(actor, loss_function="l2", reduction=reduction)
 
 
 class BehaviourCloning(Algorithm):
