@@ -22,8 +22,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext, build_algorithm
-from torchrl_bail.data import load_batch, monte_carlo_returns, write_json_atomic
+from torchrl_bail.data import monte_carlo_returns
 from torchrl_bail.evaluation import Evaluator
+from torchrl_bail.io import write_json_atomic
 from torchrl_bail.plots import plot_learning_curve
 from torchrl_bail.trainer import save_checkpoint, train
 

@@ -21,8 +21,6 @@ Examples:
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +32,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from tqdm.auto import tqdm
 
 from torchrl_bail.algorithms.base import Algorithm
+from torchrl_bail.io import atomic_path
 
 __all__ = ["EvalPoint", "TrainHistory", "train", "save_checkpoint"]
 
@@ -64,19 +63,8 @@ class TrainHistory:
 
 def save_checkpoint(path: Path, state: dict) -> None:
     """``torch.save`` to a temp file in the same directory, then an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
 
 
 def train(
