@@ -1,0 +1,68 @@
+"""The one training loop: schedule in epochs of samples, evaluation cadence, scores, checkpoints."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.modules import action_spec_from_bounds
+from torchrl_bail.trainer import EvalPoint, TrainHistory, train
+
+
+def _bc(epochs: float, batch_size: int = 10) -> BehaviourCloning:
+    return BehaviourCloning(obs_dim=3, action_spec=action_spec_from_bounds([-1.0], [1.0]), hidden=(16,),
+                            batch_size=batch_size, epochs=epochs)
+
+
+def _data(n: int = 200) -> TensorDict:
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(n, 3, generator=g)
+    return TensorDict({"observation": obs, "action": torch.tanh(obs[:, :1] - 0.5 * obs[:, 1:2])}, [n])
+
+
+def test_schedule_counts_samples_not_iterations():
+    algo = _bc(epochs=1000 / 1e6, batch_size=10)  # 1000 samples = 100 updates
+    calls = []
+    history = train(algo, _data(), evaluate=lambda p: float(len(calls.append(1) or calls)),
+                    eval_every_epochs=250 / 1e6, progress=False)
+    assert history.iterations == 100
+    assert [e.iteration for e in history.evaluations] == [25, 50, 75, 100]
+    assert [round(e.epoch * 1e6) for e in history.evaluations] == [250, 500, 750, 1000]
+    assert history.final_return(window=2) == 3.5 and history.best_return() == 4.0
+
+
+def test_final_evaluation_happens_even_off_cadence():
+    algo = _bc(epochs=95 / 1e6, batch_size=10)  # 10 updates (ceil), evaluation every 4
+    history = train(algo, _data(), evaluate=lambda p: 0.0, eval_every_epochs=40 / 1e6, progress=False)
+    assert [e.iteration for e in history.evaluations] == [4, 8, 10]
+
+
+def test_bc_fits_the_behaviour_and_checkpoints(tmp_path):
+    torch.manual_seed(0)
+    data = _data(500)
+    algo = _bc(epochs=40_000 / 1e6, batch_size=50)
+    before = algo.bc_loss(data)["loss_bc"].item()
+    train(algo, data, evaluate=lambda p: 0.0, eval_every_epochs=20_000 / 1e6, progress=False,
+          checkpoint_path=tmp_path / "checkpoint.pt")
+    after = algo.bc_loss(data)["loss_bc"].item()
+    assert after < 0.2 * before
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 800 and len(state["evaluations"]) == 2
+    fresh = _bc(epochs=1.0)
+    fresh.load_state_dict(state["algorithm"])
+    assert fresh.bc_loss(data)["loss_bc"].item() == after
+    assert not list(tmp_path.glob(".*tmp"))  # no temp files left behind
+
+
+def test_final_return_window_is_the_mean_of_the_last_evaluations():
+    h = TrainHistory(evaluations=[EvalPoint(i, i / 2, float(i)) for i in range(1, 21)])
+    assert h.final_return(10) == sum(range(11, 21)) / 10
+    assert h.final_return(50) == sum(range(1, 21)) / 20
+
+
+def test_empty_data_is_a_clear_error():
+    import pytest
+
+    with pytest.raises(ValueError, match="empty"):
+        train(_bc(1.0), _data(0), progress=False)
