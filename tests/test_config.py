@@ -1,0 +1,55 @@
+"""Every config composes, the quick preset shortens every algorithm, and bad values are named clearly."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import open_dict
+
+from torchrl_bail import config_dir
+from torchrl_bail.train import ConfigError, validate_config
+
+ALGOS = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def test_exp_selects_env_and_batch_with_bail_by_default():
+    cfg = _compose("+exp=hopper_ddpg05")
+    assert (cfg.env.id, cfg.batch.kind, cfg.batch.sigma, cfg.algo.name) == ("Hopper-v5", "ddpg05", 0.5, "bail")
+    assert cfg.batch.steps == 1_000_000 and cfg.algo.epochs == 50 and cfg.algo.selection.percentile == 0.30
+    assert cfg.algo.envelope.penalty == 1000.0 and cfg.algo.envelope.early_stopping == "paper"
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_algo_composes_and_quick_preset_shortens_it(algo):
+    paper = _compose("+exp=hopper_ddpg05", f"algo={algo}")
+    quick = _compose("+exp=hopper_ddpg05", f"algo={algo}", "preset=quick")
+    assert paper.algo.name == quick.algo.name == algo
+    assert quick.algo.epochs < paper.algo.epochs
+    assert quick.batch.steps < paper.batch.steps
+    validate_config(paper)
+    validate_config(quick)
+
+
+def test_command_line_beats_exp_and_preset():
+    cfg = _compose("+exp=hopper_ddpg05", "preset=quick", "batch.index=2", "seed=7", "algo.epochs=3")
+    assert (cfg.batch.index, cfg.seed, cfg.algo.epochs) == (2, 7, 3)
+
+
+@pytest.mark.parametrize(
+    "key,value,match",
+    [("returns.augment", "magic", "returns.augment"), ("returns.gamma", 1.5, "returns.gamma"),
+     ("eval.episodes", 0, "eval.episodes"), ("algo.batch_size", 0, "algo.batch_size"),
+     ("device", "tpu", "device"), ("algo.name", "dqn", "algo.name")],
+)
+def test_bad_values_name_their_key(key, value, match):
+    cfg = _compose("+exp=hopper_ddpg05")
+    with open_dict(cfg):
+        node, leaf = key.rsplit(".", 1) if "." in key else (None, key)
+        (cfg if node is None else cfg[node])[leaf] = value
+    with pytest.raises(ConfigError, match=match):
+        validate_config(cfg)
