@@ -53,3 +53,11 @@ def test_bad_values_name_their_key(key, value, match):
         (cfg if node is None else cfg[node])[leaf] = value
     with pytest.raises(ConfigError, match=match):
         validate_config(cfg)
+
+
+def test_slurm_launcher_config_composes():
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=hopper_ddpg05", "hydra/launcher=slurm"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith("SlurmLauncher")
+    assert cfg.hydra.launcher.timeout_min == 1440
