@@ -1,0 +1,328 @@
+"""The offline batch format: a TED TensorDict ``[N]`` memory-mapped on disk, plus ``metadata.json``.
+
+Layout of a batch directory::
+
+    <batch_dir>/data/           tensordict memmap (TensorDict.memmap / load_memmap)
+    <batch_dir>/metadata.json   env id, recipe and its parameters, seed, sizes, behaviour return statistics,
+                                library versions, creation time
+
+Keys (TED): ``observation`` ``[N, obs]`` float32, ``action`` ``[N, act]`` float32,
+``("next", "observation")`` ``[N, obs]`` float32, ``("next", "reward")`` ``[N, 1]`` float32,
+``("next", "done" | "terminated" | "truncated")`` ``[N, 1]`` bool, ``episode`` ``[N]`` int64. Extra keys (e.g.
+``oracle_return``) are kept.
+
+Writes are atomic: the batch is written into a sibling temporary directory and renamed into place, so an
+interrupted write never leaves anything that loads as a batch. Loading validates everything and every
+violation raises :class:`BatchValidationError` naming the file, the key and what was expected.
+
+Examples:
+    >>> import tempfile, torch
+    >>> from tensordict import TensorDict
+    >>> n = 5
+    >>> done = torch.tensor([False, True, False, False, False]).unsqueeze(-1)
+    >>> td = TensorDict({"observation": torch.zeros(n, 3), "action": torch.zeros(n, 2),
+    ...                  "episode": torch.tensor([0, 0, 1, 1, 1]),
+    ...                  "next": {"observation": torch.zeros(n, 3), "reward": torch.ones(n, 1),
+    ...                           "done": done, "terminated": done, "truncated": torch.zeros(n, 1, dtype=torch.bool)}},
+    ...                 [n])
+    >>> batch = save_batch(td, tempfile.mkdtemp() + "/tiny", {"env_id": "Toy-v0"})
+    >>> batch.num_transitions, batch.num_episodes, batch.episode_returns().tolist()
+    (5, 2, [2.0, 3.0])
+    >>> load_batch(batch.path).metadata["num_episodes"]
+    2
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import importlib.metadata
+import json
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_bail.io import write_json_atomic
+
+__all__ = [
+    "BatchValidationError",
+    "OfflineBatch",
+    "REQUIRED_KEYS",
+    "FORMAT_VERSION",
+    "validate_batch",
+    "batch_statistics",
+    "save_batch",
+    "load_batch",
+    "default_data_dir",
+    "library_versions",
+    "write_json_atomic",
+]
+
+FORMAT_VERSION = 1
+FLOAT_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"))
+BOOL_KEYS = (("next", "done"), ("next", "terminated"), ("next", "truncated"))
+REQUIRED_KEYS = (*FLOAT_KEYS, *BOOL_KEYS, "episode")
+DATA_DIR_ENV = "TORCHRL_BAIL_DATA_DIR"
+
+
+class BatchValidationError(ValueError):
+    """A batch (in memory or on disk) breaks the format; the message names the file, the key, the expectation."""
+
+
+def _name(key) -> str:
+    return key if isinstance(key, str) else "/".join(key)
+
+
+def default_data_dir() -> Path:
+    """``$TORCHRL_BAIL_DATA_DIR`` if set, else ``~/.cache/torchrl_bail``."""
+    env = os.environ.get(DATA_DIR_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "torchrl_bail"
+
+
+def library_versions() -> dict[str, str]:
+    versions = {}
+    for pkg in ("torch", "torchrl", "tensordict", "gymnasium", "mujoco", "numpy", "torchrl_bail"):
+        try:
+            versions[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return versions
+
+
+def _episode_boundaries(episode: torch.Tensor) -> torch.Tensor:
+    """Boolean ``[N]``: True at the last row of each episode block."""
+    last = torch.ones_like(episode, dtype=torch.bool)
+    last[:-1] = episode[1:] != episode[:-1]
+    return last
+
+
+def validate_batch(
+    td: TensorDictBase,
+    metadata: dict | None = None,
+    *,
+    source: str = "<memory>",
+    obs_dim: int | None = None,
+    act_dim: int | None = None,
+) -> None:
+    """Raises :class:`BatchValidationError` at the first violation of the batch format (see module doc)."""
+
+    def fail(key, expected: str, found: str) -> None:
+        where = f" key {_name(key)!r}" if key is not None else ""
+        raise BatchValidationError(f"{source}:{where} expected {expected}, found {found}")
+
+    if td.batch_dims != 1:
+        fail(None, "a TensorDict with one batch dimension [N]", f"batch size {tuple(td.batch_size)}")
+    n = td.batch_size[0]
+    if n == 0:
+        fail(None, "at least one transition", "an empty batch")
+    keys = set(td.keys(include_nested=True, leaves_only=True))
+    for key in REQUIRED_KEYS:
+        if key not in keys:
+            fail(key, "this key to be present", f"keys {sorted(_name(k) for k in keys)}")
+    obs = td.get("observation")
+    act = td.get("action")
+    expected_shapes = {
+        "observation": (n, obs.shape[-1]), ("next", "observation"): (n, obs.shape[-1]),
+        "action": (n, act.shape[-1]), ("next", "reward"): (n, 1), "episode": (n,),
+        **{k: (n, 1) for k in BOOL_KEYS},
+    }
+    for key, shape in expected_shapes.items():
+        value = td.get(key)
+        if tuple(value.shape) != shape:
+            fail(key, f"shape {shape}", f"shape {tuple(value.shape)}")
+    for key in FLOAT_KEYS:
+        if td.get(key).dtype != torch.float32:
+            fail(key, "dtype float32", f"{td.get(key).dtype}")
+    for key in BOOL_KEYS:
+        if td.get(key).dtype != torch.bool:
+            fail(key, "dtype bool", f"{td.get(key).dtype}")
+    if td.get("episode").dtype != torch.int64:
+        fail("episode", "dtype int64", f"{td.get('episode').dtype}")
+    for key in sorted(keys, key=_name):
+        value = td.get(key)
+        if value.is_floating_point():
+            finite = torch.isfinite(value.reshape(n, -1)).all(-1)
+            if not bool(finite.all()):
+                fail(key, "finite values", f"a non-finite value at index {int((~finite).nonzero()[0])}")
+    if obs_dim is not None and obs.shape[-1] != obs_dim:
+        fail("observation", f"{obs_dim} features (the env's observation size)", f"{obs.shape[-1]}")
+    if act_dim is not None and act.shape[-1] != act_dim:
+        fail("action", f"{act_dim} dimensions (the env's action size)", f"{act.shape[-1]}")
+    done, term, trunc = (td.get(k).squeeze(-1) for k in BOOL_KEYS)
+    bad = done != (term | trunc)
+    if bool(bad.any()):
+        fail(("next", "done"), "done == terminated | truncated", f"a mismatch at index {int(bad.nonzero()[0])}")
+    episode = td.get("episode")
+    steps = episode[1:] - episode[:-1]
+    bad = (steps != 0) & (steps != 1)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        fail("episode", "ids that stay or increase by exactly 1 (contiguous episodes)",
+             f"{int(episode[i])} followed by {int(episode[i + 1])} at index {i + 1}")
+    last = _episode_boundaries(episode)
+    early = done & ~last
+    if bool(early.any()):
+        fail(("next", "done"), "done only on the last transition of an episode",
+             f"done inside episode {int(episode[early.nonzero()[0]])} at index {int(early.nonzero()[0])}")
+    unfinished = last[:-1] & ~done[:-1]
+    if bool(unfinished.any()):
+        i = int(unfinished.nonzero()[0])
+        fail(("next", "done"), "every episode but the batch's last to end with done=True",
+             f"episode {int(episode[i])} ends at index {i} without done")
+    if metadata is not None:
+        if "env_id" not in metadata:
+            fail(None, "metadata with an 'env_id'", f"metadata keys {sorted(metadata)}")
+        if metadata.get("num_transitions", n) != n:
+            fail(None, f"metadata num_transitions == {n} rows", f"{metadata['num_transitions']}")
+        for key, size in (("observation_dim", obs.shape[-1]), ("action_dim", act.shape[-1])):
+            if metadata.get(key, size) != size:
+                fail(None, f"metadata {key} == {size} (the data's size)", f"{metadata[key]}")
+
+
+def _episode_sums(td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    episode = td.get("episode")
+    ids = episode - episode[0]
+    count = int(ids[-1]) + 1
+    rewards = td.get(("next", "reward")).reshape(-1).double()
+    sums = torch.zeros(count, dtype=torch.float64).index_add_(0, ids, rewards)
+    lengths = torch.zeros(count, dtype=torch.int64).index_add_(0, ids, torch.ones_like(ids))
+    return sums, lengths
+
+
+def batch_statistics(td: TensorDictBase) -> dict[str, Any]:
+    """Sizes and behaviour episode-return statistics (undiscounted), JSON-serialisable."""
+    sums, lengths = _episode_sums(td)
+    return {
+        "num_transitions": int(td.batch_size[0]),
+        "num_episodes": int(sums.numel()),
+        "episode_return_mean": float(sums.mean()),
+        "episode_return_std": float(sums.std(unbiased=False)),
+        "episode_return_min": float(sums.min()),
+        "episode_return_max": float(sums.max()),
+        "episode_length_mean": float(lengths.double().mean()),
+    }
+
+
+@dataclass
+class OfflineBatch:
+    """A validated batch: ``data`` (TED TensorDict ``[N]``, memory-mapped when loaded), its metadata, its path."""
+
+    data: TensorDictBase
+    metadata: dict
+    path: Path | None = None
+
+    @property
+    def num_transitions(self) -> int:
+        return int(self.data.batch_size[0])
+
+    @property
+    def num_episodes(self) -> int:
+        ep = self.data.get("episode")
+        return int(ep[-1] - ep[0]) + 1
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.data.get("observation").shape[-1])
+
+    @property
+    def act_dim(self) -> int:
+        return int(self.data.get("action").shape[-1])
+
+    @property
+    def env_id(self) -> str:
+        return self.metadata["env_id"]
+
+    @property
+    def action_low(self) -> torch.Tensor:
+        return torch.as_tensor(self.metadata.get("action_low", [-1.0] * self.act_dim), dtype=torch.float32)
+
+    @property
+    def action_high(self) -> torch.Tensor:
+        return torch.as_tensor(self.metadata.get("action_high", [1.0] * self.act_dim), dtype=torch.float32)
+
+    def episode_returns(self) -> torch.Tensor:
+        """Undiscounted return of each episode, ``[num_episodes]`` (the last one may be unfinished)."""
+        return _episode_sums(self.data)[0]
+
+
+def _to_format(td: TensorDictBase) -> TensorDictBase:
+    """Converts float64 observations/actions/rewards to float32 once, at the edge."""
+    out = td.copy() if not td.is_locked else td.clone(False)
+    for key in FLOAT_KEYS:
+        if key in out.keys(include_nested=True) and out.get(key).dtype == torch.float64:
+            out.set(key, out.get(key).to(torch.float32))
+    return out
+
+
+def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = False) -> OfflineBatch:
+    """Validates ``td`` and writes it atomically to ``path`` (a directory); returns the memory-mapped batch.
+
+    ``metadata`` must name ``env_id``; sizes, return statistics, library versions and the creation time are
+    filled in (fields the caller gave are kept). float64 observations, actions and rewards are converted to
+    float32. An existing ``path`` raises :class:`FileExistsError` unless ``overwrite=True``, in which case the
+    old batch is replaced only once the new one is complete.
+    """
+    path = Path(path)
+    td = _to_format(td)
+    validate_batch(td, None, source=str(path))
+    if "env_id" not in metadata:
+        raise BatchValidationError(f"{path}: metadata must name the 'env_id' of the batch")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it")
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "observation_dim": int(td.get("observation").shape[-1]),
+        "action_dim": int(td.get("action").shape[-1]),
+        **batch_statistics(td),
+        "library_versions": library_versions(),
+        "created_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    meta.update(metadata)
+    meta.update(num_transitions=int(td.batch_size[0]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    old = None
+    try:
+        td.memmap(tmp / "data", num_threads=0)
+        write_json_atomic(tmp / "metadata.json", meta)
+        if path.exists():
+            old = path.with_name(f"{path.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+            os.replace(path, old)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not path.exists():
+            os.replace(old, path)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return load_batch(path)
+
+
+def load_batch(path, *, obs_dim: int | None = None, act_dim: int | None = None) -> OfflineBatch:
+    """Loads and validates the batch in directory ``path`` (memory-mapped: nothing is copied into RAM)."""
+    path = Path(path)
+    if ".tmp-" in path.name or ".old-" in path.name:
+        raise BatchValidationError(f"{path}: an incomplete (interrupted) write, not a batch")
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: no batch directory here")
+    meta_file = path / "metadata.json"
+    if not meta_file.is_file() or not (path / "data").is_dir():
+        raise BatchValidationError(
+            f"{path}: incomplete batch (expected data/ and metadata.json); delete it and collect it again"
+        )
+    try:
+        metadata = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as err:
+        raise BatchValidationError(f"{meta_file}: not valid JSON ({err})") from None
+    try:
+        data = TensorDict.load_memmap(path / "data")
+    except Exception as err:  # noqa: BLE001 - a corrupt memmap must read as a clear error
+        raise BatchValidationError(f"{path / 'data'}: unreadable tensordict memmap ({err})") from None
+    validate_batch(data, metadata, source=str(path), obs_dim=obs_dim, act_dim=act_dim)
+    return OfflineBatch(data, metadata, path)
