@@ -288,7 +288,7 @@ def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = Fa
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     old = None
     try:
-        td.memmap(tmp / "data", num_threads=0)
+        td.memmap(tmp / "data", num_threads=0, copy_existing=True)
         write_json_atomic(tmp / "metadata.json", meta)
         if path.exists():
             old = path.with_name(f"{path.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}")

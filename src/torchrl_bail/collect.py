@@ -1,0 +1,141 @@
+"""Make (or find) a behaviour batch: ``python -m torchrl_bail.collect +exp=hopper_ddpg05 [preset=quick]``.
+
+The batch for ``env`` x ``batch`` is collected once and cached under ``data_dir`` (see
+:mod:`torchrl_bail.data.collection`); a second call only reports it. Multirun works as for training::
+
+    python -m torchrl_bail.collect -m +exp=hopper_ddpg05 batch.index=1,2
+
+List what is cached (name, size on disk, transitions, episodes, mean/max episode return, recipe)::
+
+    python -m torchrl_bail.collect --list [--data-dir DIR]
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from torchrl_bail import config_dir
+
+__all__ = ["main", "collect", "format_listing"]
+
+log = logging.getLogger("torchrl_bail")
+
+
+def collect(cfg: DictConfig) -> dict:
+    """Ensures the batch of ``cfg`` exists; returns a summary (path, cached, statistics)."""
+    from torchrl_bail.data.collection import _try_load, batch_path, ensure_batch, validate_recipe
+
+    validate_recipe(cfg)
+    path = batch_path(cfg)
+    cached = _try_load(path) is not None
+    batch = ensure_batch(cfg, progress=bool(cfg.get("progress", True)))
+    returns = batch.episode_returns()
+    data = batch.data
+    meta = batch.metadata
+    summary = {
+        "path": str(batch.path),
+        "cached": cached,
+        "name": meta.get("name", Path(str(batch.path)).name),
+        "env_id": batch.env_id,
+        "transitions": int(batch.num_transitions),
+        "episodes": int(batch.num_episodes),
+        "terminated": int(data["next", "terminated"].sum()),
+        "truncated": int(data["next", "truncated"].sum()),
+        "episode_return_mean": float(returns.mean()),
+        "episode_return_max": float(returns.max()),
+        "episode_return_min": float(returns.min()),
+        "collection_wall_time_s": meta.get("collection_wall_time_s"),
+    }
+    if meta.get("behaviour_return") is not None:
+        summary["behaviour_return"] = meta["behaviour_return"]
+    return summary
+
+
+def _print_summary(s: dict) -> None:
+    state = "already cached" if s["cached"] else "collected"
+    print(f"{s['name']}: {state} at {s['path']}")
+    print(f"  env {s['env_id']}: {s['transitions']} transitions, {s['episodes']} episodes "
+          f"({s['terminated']} terminated, {s['truncated']} truncated)")
+    print(f"  episode return mean {s['episode_return_mean']:.1f}, min {s['episode_return_min']:.1f}, "
+          f"max {s['episode_return_max']:.1f}")
+    if s.get("behaviour_return") is not None:
+        print(f"  behaviour policy return {s['behaviour_return']:.1f}")
+    if s.get("collection_wall_time_s") is not None:
+        print(f"  collection time {s['collection_wall_time_s']:.0f} s")
+    sys.stdout.flush()
+
+
+@hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    _print_summary(collect(cfg))
+
+
+def format_listing(rows: list[dict]) -> str:
+    """The ``--list`` table."""
+    from torchrl_bail.data.collection import format_bytes
+
+    if not rows:
+        return "no cached batches"
+
+    def num(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    table = [("name", "size", "transitions", "episodes", "mean ret", "max ret", "recipe")]
+    for r in rows:
+        table.append((r["name"], format_bytes(r["bytes"]), num(r.get("transitions"), "d"),
+                      num(r.get("episodes"), "d"), num(r.get("mean_return"), ".1f"), num(r.get("max_return"), ".1f"),
+                      r.get("recipe", "")))
+    widths = [max(len(str(row[i])) for row in table) for i in range(len(table[0]))]
+    right = {1, 2, 3, 4, 5}
+    lines = []
+    for j, row in enumerate(table):
+        cells = [str(c).rjust(w) if i in right else str(c).ljust(w) for i, (c, w) in enumerate(zip(row, widths))]
+        lines.append("  ".join(cells).rstrip())
+        if j == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _list_main(argv: list[str]) -> int:
+    from torchrl_bail.data.collection import data_dir_of, list_batches
+
+    data_dir = None
+    it = iter(argv)
+    for arg in it:
+        if arg == "--data-dir":
+            data_dir = next(it, None)
+        elif arg.startswith("--data-dir="):
+            data_dir = arg.split("=", 1)[1]
+        elif arg.startswith("data_dir="):
+            data_dir = arg.split("=", 1)[1]
+        elif arg != "--list":
+            print(f"--list accepts only --data-dir DIR (or data_dir=DIR), got {arg!r}", file=sys.stderr)
+            return 2
+    root = data_dir_of(None, data_dir)
+    print(f"cached batches in {root}:")
+    print(format_listing(list_batches(root)))
+    return 0
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    if "--list" in argv:
+        raise SystemExit(_list_main(argv))
+    # keep collection runs' Hydra files apart from training runs, unless the user chose a directory
+    if not any(a.startswith(("hydra.run.dir", "hydra.sweep.dir")) for a in argv):
+        sys.argv += [
+            "hydra.run.dir=outputs/collect/${env.name}_${batch.kind}_b${batch.index}/${now:%Y%m%d-%H%M%S}",
+            "hydra.sweep.dir=multirun/collect/${now:%Y-%m-%d_%H-%M-%S}",
+        ]
+    os.environ.setdefault("RL_WARNINGS", "0")
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

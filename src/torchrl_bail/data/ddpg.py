@@ -1,0 +1,220 @@
+"""DDPG training batches (spec 9.1): the whole replay buffer of an online DDPG run, as in the BCQ repository.
+
+The behaviour agent is the BCQ-repo DDPG (Fujimoto et al. 2018/2019, the "final buffer" of the BCQ paper):
+
+* actor ``obs -> 400 -> 300 -> |A|``, ReLU, ``max_action * tanh``; Adam lr 1e-4;
+* critic ``400 -> (concat action) 300 -> 1`` (``critic_arch: late_action``, the BCQ-repo layout; ``concat`` is a
+  plain ``(s, a) -> 400 -> 300 -> 1`` MLP from :func:`~torchrl_bail.modules.make_qvalue_network`); Adam lr 1e-3
+  with coupled L2 ``weight_decay`` 1e-2;
+* TorchRL :class:`~torchrl.objectives.DDPGLoss` with target actor *and* target critic (``delay_actor=True``, the
+  BCQ repo has both), squared TD error, a TD(0) estimator with gamma 0.99 that bootstraps on ``terminated`` (a
+  time-limit truncation is bootstrapped), and :class:`~torchrl.objectives.SoftUpdate` with tau 0.005;
+* each gradient step updates the critic first, then the actor against the *updated* critic, then both targets
+  (the order of the BCQ-repo ``DDPG.train``), on a mini-batch of 100 drawn uniformly from everything stored.
+
+Procedure: ``start_steps`` (1000) uniformly random actions, then ``mu(s) + N(0, sigma^2)`` with an absolute sigma
+(0.1 or 0.5, *not* scaled by the action bound), clipped to the bounds; at the end of every episode (terminated or
+truncated, the random phase included, the last one excepted when the batch is full) ``episode_length`` gradient
+steps. Every transition is stored in order with its true ``terminated`` / ``truncated`` flags and real terminal
+next-observations; the replay buffer *is* the batch.
+
+Examples:
+    >>> import torch
+    >>> from torchrl_bail.modules import action_spec_from_bounds
+    >>> agent = DDPGAgent(11, action_spec_from_bounds([-1.0] * 3, [1.0] * 3), actor_hidden=[32, 32],
+    ...                   critic_hidden=[32, 32])
+    >>> agent.act(torch.zeros(11)).shape
+    torch.Size([3])
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.modules import ValueOperator
+from torchrl.objectives import DDPGLoss, ValueEstimators
+
+from torchrl_bail.data.collection import (
+    BehaviourBuffers,
+    BehaviourRun,
+    ReturnTracker,
+    _get,
+    batch_name,
+    behaviour_seed,
+    env_bounds,
+    episode_limit,
+    fused_soft_update,
+    make_collection_env,
+    oracle_settings,
+    seed_all,
+)
+from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor, make_qvalue_network
+
+__all__ = ["LateActionCritic", "make_ddpg_critic", "DDPGAgent", "collect_ddpg"]
+
+log = logging.getLogger("torchrl_bail")
+
+
+class LateActionCritic(nn.Module):
+    """``Q(s, a) = l3(relu(l2([relu(l1(s)), a])))``: the action joins after the first layer (BCQ-repo DDPG)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300)):
+        super().__init__()
+        if len(hidden) != 2:
+            raise ValueError(f"the late-action DDPG critic has exactly two hidden layers, got {list(hidden)}")
+        self.l1 = nn.Linear(obs_dim, hidden[0])
+        self.l2 = nn.Linear(hidden[0] + act_dim, hidden[1])
+        self.l3 = nn.Linear(hidden[1], 1)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(self.l1(observation))
+        h = torch.relu(self.l2(torch.cat([h, action], -1)))
+        return self.l3(h)
+
+
+def make_ddpg_critic(obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300), *,
+                     arch: str = "late_action") -> ValueOperator:
+    """The DDPG critic as a :class:`~torchrl.modules.ValueOperator` writing ``state_action_value``."""
+    if arch == "late_action":
+        return ValueOperator(LateActionCritic(obs_dim, act_dim, hidden), in_keys=["observation", "action"])
+    if arch == "concat":
+        return make_qvalue_network(obs_dim, act_dim, hidden)
+    raise ValueError(f"batch.agent.critic_arch must be late_action or concat, got {arch!r}")
+
+
+class DDPGAgent:
+    """The BCQ-repo DDPG on TorchRL's :class:`~torchrl.objectives.DDPGLoss` (see the module docstring)."""
+
+    def __init__(self, obs_dim: int, action_spec, *, actor_hidden: Sequence[int] = (400, 300),
+                 critic_hidden: Sequence[int] = (400, 300), actor_lr: float = 1e-4, critic_lr: float = 1e-3,
+                 critic_weight_decay: float = 1e-2, gamma: float = 0.99, tau: float = 0.005,
+                 batch_size: int = 100, critic_arch: str = "late_action"):
+        act_dim = action_spec.shape[-1]
+        self.batch_size = int(batch_size)
+        self.actor = make_deterministic_actor(obs_dim, action_spec, actor_hidden)
+        self.critic = make_ddpg_critic(obs_dim, act_dim, critic_hidden, arch=critic_arch)
+        self.loss = DDPGLoss(self.actor, self.critic, delay_actor=True, delay_value=True, loss_function="l2")
+        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)  # bootstraps on ~terminated
+        self.target_updater = fused_soft_update(self.loss, tau=tau)  # a SoftUpdate; built before the first forward
+        self.actor_optim = torch.optim.Adam(self.loss.actor_network_params.values(True, True), lr=actor_lr)
+        self.critic_optim = torch.optim.Adam(self.loss.value_network_params.values(True, True), lr=critic_lr,
+                                             weight_decay=critic_weight_decay)
+        self.updates = 0
+
+    @torch.no_grad()
+    def act(self, observation: torch.Tensor) -> torch.Tensor:
+        """The deterministic action ``mu(s)`` (within the bounds)."""
+        return self.actor(TensorDict({"observation": observation}, batch_size=observation.shape[:-1]))["action"]
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One gradient step: critic, then actor against the updated critic, then the soft target update."""
+        loss_value, _ = self.loss.loss_value(batch)
+        self.critic_optim.zero_grad(set_to_none=True)
+        loss_value.backward()
+        self.critic_optim.step()
+        loss_actor, _ = self.loss.loss_actor(batch)
+        self.actor_optim.zero_grad(set_to_none=True)
+        loss_actor.backward()
+        self.actor_optim.step()
+        self.target_updater.step()
+        self.updates += 1
+        return {"loss_value": loss_value.item(), "loss_actor": loss_actor.item()}
+
+    def train(self, replay, num_updates: int) -> dict[str, float] | None:
+        """``num_updates`` gradient steps on mini-batches drawn uniformly (with replacement) from ``replay``."""
+        out = None
+        for _ in range(int(num_updates)):
+            out = self.update(replay.sample())
+        return out
+
+
+def _agent_kwargs(cfg) -> dict[str, Any]:
+    a = _get(cfg, "batch.agent")
+    return {
+        "actor_hidden": list(a["actor_hidden"]),
+        "critic_hidden": list(a["critic_hidden"]),
+        "actor_lr": float(a["actor_lr"]),
+        "critic_lr": float(a["critic_lr"]),
+        "critic_weight_decay": float(a["critic_weight_decay"]),
+        "gamma": float(a["gamma"]),
+        "tau": float(a["tau"]),
+        "batch_size": int(a["batch_size"]),
+        "critic_arch": a.get("critic_arch", "late_action"),
+    }
+
+
+def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
+                 agent_hook=None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """Runs the DDPG recipe of ``cfg.batch`` on ``cfg.env``; returns (memmapped batch [steps], metadata extras).
+
+    Args:
+        cfg: the composed config (``env``, ``batch``); validated by the caller.
+        scratch: a scratch directory for the replay buffer (removed by the caller).
+        progress: show a tqdm bar (env steps/s, mean return of the last 10 episodes).
+        agent_hook: called with the :class:`DDPGAgent` once built (tests use it to watch the updates).
+    """
+    steps = int(_get(cfg, "batch.steps"))
+    sigma = float(_get(cfg, "batch.sigma"))
+    start_steps = int(_get(cfg, "batch.start_steps"))
+    seed = behaviour_seed(cfg)
+    seed_all(seed)
+    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    try:
+        low, high = env_bounds(env)
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        act_dim = low.shape[-1]
+        agent = DDPGAgent(obs_dim, action_spec_from_bounds(low, high), **_agent_kwargs(cfg))
+        if agent_hook is not None:
+            agent_hook(agent)
+        buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg),
+                                   replay_batch_size=agent.batch_size)
+        span = high - low
+
+        def act(observation: torch.Tensor, t: int) -> torch.Tensor:
+            if t < start_steps:
+                return low + span * torch.rand(act_dim)
+            action = agent.act(observation)
+            if sigma > 0:
+                action = action + sigma * torch.randn(act_dim)
+            return torch.maximum(torch.minimum(action, high), low)
+
+        train_time = [0.0]
+
+        def on_episode_end(length: int, ret: float, t: int) -> None:
+            t0 = time.perf_counter()
+            agent.train(buffers.replay, length)
+            train_time[0] += time.perf_counter() - t0
+
+        tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
+        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, tracker=tracker)
+        start = time.perf_counter()
+        try:
+            data = buffers.collect(runner)
+        finally:
+            tracker.close()
+        wall = time.perf_counter() - start
+    finally:
+        env.close()
+    returns = tracker.all_returns
+    extra = {
+        "action_low": low.tolist(),
+        "action_high": high.tolist(),
+        "behaviour": "ddpg",
+        "sigma": sigma,
+        "gradient_steps": agent.updates,
+        "env_steps": runner.t,
+        "behaviour_episodes": runner.episodes,
+        "behaviour_final_return_mean10": float(sum(returns[-10:]) / max(1, len(returns[-10:]))),
+        "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "updates_per_s": agent.updates / max(train_time[0], 1e-9),
+    }
+    log.info("DDPG collection done: %d env steps, %d gradient steps, %.1f env steps/s", runner.t, agent.updates,
+             extra["env_steps_per_s"])
+    return data, extra

@@ -1,0 +1,562 @@
+"""SAC training batches (spec 9.2), SAC execution batches (spec 9.3) and the shared SAC behaviour run.
+
+**The SAC agent** ("sac_adapt", the authors' data generator) on TorchRL's :class:`~torchrl.objectives.SACLoss`
+(v2: no state-value net):
+
+* tanh-Gaussian policy ``obs -> 256 -> 256 -> (mu, log sigma)``, ``log sigma`` clamped to [-20, 2], action
+  ``max_action * tanh(mu + sigma * eps)`` (TorchRL :class:`~torchrl.modules.TanhNormal` on the action bounds);
+* twin critics ``(s, a) -> 256 -> 256 -> 1`` with target copies, squared TD error summed over the two critics,
+  a TD(0) target with gamma 0.99 that bootstraps on ``terminated``, Polyak averaging 0.995
+  (``SoftUpdate(eps=0.995)``);
+* automatic entropy tuning, ``log alpha`` initialised to 0, target entropy ``-|A|`` measured on the tanh output in
+  [-1, 1] as in sac_adapt. TorchRL's log-probabilities are on the *scaled* action, so for Humanoid (bound 0.4) the
+  same target is ``-|A| + sum(log max_action)`` there; ``target_entropy: auto`` applies that shift;
+* Adam 3e-4 for the actor, the critics and alpha; batch 256 drawn uniformly from everything stored;
+* ``start_steps`` (10^4) uniformly random actions, then actions sampled from the policy; at the end of every episode
+  ``episode_length`` gradient steps; every ``eval_every`` (5000) env steps an evaluation of ``eval_episodes`` (10)
+  deterministic episodes (``max_action * tanh(mu)``).
+
+**One SAC run serves several batches.** A run is identified by the env, its time limit, the behaviour seed and the
+``batch.sac`` block (:func:`sac_run_identity`). It trains for ``sac.train_steps`` env steps and records, atomically,
+in ``<data_dir>/policies/<env>_sac_b<index>-<hash>/``: ``run.json`` (identity, every evaluation) and the actor's
+weights at every evaluation (``evals/step_<t>.pt``). From it:
+
+* the ``sac`` batch = the first ``batch.steps`` transitions of the run (the whole run with the defaults);
+* the *optimal* behaviour policy = the weights at the final evaluation;
+* the *mediocre* behaviour policy = the weights at the first evaluation whose mean return reaches
+  ``env.mediocre_threshold`` (spec 9.3; the threshold is applied when the policy is chosen, so changing it needs no
+  retraining). If no evaluation reaches it, the best evaluation is used and the batch's metadata says so.
+
+Whichever of the ``sac``/``med_*``/``opt_*`` batches is asked for first trains the run; the others reuse it. When an
+execution batch triggers the run, the ``sac`` training batch it produces as a by-product is saved too.
+
+**Execution batches** run the chosen policy for ``batch.steps`` steps (episodes limited as usual), deterministic
+(``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``); the
+metadata keeps the policy file, its evaluation step and its measured return (``behaviour_return``).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+import secrets
+import shutil
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.objectives import SACLoss, ValueEstimators
+
+from torchrl_bail.data.collection import (
+    LOCKS,
+    BehaviourBuffers,
+    BehaviourRun,
+    ReturnTracker,
+    _container,
+    _get,
+    _hash,
+    batch_name,
+    behaviour_seed,
+    data_dir_of,
+    env_bounds,
+    episode_limit,
+    file_lock,
+    fused_soft_update,
+    make_collection_env,
+    oracle_settings,
+    scratch_directory,
+    seed_all,
+)
+from torchrl_bail.modules import action_spec_from_bounds, make_qvalue_network, mlp
+
+__all__ = [
+    "TanhGaussianParams",
+    "make_sac_actor",
+    "SACAgent",
+    "SACRun",
+    "sac_run_identity",
+    "sac_run_dir",
+    "train_sac",
+    "ensure_sac_run",
+    "load_sac_run",
+    "collect_sac",
+    "collect_sac_exec",
+]
+
+log = logging.getLogger("torchrl_bail")
+
+EXEC_SEED_OFFSET = 10_000  # execution envs are seeded apart from the SAC run's own env
+EVAL_SEED_OFFSET = 20_000  # evaluation envs too
+
+
+class TanhGaussianParams(nn.Module):
+    """``obs -> hidden -> (loc, scale)`` with ``log scale`` clamped to ``[log_std_min, log_std_max]``."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (256, 256), *,
+                 log_std_min: float = -20.0, log_std_max: float = 2.0):
+        super().__init__()
+        self.net = mlp(obs_dim, 2 * act_dim, hidden)
+        self.log_std_min = float(log_std_min)
+        self.log_std_max = float(log_std_max)
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc, log_std = self.net(observation).chunk(2, dim=-1)
+        return loc, log_std.clamp(self.log_std_min, self.log_std_max).exp()
+
+
+def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256), *, log_std_min: float = -20.0,
+                   log_std_max: float = 2.0) -> ProbabilisticActor:
+    """The SAC tanh-Gaussian policy as a TorchRL :class:`~torchrl.modules.ProbabilisticActor`.
+
+    Under ``ExplorationType.DETERMINISTIC`` it outputs ``max_action * tanh(mu)``; under ``RANDOM`` a sample.
+    """
+    act_dim = action_spec.shape[-1]
+    params = TensorDictModule(
+        TanhGaussianParams(obs_dim, act_dim, hidden, log_std_min=log_std_min, log_std_max=log_std_max),
+        in_keys=["observation"], out_keys=["loc", "scale"],
+    )
+    low, high = action_spec.space.low, action_spec.space.high
+    return ProbabilisticActor(
+        params, in_keys=["loc", "scale"], spec=action_spec, distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high, "tanh_loc": False}, return_log_prob=False,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def _sac_kwargs(sac: dict) -> dict[str, Any]:
+    return {
+        "actor_hidden": list(sac["actor_hidden"]),
+        "critic_hidden": list(sac["critic_hidden"]),
+        "actor_lr": float(sac["actor_lr"]),
+        "critic_lr": float(sac["critic_lr"]),
+        "alpha_lr": float(sac["alpha_lr"]),
+        "gamma": float(sac["gamma"]),
+        "polyak": float(sac["polyak"]),
+        "alpha_init": float(sac["alpha_init"]),
+        "target_entropy": sac["target_entropy"],
+        "log_std_min": float(sac["log_std_min"]),
+        "log_std_max": float(sac["log_std_max"]),
+        "batch_size": int(sac["batch_size"]),
+        "loss_function": sac.get("loss_function", "l2"),
+    }
+
+
+class SACAgent:
+    """sac_adapt's SAC on TorchRL's :class:`~torchrl.objectives.SACLoss` (see the module docstring)."""
+
+    def __init__(self, obs_dim: int, action_spec, *, actor_hidden: Sequence[int] = (256, 256),
+                 critic_hidden: Sequence[int] = (256, 256), actor_lr: float = 3e-4, critic_lr: float = 3e-4,
+                 alpha_lr: float = 3e-4, gamma: float = 0.99, polyak: float = 0.995, alpha_init: float = 1.0,
+                 target_entropy: float | str = "auto", log_std_min: float = -20.0, log_std_max: float = 2.0,
+                 batch_size: int = 256, loss_function: str = "l2"):
+        act_dim = action_spec.shape[-1]
+        self.batch_size = int(batch_size)
+        self.actor_hidden = list(actor_hidden)
+        self.log_std_bounds = (float(log_std_min), float(log_std_max))
+        self.actor = make_sac_actor(obs_dim, action_spec, actor_hidden, log_std_min=log_std_min,
+                                    log_std_max=log_std_max)
+        self.qvalue = make_qvalue_network(obs_dim, act_dim, critic_hidden)
+        if target_entropy == "auto":
+            half_range = (action_spec.space.high - action_spec.space.low) / 2
+            target_entropy = -float(act_dim) + float(torch.log(half_range).sum())
+        self.target_entropy = float(target_entropy)
+        self.loss = SACLoss(self.actor, self.qvalue, num_qvalue_nets=2, loss_function=loss_function,
+                            alpha_init=alpha_init, target_entropy=self.target_entropy, delay_actor=False,
+                            delay_qvalue=True, action_spec=action_spec)
+        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)  # bootstraps on ~terminated
+        self.target_updater = fused_soft_update(self.loss, eps=polyak)  # a SoftUpdate(eps=0.995)
+        self.actor_optim = torch.optim.Adam(self.loss.actor_network_params.values(True, True), lr=actor_lr)
+        self.critic_optim = torch.optim.Adam(self.loss.qvalue_network_params.values(True, True), lr=critic_lr)
+        self.alpha_optim = torch.optim.Adam([self.loss.log_alpha], lr=alpha_lr)
+        self.updates = 0
+
+    @torch.no_grad()
+    def act(self, observation: torch.Tensor, *, deterministic: bool = False) -> torch.Tensor:
+        mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+        with set_exploration_type(mode):
+            td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
+            return self.actor(td)["action"]
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One gradient step on actor, critics and alpha (all from the same mini-batch), then Polyak averaging."""
+        out = self.loss(batch)
+        total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+        self.actor_optim.zero_grad(set_to_none=True)
+        self.critic_optim.zero_grad(set_to_none=True)
+        self.alpha_optim.zero_grad(set_to_none=True)
+        total.backward()  # actor loss sees detached critics, alpha loss detached log-probs: no cross-talk
+        self.critic_optim.step()
+        self.actor_optim.step()
+        self.alpha_optim.step()
+        self.target_updater.step()
+        self.updates += 1
+        return {"loss_qvalue": out["loss_qvalue"].item(), "loss_actor": out["loss_actor"].item(),
+                "alpha": out["alpha"].item()}
+
+    def train(self, replay, num_updates: int) -> dict[str, float] | None:
+        out = None
+        for _ in range(int(num_updates)):
+            out = self.update(replay.sample())
+        return out
+
+    def policy_state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().clone() for k, v in self.actor.state_dict().items()}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the shared SAC run
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _sac_block(cfg) -> dict:
+    return dict(_container(_get(cfg, "batch.sac")))
+
+
+def sac_run_identity(cfg) -> dict:
+    """What determines a SAC run: env id, its time limit, behaviour seed, the ``batch.sac`` block.
+
+    A ``sac`` batch in oracle mode trains its own run on 2000-step episodes; execution batches always use the run
+    on the env's normal time limit (oracle mode only changes how they are executed).
+    """
+    if _get(cfg, "batch.recipe") == "sac":
+        limit = episode_limit(cfg)
+    else:
+        limit = _get(cfg, "env.max_episode_steps")
+        limit = 1000 if limit is None else int(limit)
+    return {"env_id": _get(cfg, "env.id"), "max_episode_steps": limit, "seed": behaviour_seed(cfg),
+            "sac": _sac_block(cfg)}
+
+
+def sac_run_dir(cfg, data_dir=None) -> Path:
+    identity = sac_run_identity(cfg)
+    name = f"{_get(cfg, 'env.name')}_sac_b{int(_get(cfg, 'batch.index'))}-{_hash(identity)}"
+    return data_dir_of(cfg, data_dir) / "policies" / name
+
+
+class SACRun:
+    """A finished SAC run on disk: its evaluations and the policy weights saved at each of them."""
+
+    def __init__(self, path: Path, record: dict):
+        self.path = Path(path)
+        self.record = record
+
+    @property
+    def evaluations(self) -> list[dict]:
+        return self.record["evaluations"]
+
+    def optimal(self) -> dict:
+        """The final evaluation (the fully trained policy)."""
+        return self.evaluations[-1]
+
+    def mediocre(self, threshold: float) -> tuple[dict, bool]:
+        """The first evaluation whose mean return reaches ``threshold`` (else the best one, flagged ``False``)."""
+        for ev in self.evaluations:
+            if ev["return_mean"] >= threshold:
+                return ev, True
+        return max(self.evaluations, key=lambda ev: ev["return_mean"]), False
+
+    def load_actor(self, evaluation: dict) -> ProbabilisticActor:
+        meta = self.record
+        low = torch.tensor(meta["action_low"])
+        high = torch.tensor(meta["action_high"])
+        sac = meta["identity"]["sac"]
+        actor = make_sac_actor(meta["obs_dim"], action_spec_from_bounds(low, high), sac["actor_hidden"],
+                               log_std_min=sac["log_std_min"], log_std_max=sac["log_std_max"])
+        state = torch.load(self.path / evaluation["file"], map_location="cpu", weights_only=True)
+        actor.load_state_dict(state)
+        return actor
+
+
+def load_sac_run(path: Path) -> SACRun | None:
+    path = Path(path)
+    try:
+        record = json.loads((path / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not record.get("evaluations") or not all((path / ev["file"]).is_file() for ev in record["evaluations"]):
+        return None
+    return SACRun(path, record)
+
+
+def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
+    """Runs the SAC behaviour run of ``cfg`` (``batch.sac``) on ``cfg.env``.
+
+    Returns:
+        ``(data, record, snapshots)``: the memmapped transitions of the run ([train_steps], oracle-cut in oracle
+        mode), the run record (identity, evaluations, speed) and ``{file name: actor state_dict}``.
+    """
+    from torchrl_bail.evaluation import Evaluator
+
+    sac = _sac_block(cfg)
+    identity = sac_run_identity(cfg)
+    seed = identity["seed"]
+    train_steps = int(sac["train_steps"])
+    start_steps = int(sac["start_steps"])
+    eval_every = int(sac["eval_every"])
+    oracle = oracle_settings(cfg) if _get(cfg, "batch.recipe") == "sac" else None
+    seed_all(seed)
+    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=identity["max_episode_steps"], seed=seed)
+    eval_limit = _get(cfg, "env.max_episode_steps")
+    evaluator = Evaluator(_get(cfg, "env.id"), episodes=int(sac["eval_episodes"]), seed=seed + EVAL_SEED_OFFSET,
+                          max_steps=int(eval_limit or 1000), max_episode_steps=eval_limit)
+    try:
+        low, high = env_bounds(env)
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        act_dim = low.shape[-1]
+        agent = SACAgent(obs_dim, action_spec_from_bounds(low, high), **_sac_kwargs(sac))
+        if agent_hook is not None:
+            agent_hook(agent)
+        buffers = BehaviourBuffers(train_steps, Path(scratch), oracle=oracle, replay_batch_size=agent.batch_size)
+        span = high - low
+        evaluations: list[dict] = []
+        snapshots: dict[str, dict[str, torch.Tensor]] = {}
+        tracker = ReturnTracker(train_steps, desc=f"SAC {_get(cfg, 'env.name')} b{_get(cfg, 'batch.index')}",
+                                progress=progress)
+        timers = {"train": 0.0, "eval": 0.0}
+
+        def act(observation: torch.Tensor, t: int) -> torch.Tensor:
+            if t < start_steps:
+                return low + span * torch.rand(act_dim)
+            return agent.act(observation)
+
+        def on_episode_end(length: int, ret: float, t: int) -> None:
+            t0 = time.perf_counter()
+            agent.train(buffers.replay, length)
+            timers["train"] += time.perf_counter() - t0
+
+        def evaluate(t: int) -> None:
+            t0 = time.perf_counter()
+            result = evaluator(agent.actor)
+            fname = f"evals/step_{t:09d}.pt"
+            snapshots[fname] = agent.policy_state()
+            evaluations.append({"step": t, "return_mean": result.mean_return, "return_std": result.std_return,
+                                "returns": [float(r) for r in result.returns], "failures": result.failures,
+                                "gradient_steps": agent.updates, "file": fname})
+            timers["eval"] += time.perf_counter() - t0
+            tracker.note(eval=f"{result.mean_return:.0f}")
+            log.info("SAC %s step %d: eval return %.1f +- %.1f", _get(cfg, "env.id"), t, result.mean_return,
+                     result.std_return)
+
+        def on_step(t: int) -> None:
+            if t % eval_every == 0:
+                evaluate(t)
+
+        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
+        start = time.perf_counter()
+        try:
+            data = buffers.collect(runner)
+            if not evaluations or evaluations[-1]["step"] != runner.t:
+                evaluate(runner.t)  # the final policy is always evaluated and saved
+        finally:
+            tracker.close()
+        wall = time.perf_counter() - start
+    finally:
+        env.close()
+        evaluator.close()
+    record = {
+        "identity": identity,
+        "name": sac_run_dir(cfg, "/").name,
+        "obs_dim": int(obs_dim),
+        "action_low": low.tolist(),
+        "action_high": high.tolist(),
+        "target_entropy": agent.target_entropy,
+        "env_steps": runner.t,
+        "episodes": runner.episodes,
+        "gradient_steps": agent.updates,
+        "evaluations": evaluations,
+        "wall_time_s": wall,
+        "train_time_s": timers["train"],
+        "eval_time_s": timers["eval"],
+        "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "updates_per_s": agent.updates / max(timers["train"], 1e-9),
+        "final_alpha": float(agent.loss.log_alpha.exp()),
+        "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    return data, record, snapshots
+
+
+def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
+    """Writes the run to a temporary directory beside ``path`` and renames it into place (atomic)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}"
+    try:
+        (tmp / "evals").mkdir(parents=True)
+        for fname, state in snapshots.items():
+            torch.save(state, tmp / fname)
+        (tmp / "run.json").write_text(json.dumps(record, indent=2) + "\n")
+        if path.exists():  # a concurrent identical run finished first: keep it
+            shutil.rmtree(tmp)
+        else:
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return SACRun(path, record)
+
+
+def _run_cfg(cfg):
+    """``cfg`` with ``batch`` replaced by the ``sac`` training batch this run produces (steps = train_steps)."""
+    run_cfg = copy.deepcopy(cfg)
+    sac = _sac_block(cfg)
+    batch = {"kind": "sac", "recipe": "sac", "index": int(_get(cfg, "batch.index")),
+             "seed": _get(cfg, "batch.seed"), "steps": int(sac["train_steps"]), "sac": sac}
+    if OmegaConf.is_config(run_cfg):
+        from omegaconf import open_dict
+
+        with open_dict(run_cfg):
+            run_cfg.batch = OmegaConf.create(batch)
+    else:
+        run_cfg["batch"] = batch
+    return run_cfg
+
+
+def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
+    """The SAC run behind ``cfg``'s execution batch: loaded from ``policies/``, or trained once and saved.
+
+    When it has to be trained, the ``sac`` training batch it produces (its first ``train_steps`` transitions) is
+    saved as well, under the name and hash a ``batch=sac`` config with ``batch.steps = sac.train_steps`` gives.
+    """
+    from torchrl_bail.data.collection import batch_metadata, batch_path, clean_stale
+
+    path = sac_run_dir(cfg, data_dir)
+    run = load_sac_run(path)
+    if run is not None:
+        return run
+    root = data_dir_of(cfg, data_dir)
+    clean_stale(root)
+    with file_lock(root / LOCKS / f"policies-{path.name}.lock"):
+        run = load_sac_run(path)
+        if run is not None:
+            return run
+        if path.exists():
+            aside = path.with_name(f"{path.name}.broken-{time.strftime('%Y%m%d-%H%M%S')}")
+            os.replace(path, aside)
+        run_cfg = _run_cfg(cfg)
+        with scratch_directory(root, path.name) as scratch:
+            start = time.perf_counter()
+            data, record, snapshots = train_sac(run_cfg, scratch=scratch, progress=progress)
+            run = _save_run(path, record, snapshots)
+            by_product = batch_path(run_cfg, root)
+            if not by_product.exists():
+                from torchrl_bail.data.batch import save_batch
+
+                extra = _sac_batch_extra(run, data.shape[0])
+                meta = batch_metadata(run_cfg, extra, wall_time_s=time.perf_counter() - start)
+                try:
+                    save_batch(data, by_product, meta)
+                    log.info("saved the SAC training batch of this run as %s", by_product)
+                except (FileExistsError, OSError) as err:  # a concurrent job saved it first
+                    log.info("SAC training batch %s not saved (%s)", by_product, err)
+    return run
+
+
+def _sac_batch_extra(run: SACRun, steps: int) -> dict[str, Any]:
+    rec = run.record
+    final = run.optimal()
+    return {
+        "action_low": list(rec["action_low"]),
+        "action_high": list(rec["action_high"]),
+        "behaviour": "sac",
+        "sac_run": str(run.path),
+        "sac_run_train_steps": rec["env_steps"],
+        "gradient_steps": rec["gradient_steps"],
+        "evaluations": [{"step": e["step"], "return_mean": e["return_mean"]} for e in rec["evaluations"]
+                        if e["step"] <= steps],
+        "behaviour_final_eval_return": final["return_mean"],
+        "env_steps_per_s": rec["env_steps_per_s"],
+        "updates_per_s": rec["updates_per_s"],
+    }
+
+
+def collect_sac(cfg, *, scratch: Path, progress: bool = True,
+                data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """The ``sac`` recipe: trains the SAC run (saving its policies) and returns its first ``batch.steps`` rows."""
+    steps = int(_get(cfg, "batch.steps"))
+    root = data_dir_of(cfg, data_dir)
+    path = sac_run_dir(cfg, root)
+    with file_lock(root / LOCKS / f"policies-{path.name}.lock"):
+        data, record, snapshots = train_sac(cfg, scratch=scratch, progress=progress)
+        run = load_sac_run(path)
+        if run is None:
+            if path.exists():
+                os.replace(path, path.with_name(f"{path.name}.broken-{time.strftime('%Y%m%d-%H%M%S')}"))
+            run = _save_run(path, record, snapshots)
+        else:  # the policies exist already (e.g. the batch was deleted): keep them, report this run's numbers
+            run = SACRun(path, {**run.record, **{k: record[k] for k in ("env_steps_per_s", "updates_per_s")}})
+    if steps < data.shape[0]:
+        data = data[:steps]
+    return data, _sac_batch_extra(SACRun(run.path, record), steps)
+
+
+def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
+                     data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """An execution batch: ``batch.steps`` transitions of the mediocre/optimal SAC policy (sigma = 0 or sigma(s))."""
+    steps = int(_get(cfg, "batch.steps"))
+    stochastic = bool(_get(cfg, "batch.stochastic"))
+    which = _get(cfg, "batch.policy")
+    root = data_dir_of(cfg, data_dir)
+    run = ensure_sac_run(cfg, progress=progress, data_dir=root)
+    if which == "optimal":
+        evaluation, reached = run.optimal(), True
+    else:
+        threshold = float(_get(cfg, "env.mediocre_threshold"))
+        evaluation, reached = run.mediocre(threshold)
+        if not reached:
+            log.warning("no evaluation of SAC run %s reached the mediocre threshold %.0f; using the best one "
+                        "(step %d, return %.1f)", run.path.name, threshold, evaluation["step"],
+                        evaluation["return_mean"])
+    actor = run.load_actor(evaluation)
+    seed = behaviour_seed(cfg) + EXEC_SEED_OFFSET
+    seed_all(seed)
+    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    mode = ExplorationType.RANDOM if stochastic else ExplorationType.DETERMINISTIC
+    try:
+        low, high = env_bounds(env)
+
+        @torch.no_grad()
+        def act(observation: torch.Tensor, t: int) -> torch.Tensor:
+            with set_exploration_type(mode):
+                return actor(TensorDict({"observation": observation}, batch_size=[]))["action"]
+
+        buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg), replay_batch_size=None)
+        tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
+        runner = BehaviourRun(env, act, tracker=tracker)
+        start = time.perf_counter()
+        try:
+            data = buffers.collect(runner)
+        finally:
+            tracker.close()
+        wall = time.perf_counter() - start
+    finally:
+        env.close()
+    extra = {
+        "action_low": low.tolist(),
+        "action_high": high.tolist(),
+        "behaviour": "sac_exec",
+        "behaviour_policy": {
+            "which": which,
+            "stochastic": stochastic,
+            "run": str(run.path),
+            "file": str(run.path / evaluation["file"]),
+            "eval_step": evaluation["step"],
+            "eval_return_mean": evaluation["return_mean"],
+            "eval_return_std": evaluation["return_std"],
+            "mediocre_threshold": None if which == "optimal" else float(_get(cfg, "env.mediocre_threshold")),
+            "threshold_reached": reached,
+        },
+        "behaviour_return": evaluation["return_mean"],
+        "env_steps": runner.t,
+        "env_steps_per_s": runner.t / max(wall, 1e-9),
+    }
+    return data, extra

@@ -1,0 +1,463 @@
+"""Fitting BAIL's upper envelope ``V(s)`` to the returns ``G`` (spec 3.4-3.7), and looking at the result.
+
+:func:`fit_upper_envelope` is the authors' static-BAIL procedure: Adam with *coupled* weight decay on every
+parameter, a train/validation split that forces the highest return into training, epochs of sequential
+mini-batches over the reshuffled training split, a validation loss after every epoch and early stopping with
+patience ``C = 4``. The penalty loss itself is :class:`~torchrl_bail.objectives.upper_envelope.UpperEnvelopeLoss`.
+
+:func:`envelope_values` evaluates a fitted envelope over a whole batch, :func:`fraction_below` measures how
+many returns it fails to cover and :func:`plot_envelope` draws the paper's Fig. 13.
+
+Examples:
+    >>> import torch
+    >>> from torchrl_bail.modules import make_value_network
+    >>> _ = torch.manual_seed(0)
+    >>> obs = torch.randn(500, 3)
+    >>> returns = obs[:, 0] + 0.1 * torch.randn(500)
+    >>> fit = fit_upper_envelope(make_value_network(3), obs, returns, epochs=5, progress=False,
+    ...                          generator=torch.Generator().manual_seed(0))
+    >>> len(fit.train_index), len(fit.val_index), len(fit.val_loss)
+    (401, 99, 5)
+    >>> values = envelope_values(fit.value_network, obs)
+    >>> values.shape
+    torch.Size([500])
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import matplotlib.pyplot as plt
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from tqdm.auto import tqdm
+
+from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+from torchrl_bail.plots import save_figure
+
+__all__ = [
+    "EarlyStopping",
+    "EnvelopeFit",
+    "envelope_split",
+    "fit_upper_envelope",
+    "envelope_values",
+    "fraction_below",
+    "plot_envelope",
+]
+
+#: ``"paper"`` (= ``"paper_best"``): revert to a real copy of the best weights after ``patience`` consecutive
+#: non-improving epochs, keep training, return the best weights. ``"paper_revert"``: the same reverts, return
+#: the weights of the last epoch. ``"as_coded"`` (= ``"as_coded_last"``): the authors' released code, whose
+#: "best" snapshot aliases the live weights: no effective revert, the last weights are returned.
+EarlyStopping = Literal["paper", "paper_best", "paper_revert", "as_coded", "as_coded_last"]
+
+_MODES = {
+    "paper": "paper_best",
+    "paper_best": "paper_best",
+    "paper_revert": "paper_revert",
+    "as_coded": "as_coded",
+    "as_coded_last": "as_coded",
+}
+
+#: validation points evaluated per forward pass (memory only: the loss is the exact mean over all of them)
+_VALIDATION_CHUNK = 65536
+
+
+@dataclass
+class EnvelopeFit:
+    """What :func:`fit_upper_envelope` returns.
+
+    Attributes:
+        value_network: the fitted envelope (the module passed in, updated in place).
+        train_loss: per epoch, the mean penalty loss over that epoch's mini-batches (weighted by their size).
+        val_loss: per epoch, the mean penalty loss over the whole validation set (``nan`` without one).
+        best_epoch: the 1-based epoch with the lowest validation loss (the last epoch without validation).
+        best_val_loss: that loss.
+        train_index / val_index: the split, as indices into the ``observations`` passed in.
+        revert_epochs: the epochs after which the weights were reverted to the best copy.
+        early_stopping: the resolved mode (``"paper_best"``, ``"paper_revert"`` or ``"as_coded"``).
+        returned: ``"best"`` or ``"last"``: which weights ``value_network`` holds.
+        optimizer: the Adam optimizer used (coupled L2 ``weight_decay``).
+    """
+
+    value_network: TensorDictModuleBase
+    train_loss: list[float]
+    val_loss: list[float]
+    best_epoch: int
+    best_val_loss: float
+    train_index: torch.Tensor
+    val_index: torch.Tensor
+    revert_epochs: list[int] = field(default_factory=list)
+    early_stopping: str = "paper_best"
+    returned: Literal["best", "last"] = "best"
+    optimizer: torch.optim.Optimizer | None = None
+
+    @property
+    def reverted(self) -> bool:
+        """Whether the weights were reverted to the best copy at least once during training."""
+        return bool(self.revert_epochs)
+
+    @property
+    def epochs(self) -> int:
+        """Number of epochs trained."""
+        return len(self.train_loss)
+
+
+def envelope_split(
+    returns: torch.Tensor, val_fraction: float = 0.2, *, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The authors' train/validation split (spec 3.5).
+
+    The index of the largest return is forced into training; the other ``N - 1`` indices are shuffled and the
+    first ``floor((1 - val_fraction) * N)`` of them join it (so training holds ``floor(0.8 N) + 1`` points);
+    the rest form the validation set. Tiny batches may leave the validation set empty.
+
+    Args:
+        returns (torch.Tensor): the returns ``G``, shape ``[N]`` (or ``[N, 1]``).
+        val_fraction (float): the validation share, in ``[0, 1)``. Defaults to ``0.2``.
+
+    Keyword Args:
+        generator (torch.Generator, optional): a CPU generator for the shuffle. Defaults to ``None`` (the global
+            RNG).
+
+    Returns:
+        ``(train_index, val_index)``, int64 CPU tensors; ``train_index[0]`` is the index of the largest return.
+
+    Examples:
+        >>> train, val = envelope_split(torch.tensor([0.0, 5.0, 1.0, 2.0, 3.0]), generator=torch.Generator().manual_seed(0))
+        >>> int(train[0]), len(train), len(val)
+        (1, 5, 0)
+        >>> train, val = envelope_split(torch.arange(10.0), generator=torch.Generator().manual_seed(0))
+        >>> int(train[0]), len(train), len(val), sorted(torch.cat([train, val]).tolist()) == list(range(10))
+        (9, 9, 1, True)
+    """
+    if not 0.0 <= float(val_fraction) < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    returns = returns.detach().reshape(-1)
+    n = returns.numel()
+    if n == 0:
+        raise ValueError("cannot split an empty batch: returns has 0 elements")
+    best = int(torch.argmax(returns).item())
+    others = torch.cat([torch.arange(best), torch.arange(best + 1, n)])
+    others = others[torch.randperm(n - 1, generator=generator)]
+    # round() guards floor against representation error, e.g. (1 - 0.2) * N for N = 10^6
+    n_first = min(n - 1, math.floor(round((1.0 - float(val_fraction)) * n, 6)))
+    train_index = torch.cat([torch.tensor([best]), others[:n_first]])
+    return train_index, others[n_first:]
+
+
+def _flat_returns(observations: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+    if not isinstance(observations, torch.Tensor) or not isinstance(returns, torch.Tensor):
+        raise TypeError(
+            f"observations and returns must be tensors, got {type(observations).__name__} and "
+            f"{type(returns).__name__}"
+        )
+    if observations.ndim != 2:
+        raise ValueError(f"observations must have shape [N, obs_dim], got {tuple(observations.shape)}")
+    if returns.ndim == 2 and returns.shape[-1] == 1:
+        returns = returns.squeeze(-1)
+    if returns.ndim != 1 or returns.shape[0] != observations.shape[0]:
+        raise ValueError(
+            f"returns must have shape [N] or [N, 1] with N = {observations.shape[0]} (the number of "
+            f"observations), got {tuple(returns.shape)}"
+        )
+    if not torch.isfinite(returns).all():
+        bad = int((~torch.isfinite(returns)).sum())
+        raise ValueError(f"returns contain {bad} non-finite value(s) (nan/inf); the envelope needs finite returns")
+    return returns
+
+
+def _module_device(module: torch.nn.Module) -> torch.device:
+    for tensor in module.parameters():
+        return tensor.device
+    return torch.device("cpu")
+
+
+def _module_dtype(module: torch.nn.Module) -> torch.dtype:
+    for tensor in module.parameters():
+        if tensor.is_floating_point():
+            return tensor.dtype
+    return torch.get_default_dtype()
+
+
+def _snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """A real copy of the weights (the authors' ``state_dict()`` aliases the live tensors, spec 3.7)."""
+    return {key: value.detach().clone() for key, value in module.state_dict().items()}
+
+
+def fit_upper_envelope(
+    value_network: TensorDictModuleBase,
+    observations: torch.Tensor,
+    returns: torch.Tensor,
+    *,
+    penalty: float = 1000.0,
+    lr: float = 3e-3,
+    weight_decay: float = 0.02,
+    batch_size: int = 800,
+    epochs: int = 50,
+    val_fraction: float = 0.2,
+    patience: int = 4,
+    early_stopping: EarlyStopping = "paper",
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = True,
+    callback: Callable[[int, dict[str, Any]], Any] | None = None,
+) -> EnvelopeFit:
+    """Fits the upper envelope ``V_phi`` to the returns as the authors do (spec 3.4-3.7).
+
+    BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
+
+    * **Loss**: :class:`~torchrl_bail.objectives.upper_envelope.UpperEnvelopeLoss` with ``K = penalty``: the
+      mean over a mini-batch of ``(V - G)^2``, times ``K`` where ``V < G``.
+    * **Regulariser**: ``torch.optim.Adam(weight_decay=0.02)`` on *all* parameters (biases included). This is
+      coupled L2 (``0.02 * phi`` added to the gradient), not AdamW.
+    * **Split**: :func:`envelope_split`: the largest return is forced into training, ``floor(0.8 N) + 1``
+      training points, the rest validation.
+    * **Epochs**: one pass over the training split per epoch, reshuffled every epoch, in sequential
+      mini-batches of ``batch_size`` without replacement; the last, partial mini-batch is kept.
+    * **Validation**: after every epoch, the penalty loss on the whole validation set. This is the *mean* over
+      the validation points; the authors' code sums chunk means over chunks of 800, which is the same up to a
+      constant factor (and the extra weight it gives the last partial chunk). Only the comparison between
+      epochs matters, so the choice of scale changes nothing but the logged numbers.
+    * **Early stopping** (patience ``C``), ``early_stopping=``:
+
+      - ``"paper"`` (default; alias ``"paper_best"``), the supplementary material's B.1: keep a real copy
+        ``phi'`` of the lowest-validation weights; after ``C`` consecutive epochs without improvement on the
+        best, revert ``phi <- phi'`` and keep training (the count restarts after a revert); at the end return
+        ``phi'``, the best weights seen.
+      - ``"paper_revert"``: the same reverts, but the weights of the last epoch are returned.
+      - ``"as_coded"`` (alias ``"as_coded_last"``), the released code: its "best" snapshot is
+        ``module.state_dict()``, which aliases the live tensors, so its revert is a no-op and it returns the
+        weights after the last epoch. Use it to reproduce the authors' numbers.
+
+      Without a validation set (``val_fraction=0`` or a tiny batch) there is no early stopping and the last
+      weights are returned in every mode.
+
+    Args:
+        value_network (TensorDictModuleBase): the envelope, e.g.
+            :func:`~torchrl_bail.modules.make_value_network`; it reads the observations from its first in-key
+            and writes ``"state_value"``. It is trained in place (and moved to ``device``).
+        observations (torch.Tensor): ``[N, obs_dim]``.
+        returns (torch.Tensor): ``[N]`` (or ``[N, 1]``) Monte-Carlo returns ``G``.
+
+    Keyword Args:
+        penalty (float): ``K``. Defaults to ``1000.0``.
+        lr (float): Adam learning rate. Defaults to ``3e-3``.
+        weight_decay (float): coupled L2 coefficient of Adam. Defaults to ``0.02``.
+        batch_size (int): mini-batch size. Defaults to ``800``.
+        epochs (int): passes over the training split. Defaults to ``50``.
+        val_fraction (float): validation share in ``[0, 1)``. Defaults to ``0.2``.
+        patience (int): ``C``, consecutive non-improving epochs before a revert. Defaults to ``4``.
+        early_stopping (str): ``"paper"`` | ``"paper_best"`` | ``"paper_revert"`` | ``"as_coded"`` |
+            ``"as_coded_last"``, see above. Defaults to ``"paper"``.
+        generator (torch.Generator, optional): a CPU generator for the split and the epoch shuffles; the same
+            seed (and the same initial weights) gives the same fit. Defaults to ``None`` (the global RNG).
+        device (torch.device or str, optional): where to train. Defaults to the network's device.
+        progress (bool): show a tqdm bar over epochs with the losses. Defaults to ``True``.
+        callback (callable, optional): called after every epoch as ``callback(epoch, info)`` with
+            ``info = {"train_loss", "val_loss", "best_epoch", "best_val_loss", "reverted"}``; a truthy return
+            value stops training after that epoch. Defaults to ``None``.
+
+    Returns:
+        :class:`EnvelopeFit`.
+    """
+    mode = _MODES.get(early_stopping)
+    if mode is None:
+        raise ValueError(f"early_stopping must be one of {sorted(_MODES)}, got {early_stopping!r}")
+    if int(batch_size) < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if int(epochs) < 1:
+        raise ValueError(f"epochs must be >= 1, got {epochs}")
+    if int(patience) < 1:
+        raise ValueError(f"patience must be >= 1, got {patience}")
+    if not 0.0 <= float(val_fraction) < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    returns = _flat_returns(observations, returns)
+    batch_size, epochs, patience = int(batch_size), int(epochs), int(patience)
+
+    device = torch.device(device) if device is not None else _module_device(value_network)
+    value_network.to(device)
+    dtype = _module_dtype(value_network)
+    loss_module = UpperEnvelopeLoss(value_network, penalty=penalty)
+    obs_key = value_network.in_keys[0]
+    return_key = loss_module.tensor_keys.value_target
+    optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
+
+    train_index, val_index = envelope_split(returns.cpu(), val_fraction, generator=generator)
+    if float(val_fraction) > 0 and len(val_index) == 0:
+        warnings.warn(
+            f"fit_upper_envelope: {len(returns)} points leave no validation point at val_fraction={val_fraction}; "
+            "training without validation or early stopping (the last weights are returned)",
+            stacklevel=2,
+        )
+    observations = observations.to(device=device, dtype=dtype)
+    returns = returns.to(device=device, dtype=dtype)
+    train_on_device = train_index.to(device)
+    validation = TensorDict(
+        {obs_key: observations[val_index.to(device)], return_key: returns[val_index.to(device)]},
+        batch_size=[len(val_index)],
+    )
+    n_train = len(train_index)
+
+    train_losses: list[float] = []
+    val_losses: list[float] = []
+    revert_epochs: list[int] = []
+    best_val, best_epoch, best_state, increases = math.inf, 0, None, 0
+    bar = tqdm(range(1, epochs + 1), desc="upper envelope", unit="epoch", disable=not progress, leave=False)
+    for epoch in bar:
+        # one pass over the reshuffled training split, sequential mini-batches, last partial one kept
+        order = train_on_device[torch.randperm(n_train, generator=generator).to(device)]
+        running = torch.zeros((), device=device, dtype=dtype)
+        for start in range(0, n_train, batch_size):
+            index = order[start : start + batch_size]
+            obs_b = observations.index_select(0, index)
+            batch = TensorDict({obs_key: obs_b, return_key: returns.index_select(0, index)},
+                               batch_size=obs_b.shape[:1])
+            loss, _ = loss_module.envelope_loss(batch)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            running += loss.detach() * obs_b.shape[0]
+        train_losses.append(float(running) / n_train)
+        val_loss = _validation_loss(loss_module, validation)
+        val_losses.append(val_loss)
+
+        if len(validation):
+            if val_loss < best_val:
+                best_val, best_epoch, best_state, increases = val_loss, epoch, _snapshot(value_network), 0
+            else:
+                increases += 1
+                if mode != "as_coded" and increases == patience and best_state is not None:
+                    value_network.load_state_dict(best_state)
+                    revert_epochs.append(epoch)
+                    increases = 0
+        else:
+            best_epoch, best_val = epoch, math.nan
+        bar.set_postfix(train=f"{train_losses[-1]:.4g}", val=f"{val_loss:.4g}", best=best_epoch)
+        if callback is not None:
+            info = {"train_loss": train_losses[-1], "val_loss": val_loss, "best_epoch": best_epoch,
+                    "best_val_loss": best_val, "reverted": bool(revert_epochs)}
+            if callback(epoch, info):
+                break
+    bar.close()
+
+    returned: Literal["best", "last"] = "last"
+    if mode == "paper_best" and best_state is not None:
+        value_network.load_state_dict(best_state)
+        returned = "best"
+    if not len(validation):
+        best_epoch = len(train_losses)
+    return EnvelopeFit(
+        value_network=value_network,
+        train_loss=train_losses,
+        val_loss=val_losses,
+        best_epoch=best_epoch,
+        best_val_loss=best_val,
+        train_index=train_index,
+        val_index=val_index,
+        revert_epochs=revert_epochs,
+        early_stopping=mode,
+        returned=returned,
+        optimizer=optimizer,
+    )
+
+
+@torch.no_grad()
+def _validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDict) -> float:
+    """The mean penalty loss over every validation point (chunked for memory)."""
+    n = len(validation)
+    if n == 0:
+        return math.nan
+    total = 0.0
+    for chunk in validation.split(_VALIDATION_CHUNK):
+        loss, _ = loss_module.envelope_loss(chunk)
+        total = total + loss * len(chunk)
+    return float(total) / n
+
+
+@torch.no_grad()
+def envelope_values(
+    value_network: TensorDictModuleBase, observations: torch.Tensor, batch_size: int = 65536
+) -> torch.Tensor:
+    """``V(s)`` for every observation, ``[N]``, computed in chunks without gradients.
+
+    The chunks run on the network's device; the result is on the device of ``observations``.
+
+    Examples:
+        >>> from torchrl_bail.modules import make_value_network
+        >>> envelope_values(make_value_network(4), torch.zeros(10, 4), batch_size=3).shape
+        torch.Size([10])
+    """
+    if observations.ndim != 2:
+        raise ValueError(f"observations must have shape [N, obs_dim], got {tuple(observations.shape)}")
+    if int(batch_size) < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    device, dtype = _module_device(value_network), _module_dtype(value_network)
+    obs_key, value_key = value_network.in_keys[0], value_network.out_keys[0]
+    chunks = []
+    for chunk in observations.split(int(batch_size)):
+        td = TensorDict({obs_key: chunk.to(device=device, dtype=dtype)}, batch_size=chunk.shape[:1])
+        chunks.append(value_network(td).get(value_key).reshape(-1).to(observations.device))
+    if not chunks:
+        return observations.new_zeros(0, dtype=dtype)
+    return torch.cat(chunks)
+
+
+def fraction_below(values: torch.Tensor, returns: torch.Tensor) -> float:
+    """Share of points whose return lies above the envelope (``V < G``).
+
+    Examples:
+        >>> fraction_below(torch.tensor([1.0, 2.0, 3.0, 4.0]), torch.tensor([0.0, 2.5, 3.0, 5.0]))
+        0.5
+    """
+    values, returns = values.detach().reshape(-1), returns.detach().reshape(-1)
+    if values.shape != returns.shape:
+        raise ValueError(f"values and returns must have the same number of elements, got "
+                         f"{values.numel()} and {returns.numel()}")
+    if values.numel() == 0:
+        return math.nan
+    return float((values < returns.to(values.device, values.dtype)).to(torch.float64).mean())
+
+
+def plot_envelope(
+    values: torch.Tensor, returns: torch.Tensor, path: str | Path, *, title: str | None = None
+) -> Path:
+    """The paper's Fig. 13: states sorted by ``V`` ascending, the envelope as a line, the returns as dots.
+
+    The figure is written atomically (temporary file in the same directory, then renamed over ``path``).
+
+    Args:
+        values (torch.Tensor): ``V(s_i)``, ``[N]``.
+        returns (torch.Tensor): ``G_i``, ``[N]``.
+        path (str or Path): the image file (``.png``, ``.pdf``, ...).
+
+    Keyword Args:
+        title (str, optional): the figure title. Defaults to ``None``.
+
+    Returns:
+        the path written.
+    """
+    values = values.detach().reshape(-1).to("cpu", torch.float64)
+    returns = returns.detach().reshape(-1).to("cpu", torch.float64)
+    if values.shape != returns.shape:
+        raise ValueError(f"values and returns must have the same number of elements, got "
+                         f"{values.numel()} and {returns.numel()}")
+    order = torch.argsort(values, stable=True)
+    x = torch.arange(len(values)).numpy()
+    below = fraction_below(values, returns) if len(values) else math.nan
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    ax.plot(x, returns[order].numpy(), linestyle="none", marker=".", markersize=1.0, alpha=0.5,
+            color="tab:blue", label="return G", rasterized=True)
+    ax.plot(x, values[order].numpy(), color="tab:red", linewidth=1.5, label="upper envelope V")
+    ax.set_xlabel("states, sorted by V (ascending)")
+    ax.set_ylabel("return")
+    ax.set_title(title if title is not None else f"Upper envelope ({below:.1%} of returns above V)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", markerscale=8)
+    return save_figure(fig, Path(path))
