@@ -1,10 +1,11 @@
 """Behaviour-data collection throughput: env steps/s of the DDPG and SAC recipes, agent updates/s, and the same
 updates written in bare PyTorch (same networks, same mini-batch, same optimizers) in the same process.
 
-    PYTHONPATH=src python benchmarks/bench_collection.py [--env Hopper-v5] [--steps 3000] [--updates 300]
+    python benchmarks/bench_collection.py [--env Hopper-v5] [--steps 3000] [--updates 300]
 
-Prints one table; ``ratio`` = bare updates/s / TorchRL updates/s (how much the TorchRL layers cost). With
-``--json PATH`` the numbers are also written as JSON.
+Prints env steps/s per acting policy, the steady-state collection rate (one update per env step) with the hours a
+10^6-step collection takes, and a table of updates/s with ``ratio`` = torchrl_bail / bare (1.0 = no overhead).
+With ``--json PATH`` the numbers are also written as JSON.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 os.environ.setdefault("RL_WARNINGS", "0")
 
 import torch  # noqa: E402
+from _bench import bare_mlp, compare, print_table  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 
@@ -44,28 +46,11 @@ def _store(obs_dim: int, act_dim: int, n: int, batch_size: int, scratch: Path) -
     return store
 
 
-def _rate(fn, n: int, warmup: int = 20) -> float:
-    for _ in range(warmup):
-        fn()
-    t = time.perf_counter()
-    for _ in range(n):
-        fn()
-    return n / (time.perf_counter() - t)
-
-
-def _mlp(i: int, o: int, hidden) -> nn.Sequential:
-    layers, d = [], i
-    for h in hidden:
-        layers += [nn.Linear(d, h), nn.ReLU()]
-        d = h
-    return nn.Sequential(*layers, nn.Linear(d, o))
-
-
 class BareDDPG:
     """The same DDPG update in plain PyTorch (late-action critic, critic then actor, Polyak on both)."""
 
     def __init__(self, obs_dim, act_dim, hidden=(400, 300)):
-        self.actor = _mlp(obs_dim, act_dim, hidden)
+        self.actor = bare_mlp(obs_dim, act_dim, hidden)
         self.l1 = nn.Linear(obs_dim, hidden[0])
         self.l2 = nn.Linear(hidden[0] + act_dim, hidden[1])
         self.l3 = nn.Linear(hidden[1], 1)
@@ -102,8 +87,8 @@ class BareSAC:
     """The same SAC update in plain PyTorch (tanh-Gaussian actor, twin critics, auto alpha, Polyak 0.995)."""
 
     def __init__(self, obs_dim, act_dim, hidden=(256, 256)):
-        self.actor = _mlp(obs_dim, 2 * act_dim, hidden)
-        self.q1, self.q2 = _mlp(obs_dim + act_dim, 1, hidden), _mlp(obs_dim + act_dim, 1, hidden)
+        self.actor = bare_mlp(obs_dim, 2 * act_dim, hidden)
+        self.q1, self.q2 = bare_mlp(obs_dim + act_dim, 1, hidden), bare_mlp(obs_dim + act_dim, 1, hidden)
         self.q1_t, self.q2_t = copy.deepcopy(self.q1), copy.deepcopy(self.q2)
         self.log_alpha = torch.zeros((), requires_grad=True)
         self.target_entropy = -float(act_dim)
@@ -150,20 +135,19 @@ class BareSAC:
             torch._foreach_lerp_(tgt, src, 0.005)
 
 
-def bench_updates(obs_dim, act_dim, updates: int, scratch: Path) -> dict:
-    out = {}
+def bench_updates(obs_dim, act_dim, updates: int, scratch: Path) -> list[dict]:
+    """Agent updates/s (replay sample + update) beside the bare-PyTorch twin, interleaved in one process."""
     spec = action_spec_from_bounds([-1.0] * act_dim, [1.0] * act_dim)
-    store = _store(obs_dim, act_dim, 20_000, 100, scratch / "ddpg")
-    ddpg, bare = DDPGAgent(obs_dim, spec), BareDDPG(obs_dim, act_dim)
-    data = store.rb.storage._storage
-    out["ddpg_updates_per_s"] = _rate(lambda: ddpg.update(store.sample()), updates)
-    out["ddpg_bare_updates_per_s"] = _rate(lambda: bare.update(data[torch.randint(0, 20_000, (100,))]), updates)
-    store = _store(obs_dim, act_dim, 20_000, 256, scratch / "sac")
-    data = store.rb.storage._storage
-    sac, bare = SACAgent(obs_dim, spec), BareSAC(obs_dim, act_dim)
-    out["sac_updates_per_s"] = _rate(lambda: sac.update(store.sample()), updates)
-    out["sac_bare_updates_per_s"] = _rate(lambda: bare.update(data[torch.randint(0, 20_000, (256,))]), updates)
-    return out
+    rows = []
+    for name, agent_cls, bare_cls, batch in (("DDPG update (batch 100)", DDPGAgent, BareDDPG, 100),
+                                            ("SAC update (batch 256)", SACAgent, BareSAC, 256)):
+        store = _store(obs_dim, act_dim, 20_000, batch, scratch / agent_cls.__name__)
+        data = store.rb.storage._storage
+        agent, bare = agent_cls(obs_dim, spec), bare_cls(obs_dim, act_dim)
+        rows.append(compare(name, lambda a=agent, s=store: a.update(s.sample()),
+                            lambda b=bare, d=data, k=batch: b.update(d[torch.randint(0, 20_000, (k,))]),
+                            n=updates))
+    return rows
 
 
 def bench_env(env_id: str, steps: int, obs_dim: int, act_dim: int) -> dict:
@@ -207,16 +191,18 @@ def main(argv=None) -> int:
     res = {"env": args.env, "threads": torch.get_num_threads()}
     with tempfile.TemporaryDirectory() as d:
         res.update(bench_env(args.env, args.steps, obs_dim, act_dim))
-        res.update(bench_updates(obs_dim, act_dim, args.updates, Path(d)))
-    for algo in ("ddpg", "sac"):
-        res[f"{algo}_ratio_bare_over_torchrl"] = res[f"{algo}_bare_updates_per_s"] / res[f"{algo}_updates_per_s"]
+        rows = bench_updates(obs_dim, act_dim, args.updates, Path(d))
+    for algo, row in zip(("ddpg", "sac"), rows):
+        res[f"{algo}_updates_per_s"] = row["torchrl_bail"]
+        res[f"{algo}_ratio_torchrl_bail_over_bare"] = row["ratio"]
         # one update per env step: the steady-state collection rate of the recipe
         env_rate = res["env_steps_per_s_ddpg_actor" if algo == "ddpg" else "env_steps_per_s_sac_actor"]
-        res[f"{algo}_collection_steps_per_s"] = 1 / (1 / env_rate + 1 / res[f"{algo}_updates_per_s"])
+        res[f"{algo}_collection_steps_per_s"] = 1 / (1 / env_rate + 1 / row["torchrl_bail"])
         res[f"{algo}_hours_per_1e6_steps"] = 1e6 / res[f"{algo}_collection_steps_per_s"] / 3600
     width = max(len(k) for k in res)
     for k, v in res.items():
         print(f"{k:<{width}}  {v:.2f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    print_table(rows, "Behaviour-agent updates/s: torchrl_bail vs bare PyTorch (ratio = torchrl_bail / bare)")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
     return 0

@@ -16,7 +16,6 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.data import collection
 from torchrl_bail.data.collection import (
     SCRATCH,
     CollectionConfigError,

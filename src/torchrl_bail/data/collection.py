@@ -64,7 +64,9 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
+
+from torchrl_bail.data.returns import discounted_returns
 
 __all__ = [
     "RECIPES",
@@ -617,17 +619,6 @@ def make_collection_env(env_id: str, *, max_episode_steps: int | None, seed: int
     return env
 
 
-def discounted_returns(rewards: torch.Tensor, gamma: float) -> torch.Tensor:
-    """Plain discounted reward-to-go of one episode (no bootstrapping), float64 accumulation."""
-    r = rewards.reshape(-1).double().numpy()
-    out = np.empty_like(r)
-    acc = 0.0
-    for t in range(len(r) - 1, -1, -1):
-        acc = r[t] + gamma * acc
-        out[t] = acc
-    return torch.from_numpy(out).float()
-
-
 class EpisodeStore:
     """A preallocated memmap store of ``capacity`` transitions (the batch), filled one episode at a time.
 
@@ -693,7 +684,8 @@ class BatchSink:
             keep = min(n, self.steps - self.kept)
             rows = episode[:keep]
         else:
-            g = discounted_returns(episode["next", "reward"], float(self.oracle["gamma"]))
+            g = discounted_returns(episode["next", "reward"], torch.zeros(n, dtype=torch.int64),
+                                   float(self.oracle["gamma"])).float()
             keep_ep = min(n, int(self.oracle["keep"]))
             rows = episode[:keep_ep].clone()
             rows.set("oracle_return", g[:keep_ep])

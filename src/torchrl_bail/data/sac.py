@@ -40,7 +40,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import math
 import os
 import secrets
 import shutil

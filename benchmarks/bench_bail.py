@@ -1,0 +1,156 @@
+"""BAIL throughput: Monte-Carlo returns on 10^6 transitions, and envelope / policy updates per second beside a
+bare PyTorch loop doing the same math (same networks, same mini-batch, same optimizer) in the same process.
+
+    python benchmarks/bench_bail.py [--transitions 1000000] [--updates 300] [--json PATH]
+
+The library side is exactly what a run executes per iteration:
+
+* envelope: the body of :func:`torchrl_bail.envelope.fit_upper_envelope`'s inner loop (index a mini-batch of
+  800 from the training split, :class:`UpperEnvelopeLoss`, Adam with coupled weight decay);
+* policy: :func:`torchrl_bail.trainer.train`'s iteration (``TensorDictReplayBuffer.sample()`` of 1000 with
+  replacement, then :meth:`BehaviourCloning.update`: TorchRL ``BCLoss`` + Adam).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from _bench import bare_mlp, compare, print_table, write_json
+from tensordict import TensorDict
+from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
+
+from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.data import monte_carlo_returns
+from torchrl_bail.modules import action_spec_from_bounds, make_value_network
+from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+
+OBS, ACT = 11, 3  # Hopper-v5
+
+
+def synthetic_batch(n: int, generator: torch.Generator) -> TensorDict:
+    """Hopper-sized TED rows: 1000-step (time-limit) episodes mixed with falls of 20-400 steps."""
+    lengths, total = [], 0
+    while total < n:
+        length = 1000 if torch.rand((), generator=generator) < 0.5 else int(torch.randint(20, 400, (), generator=generator))
+        length = min(length, n - total)
+        lengths.append(length)
+        total += length
+    episode = torch.repeat_interleave(torch.arange(len(lengths)), torch.tensor(lengths))
+    last = torch.ones(n, dtype=torch.bool)
+    last[:-1] = episode[1:] != episode[:-1]
+    last[-1] = False  # the batch's final episode is unfinished
+    full = torch.tensor([length == 1000 for length in lengths])[episode]
+    truncated = (last & full).unsqueeze(-1)
+    terminated = (last & ~full).unsqueeze(-1)
+    return TensorDict({
+        "observation": torch.randn(n, OBS, generator=generator),
+        "action": torch.rand(n, ACT, generator=generator) * 2 - 1,
+        "episode": episode,
+        "next": {"reward": torch.rand(n, 1, generator=generator) * 3, "terminated": terminated,
+                 "truncated": truncated, "done": terminated | truncated},
+    }, [n])
+
+
+def bench_returns(n: int) -> dict:
+    data = synthetic_batch(n, torch.Generator().manual_seed(0))
+    monte_carlo_returns(data[:20_000])  # warm-up
+    start = time.perf_counter()
+    monte_carlo_returns(data, gamma=0.99, horizon=1000, augment="gain")
+    gain = time.perf_counter() - start
+    start = time.perf_counter()
+    monte_carlo_returns(data, gamma=0.99, horizon=1000, augment="none")
+    plain = time.perf_counter() - start
+    print(f"\nMonte-Carlo returns on {n:,} transitions ({int(data['episode'][-1]) + 1} episodes): "
+          f"gain augmentation {gain:.2f} s, plain {plain:.2f} s")
+    return {"name": "returns", "transitions": n, "gain_s": gain, "plain_s": plain}
+
+
+def bench_envelope(n_updates: int) -> dict:
+    n, batch = 200_000, 800
+    g = torch.Generator().manual_seed(1)
+    observations, returns = torch.randn(n, OBS, generator=g), torch.rand(n, generator=g) * 300
+    train_index = torch.randperm(n, generator=g)[: int(0.8 * n)]
+
+    # library: the inner loop of fit_upper_envelope
+    torch.manual_seed(0)
+    value = make_value_network(OBS)
+    loss_module = UpperEnvelopeLoss(value, penalty=1000.0)
+    optimizer = torch.optim.Adam(loss_module.parameters(), lr=3e-3, weight_decay=0.02)
+    cursor = {"i": 0}
+
+    def library():
+        start = cursor["i"] = (cursor["i"] + batch) % (len(train_index) - batch)
+        index = train_index[start:start + batch]
+        obs_b = observations.index_select(0, index)
+        td = TensorDict({"observation": obs_b, "return": returns.index_select(0, index)}, batch_size=obs_b.shape[:1])
+        loss, _ = loss_module.envelope_loss(td)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    # bare: the same math on a plain nn.Sequential
+    torch.manual_seed(0)
+    net = bare_mlp(OBS, 1, (128, 128))
+    with torch.no_grad():
+        net[-1].weight.mul_(0.1)
+        net[-1].bias.zero_()
+    bare_opt = torch.optim.Adam(net.parameters(), lr=3e-3, weight_decay=0.02)
+    bare_cursor = {"i": 0}
+
+    def bare():
+        start = bare_cursor["i"] = (bare_cursor["i"] + batch) % (len(train_index) - batch)
+        index = train_index[start:start + batch]
+        gap = net(observations[index]).squeeze(-1) - returns[index]
+        loss = torch.where(gap < 0, 1000.0 * gap.square(), gap.square()).mean()
+        bare_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        bare_opt.step()
+
+    return compare("envelope update (batch 800)", library, bare, n=n_updates)
+
+
+def bench_policy(n_updates: int) -> dict:
+    n, batch = 300_000, 1000
+    g = torch.Generator().manual_seed(2)
+    data = TensorDict({"observation": torch.randn(n, OBS, generator=g),
+                       "action": torch.rand(n, ACT, generator=g) * 2 - 1}, [n])
+    spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
+
+    torch.manual_seed(0)
+    algo = BehaviourCloning(obs_dim=OBS, action_spec=spec, batch_size=batch, epochs=1)
+    buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch)
+
+    def library():
+        algo.update(buffer.sample())
+
+    torch.manual_seed(0)
+    actor = bare_mlp(OBS, ACT, (400, 300))
+    bare_opt = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    obs, act = data["observation"], data["action"]
+
+    def bare():
+        index = torch.randint(n, (batch,))
+        loss = (torch.tanh(actor(obs[index])) - act[index]).square().mean()
+        bare_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        bare_opt.step()
+
+    return compare("policy update (BC, batch 1000)", library, bare, n=n_updates)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--transitions", type=int, default=1_000_000)
+    parser.add_argument("--updates", type=int, default=300, help="updates per timed round (5 rounds per side)")
+    parser.add_argument("--json", default=None, help="also write the numbers here")
+    args = parser.parse_args()
+    returns_row = bench_returns(args.transitions)
+    rows = [bench_envelope(args.updates), bench_policy(args.updates)]
+    print_table(rows, "BAIL updates/s: torchrl_bail vs bare PyTorch, same process (ratio = torchrl_bail / bare)")
+    write_json([returns_row, *rows], args.json)
+
+
+if __name__ == "__main__":
+    main()
