@@ -8,6 +8,11 @@ The batch for ``env`` x ``batch`` is collected once and cached under ``data_dir`
 List what is cached (name, size on disk, transitions, episodes, mean/max episode return, recipe)::
 
     python -m torchrl_bail.collect --list [--data-dir DIR]
+
+Convert and cache a dataset you already have (D4RL-layout ``.hdf5``, local Minari dataset folder; see
+:mod:`torchrl_bail.data.importers`), checking its sizes against an env (a ``conf/env`` name or a gymnasium id)::
+
+    python -m torchrl_bail.collect --import PATH [--env hopper] [--data-dir DIR]
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
 
-__all__ = ["main", "collect", "format_listing"]
+__all__ = ["main", "collect", "format_listing", "import_main"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -118,8 +123,62 @@ def _list_main(argv: list[str]) -> int:
             print(f"--list accepts only --data-dir DIR (or data_dir=DIR), got {arg!r}", file=sys.stderr)
             return 2
     root = data_dir_of(None, data_dir)
+    rows = list_batches(root)
+    from torchrl_bail.data.importers import iter_imported
+
+    for row, description in iter_imported(rows):  # imported datasets: say where they came from
+        row["recipe"] = description
     print(f"cached batches in {root}:")
-    print(format_listing(list_batches(root)))
+    print(format_listing(rows))
+    return 0
+
+
+def _env_id_of(name: str) -> str:
+    """``hopper`` (a ``conf/env`` name) -> ``Hopper-v5``; anything else is taken as a gymnasium id."""
+    from omegaconf import OmegaConf
+
+    conf = config_dir() / "env" / f"{name}.yaml"
+    return str(OmegaConf.load(conf).id) if conf.is_file() else name
+
+
+def import_main(argv: list[str]) -> int:
+    """``--import PATH [--env NAME|ID] [--data-dir DIR]``: convert and cache an external dataset, print where."""
+    from torchrl_bail.data import BatchValidationError
+    from torchrl_bail.data.importers import import_cache_path, import_dataset
+
+    opts: dict[str, str | None] = {"--import": None, "--env": None, "--data-dir": None}
+    it = iter(argv)
+    for arg in it:
+        key, eq, value = arg.partition("=")
+        key = {"env": "--env", "data_dir": "--data-dir"}.get(key, key) if eq else key
+        if key not in opts:
+            print(f"--import accepts only PATH, --env NAME and --data-dir DIR, got {arg!r}", file=sys.stderr)
+            return 2
+        opts[key] = value if eq else next(it, None)
+        if opts[key] is None:
+            print(f"{key} needs a value", file=sys.stderr)
+            return 2
+    path, env, data_dir = opts["--import"], opts["--env"], opts["--data-dir"]
+    env_id = _env_id_of(env) if env else None
+    try:
+        cache = import_cache_path(path, data_dir)
+        cached = cache is not None and (cache / "metadata.json").is_file()
+        batch = import_dataset(path, env_id=env_id, data_dir=data_dir)
+    except (BatchValidationError, FileNotFoundError) as err:
+        print(f"torchrl_bail: {type(err).__name__}: {err}", file=sys.stderr)
+        return 2
+    meta, data, returns = batch.metadata, batch.data, batch.episode_returns()
+    state = "native batch (used in place)" if cache is None else ("already cached" if cached else "converted")
+    print(f"{meta.get('name', Path(str(batch.path)).name)}: {state} at {batch.path}")
+    print(f"  env {meta.get('env_id') or 'unknown (pass --env to check sizes)'}: {batch.num_transitions} transitions, "
+          f"{batch.num_episodes} episodes ({int(data['next', 'terminated'].sum())} terminated, "
+          f"{int(data['next', 'truncated'].sum())} truncated), obs {batch.obs_dim}, act {batch.act_dim}")
+    if meta.get("dropped_rows"):
+        print(f"  dropped {meta['dropped_rows']} rows whose next observation is unknown (no next_observations)")
+    print(f"  episode return mean {float(returns.mean()):.1f}, min {float(returns.min()):.1f}, "
+          f"max {float(returns.max()):.1f}")
+    print(f"  train on it: python -m torchrl_bail.train dataset={path}{f' env={env}' if env else ''}")
+    sys.stdout.flush()
     return 0
 
 
@@ -127,6 +186,8 @@ def main() -> None:
     argv = sys.argv[1:]
     if "--list" in argv:
         raise SystemExit(_list_main(argv))
+    if any(a == "--import" or a.startswith("--import=") for a in argv):
+        raise SystemExit(import_main(argv))
     # keep collection runs' Hydra files apart from training runs, unless the user chose a directory
     if not any(a.startswith(("hydra.run.dir", "hydra.sweep.dir")) for a in argv):
         sys.argv += [

@@ -78,7 +78,12 @@ def load_training_batch(cfg: DictConfig):
     if cfg.get("dataset"):
         from torchrl_bail.data.importers import import_dataset
 
-        return import_dataset(Path(hydra.utils.to_absolute_path(str(cfg.dataset))), env_id=cfg.env.id)
+        def absolute(p) -> str:
+            return hydra.utils.to_absolute_path(str(Path(str(p)).expanduser()))
+
+        data_dir = cfg.get("data_dir")
+        return import_dataset(Path(absolute(cfg.dataset)), env_id=cfg.env.id,
+                              data_dir=absolute(data_dir) if data_dir else None)
     from torchrl_bail.data.collection import ensure_batch
 
     return ensure_batch(cfg, progress=cfg.progress)
@@ -155,7 +160,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
     }
-    _add_normalized_scores(summary, cfg.env.id)
+    _add_normalized_scores(summary, cfg.env.id, batch.metadata)
     write_json_atomic(run_dir / "summary.json", summary)
     plot_learning_curve(
         [e.epoch for e in history.evaluations], [e.mean_return for e in history.evaluations],
@@ -167,15 +172,16 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return summary
 
 
-def _add_normalized_scores(summary: dict, env_id: str) -> None:
-    try:
-        from torchrl_bail.data.importers import normalized_score
-    except ImportError:
+def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = None) -> None:
+    """``<key>_normalized`` (D4RL normalised score, or the dataset's own Minari reference) where one exists."""
+    from torchrl_bail.data.importers import normalized_score, score_reference
+
+    reference = score_reference(env_id, metadata)
+    if reference is None:
         return
-    for key in ("final_return", "best_return"):
-        score = normalized_score(env_id, summary[key])
-        if score is not None:
-            summary[f"{key}_normalized"] = score
+    for key in ("final_return", "best_return", "dataset_mean_episode_return"):
+        summary[f"{key}_normalized"] = normalized_score(env_id, summary[key], metadata=metadata)
+    summary["normalized_score_reference"] = {"random": reference[0], "expert": reference[1], "source": reference[2]}
 
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
