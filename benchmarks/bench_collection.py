@@ -26,7 +26,7 @@ from _bench import bare_mlp, compare, print_table  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 
-from torchrl_bail.data.collection import EpisodeStore, fast_tensordict_outputs, make_collection_env  # noqa: E402
+from torchrl_bail.data.collection import EpisodeStore, make_collection_env  # noqa: E402
 from torchrl_bail.data.ddpg import DDPGAgent  # noqa: E402
 from torchrl_bail.data.sac import SACAgent  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
@@ -179,11 +179,8 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=3000, help="env steps per loop measurement")
     p.add_argument("--updates", type=int, default=300, help="updates per update measurement")
     p.add_argument("--json", default=None)
-    p.add_argument("--no-fast-outputs", action="store_true", help="skip the tensordict find_spec work-around")
     args = p.parse_args(argv)
     torch.manual_seed(0)
-    if not args.no_fast_outputs:
-        fast_tensordict_outputs()
     env = make_collection_env(args.env, max_episode_steps=None, seed=0)
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]

@@ -5,9 +5,26 @@ Heavy submodules are imported lazily so that ``python -m torchrl_bail.train --he
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
 
 __version__ = "0.1.0"
+
+
+def fast_tensordict_outputs() -> None:
+    """Works around a per-call cost in tensordict 0.14: every ``TensorDictModule`` output goes through
+    ``TensorDict.from_any``, which calls ``importlib.util.find_spec("pandas")`` -- a scan of ``sys.path`` (about
+    0.2 ms, several times per update) when pandas is not installed. Registering pandas as absent in ``sys.modules``
+    makes that lookup instant; ``import pandas`` fails exactly as before (``ImportError``). No-op when pandas is
+    installed. Applied when ``torchrl_bail`` is imported, so the loss modules are fast in other people's loops too;
+    the one visible effect is that pandas installed *later in the same process* needs a restart to import.
+    """
+    if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
+        sys.modules["pandas"] = None  # type: ignore[assignment]
+
+
+fast_tensordict_outputs()
 
 
 def config_dir() -> Path:

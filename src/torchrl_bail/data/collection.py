@@ -87,7 +87,6 @@ __all__ = [
     "BehaviourBuffers",
     "TRANSITION_KEYS",
     "fused_soft_update",
-    "fast_tensordict_outputs",
 ]
 
 log = logging.getLogger("torchrl_bail")
@@ -417,7 +416,6 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
     validate_recipe(cfg)
     path = Path(path)
     recipe = _get(cfg, "batch.recipe")
-    fast_tensordict_outputs()
     start = time.perf_counter()
     log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, _get(cfg, "batch.steps"), path)
     with scratch_directory(path.parent, path.name) as scratch:
@@ -582,19 +580,6 @@ def fused_soft_update(loss_module, *, eps: float | None = None, tau: float | Non
                 torch._foreach_lerp_(targets, sources, 1.0 - self.eps)
 
     return _FusedSoftUpdate(loss_module, eps=eps, tau=tau)
-
-
-def fast_tensordict_outputs() -> None:
-    """Works around a per-call cost in tensordict 0.14: every ``TensorDictModule`` output goes through
-    ``TensorDict.from_any``, which calls ``importlib.util.find_spec("pandas")`` -- a scan of ``sys.path`` (about
-    0.2 ms, 5 times per DDPG update) when pandas is not installed. Registering pandas as absent in ``sys.modules``
-    makes that lookup instant; ``import pandas`` fails exactly as before. No-op when pandas is installed.
-    """
-    import importlib.util
-    import sys
-
-    if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
-        sys.modules["pandas"] = None  # type: ignore[assignment]
 
 
 def seed_all(seed: int) -> None:
