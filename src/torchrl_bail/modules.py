@@ -33,6 +33,10 @@ __all__ = [
     "make_deterministic_actor",
     "make_value_network",
     "make_qvalue_network",
+    "ConditionalVAE",
+    "make_vae",
+    "PerturbationActor",
+    "make_perturbation_actor",
 ]
 
 
@@ -103,3 +107,173 @@ def make_qvalue_network(
 ) -> ValueOperator:
     """Action-value net ``(obs, action) -> 400 -> 300 -> 1`` (critics of BCQ, BEAR and DDPG)."""
     return ValueOperator(mlp(obs_dim + act_dim, 1, hidden), in_keys=[observation_key, action_key], out_keys=[out_key])
+
+
+def _bounds_affine(low: torch.Tensor, high: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(loc, scale)`` with ``loc + scale * tanh(x)`` spanning ``[low, high]``; ``max_action * tanh`` when symmetric."""
+    low = torch.as_tensor(low, dtype=torch.float32)
+    high = torch.as_tensor(high, dtype=torch.float32)
+    return (high + low) / 2, (high - low) / 2
+
+
+class ConditionalVAE(nn.Module):
+    """The conditional VAE of BCQ and BEAR: a generative model of the batch's actions given the state (spec 8.3).
+
+    * encoder ``(s, a) -> hidden -> (mu, log sigma)`` with ``log sigma`` clamped to ``[log_std_min, log_std_max]``;
+    * decoder ``(s, z) -> hidden -> |A|``, squashed by ``tanh`` and scaled to the action bounds
+      (``max_action * tanh`` for symmetric bounds);
+    * sampling (:meth:`sample`, :meth:`decode` without a latent) draws ``z ~ N(0, I)`` clipped to
+      ``[-latent_clip, latent_clip]`` from torch's global random stream.
+
+    The two encoder heads of the authors' code (``mean`` and ``log_std``, each ``Linear(hidden, latent)``) are one
+    ``Linear(hidden, 2 * latent)`` here: the same function class and the same initial distribution. Every method
+    takes any leading batch shape.
+
+    Args:
+        obs_dim (int): observation size.
+        act_dim (int): action size.
+        action_low, action_high: the action bounds (scalars or ``[act_dim]``).
+        hidden (sequence of int): hidden sizes of the encoder and of the decoder. Defaults to ``(750, 750)``.
+
+    Keyword Args:
+        latent_dim (int): size of ``z`` (the authors use ``2 * act_dim``).
+        log_std_min (float): lower clamp of the encoder's ``log sigma``. Defaults to ``-4.0``.
+        log_std_max (float): upper clamp of the encoder's ``log sigma``. Defaults to ``15.0``.
+        latent_clip (float): sampled latents are clipped to ``[-latent_clip, latent_clip]``. Defaults to ``0.5``.
+
+    Examples:
+        >>> import torch
+        >>> vae = ConditionalVAE(11, 3, -1.0, 1.0, hidden=(16, 16), latent_dim=6)
+        >>> recon, mean, log_std = vae(torch.randn(5, 11), torch.rand(5, 3) * 2 - 1)
+        >>> recon.shape, mean.shape, log_std.shape
+        (torch.Size([5, 3]), torch.Size([5, 6]), torch.Size([5, 6]))
+        >>> actions, pre_tanh = vae.sample(torch.randn(5, 11), 10)
+        >>> actions.shape, bool(actions.abs().max() <= 1.0), pre_tanh.shape
+        (torch.Size([5, 10, 3]), True, torch.Size([5, 10, 3]))
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        action_low,
+        action_high,
+        hidden: Sequence[int] = (750, 750),
+        *,
+        latent_dim: int,
+        log_std_min: float = -4.0,
+        log_std_max: float = 15.0,
+        latent_clip: float = 0.5,
+    ) -> None:
+        super().__init__()
+        if int(latent_dim) < 1:
+            raise ValueError(f"the VAE latent_dim must be >= 1, got {latent_dim}")
+        if not float(log_std_min) <= float(log_std_max):
+            raise ValueError(f"log_std_min ({log_std_min}) must be <= log_std_max ({log_std_max})")
+        if not float(latent_clip) > 0:
+            raise ValueError(f"latent_clip must be > 0, got {latent_clip}")
+        self.latent_dim = int(latent_dim)
+        self.log_std_min = float(log_std_min)
+        self.log_std_max = float(log_std_max)
+        self.latent_clip = float(latent_clip)
+        self.encoder = mlp(obs_dim + act_dim, 2 * self.latent_dim, hidden)
+        self.decoder = mlp(obs_dim + self.latent_dim, act_dim, hidden)
+        loc, scale = _bounds_affine(action_low, action_high)
+        self.register_buffer("action_loc", loc.expand(act_dim).clone())
+        self.register_buffer("action_scale", scale.expand(act_dim).clone())
+
+    def encode(self, observation: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(mu, log sigma)`` of ``q(z | s, a)``, ``log sigma`` clamped."""
+        mean, log_std = self.encoder(torch.cat([observation, action], -1)).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.log_std_min, self.log_std_max)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(reconstruction, mu, log sigma)`` with ``z = mu + sigma * eps`` (reparameterised, not clipped)."""
+        mean, log_std = self.encode(observation, action)
+        latent = mean + log_std.exp() * torch.randn_like(mean)
+        return self.decode(observation, latent), mean, log_std
+
+    def sample_latent(self, batch_shape: torch.Size | Sequence[int]) -> torch.Tensor:
+        """``z ~ N(0, I)`` of shape ``[*batch_shape, latent_dim]``, clipped to ``+-latent_clip``."""
+        z = torch.randn(*batch_shape, self.latent_dim, device=self.action_loc.device, dtype=self.action_loc.dtype)
+        return z.clamp(-self.latent_clip, self.latent_clip)
+
+    def decode_raw(
+        self, observation: torch.Tensor, latent: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(action, pre-tanh action)``; a clipped prior latent is drawn when ``latent`` is ``None``."""
+        if latent is None:
+            latent = self.sample_latent(observation.shape[:-1])
+        raw = self.decoder(torch.cat([observation, latent], -1))
+        return self.action_loc + self.action_scale * torch.tanh(raw), raw
+
+    def decode(self, observation: torch.Tensor, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """The decoded action (see :meth:`decode_raw`)."""
+        return self.decode_raw(observation, latent)[0]
+
+    def sample(self, observation: torch.Tensor, num_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``num_samples`` decoded actions per state: ``(actions, pre-tanh)``, each ``[*B, num_samples, |A|]``."""
+        observation = observation.unsqueeze(-2).expand(*observation.shape[:-1], int(num_samples), observation.shape[-1])
+        return self.decode_raw(observation)
+
+
+def make_vae(
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int] = (750, 750),
+    *,
+    latent_dim: int,
+    log_std_min: float = -4.0,
+    log_std_max: float = 15.0,
+    latent_clip: float = 0.5,
+) -> ConditionalVAE:
+    """The BCQ/BEAR :class:`ConditionalVAE` on the bounds of a :class:`~torchrl.data.Bounded` action spec."""
+    return ConditionalVAE(
+        obs_dim, action_spec.shape[-1], action_spec.space.low, action_spec.space.high, hidden,
+        latent_dim=latent_dim, log_std_min=log_std_min, log_std_max=log_std_max, latent_clip=latent_clip,
+    )
+
+
+class PerturbationActor(nn.Module):
+    """BCQ's perturbation model: ``a' = clamp(a + phi * max_action * tanh(f(s, a)), low, high)`` (spec 8.3).
+
+    ``f`` is ``(s, a) -> hidden -> |A|``; ``max_action`` is the half-width of the bounds (their upper bound when
+    they are symmetric, as in every MuJoCo task).
+
+    Examples:
+        >>> import torch
+        >>> actor = PerturbationActor(11, 3, -1.0, 1.0, hidden=(16, 16), phi=0.05)
+        >>> a = torch.rand(4, 3) * 2 - 1
+        >>> bool(((actor(torch.randn(4, 11), a) - a).abs() <= 0.05 + 1e-6).all())
+        True
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, action_low, action_high, hidden: Sequence[int] = (400, 300), *,
+                 phi: float = 0.05) -> None:
+        super().__init__()
+        if not float(phi) >= 0:
+            raise ValueError(f"phi must be >= 0, got {phi}")
+        self.net = mlp(obs_dim + act_dim, act_dim, hidden)
+        loc, scale = _bounds_affine(action_low, action_high)
+        self.register_buffer("max_perturbation", float(phi) * scale.expand(act_dim).clone())
+        self.register_buffer("action_low", (loc - scale).expand(act_dim).clone())
+        self.register_buffer("action_high", (loc + scale).expand(act_dim).clone())
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        perturbation = self.max_perturbation * torch.tanh(self.net(torch.cat([observation, action], -1)))
+        return torch.clamp(action + perturbation, self.action_low, self.action_high)
+
+
+def make_perturbation_actor(
+    obs_dim: int,
+    action_spec: TensorSpec,
+    hidden: Sequence[int] = (400, 300),
+    *,
+    phi: float = 0.05,
+    observation_key="observation",
+    action_key="action",
+) -> TensorDictModule:
+    """BCQ's :class:`PerturbationActor` as a TensorDict module: reads a candidate ``action``, writes it perturbed."""
+    net = PerturbationActor(obs_dim, action_spec.shape[-1], action_spec.space.low, action_spec.space.high, hidden,
+                            phi=phi)
+    return TensorDictModule(net, in_keys=[observation_key, action_key], out_keys=[action_key])

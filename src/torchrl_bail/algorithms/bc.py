@@ -27,7 +27,7 @@ from torchrl.objectives import BCLoss
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.modules import make_deterministic_actor
 
-__all__ = ["BehaviourCloning", "make_bc_loss"]
+__all__ = ["BehaviourCloning", "DeterministicActorAlgorithm", "make_bc_loss"]
 
 
 def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
@@ -42,7 +42,36 @@ def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
         return BCLoss(actor, loss_function="l2", reduction=reduction)
 
 
-class BehaviourCloning(Algorithm):
+class DeterministicActorAlgorithm(Algorithm):
+    """An algorithm whose policy is a deterministic tanh actor with its own Adam optimizer (BC, BAIL, MARWIL).
+
+    Builds :attr:`actor` with :func:`~torchrl_bail.modules.make_deterministic_actor`, registers it as
+    ``modules["actor"]`` with ``optimizers["actor"]`` and evaluates it as :attr:`policy`; subclasses add their
+    losses and :meth:`update`. Keyword arguments as in :class:`BehaviourCloning`.
+    """
+
+    def __init__(
+        self,
+        *,
+        obs_dim: int,
+        action_spec: TensorSpec,
+        hidden: Sequence[int] = (400, 300),
+        lr: float = 1e-3,
+        batch_size: int = 1000,
+        epochs: float = 100,
+        device="cpu",
+    ) -> None:
+        super().__init__(batch_size=batch_size, epochs=epochs, device=device)
+        self.actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), hidden).to(self.device)
+        self.modules["actor"] = self.actor
+        self.optimizers["actor"] = torch.optim.Adam(self.actor.parameters(), lr=lr)
+
+    @property
+    def policy(self):
+        return self.actor
+
+
+class BehaviourCloning(DeterministicActorAlgorithm):
     """BC on whatever :meth:`prepare` returns (the whole batch here).
 
     Keyword Args:
@@ -68,15 +97,9 @@ class BehaviourCloning(Algorithm):
         epochs: float = 100,
         device="cpu",
     ) -> None:
-        super().__init__(batch_size=batch_size, epochs=epochs, device=device)
-        self.actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), hidden).to(self.device)
+        super().__init__(obs_dim=obs_dim, action_spec=action_spec, hidden=hidden, lr=lr, batch_size=batch_size,
+                         epochs=epochs, device=device)
         self.bc_loss = make_bc_loss(self.actor)
-        self.modules["actor"] = self.actor
-        self.optimizers["actor"] = torch.optim.Adam(self.bc_loss.parameters(), lr=lr)
-
-    @property
-    def policy(self):
-        return self.actor
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self.bc_loss(batch)["loss_bc"]
