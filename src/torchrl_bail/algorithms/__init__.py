@@ -37,7 +37,7 @@ def _pbail(cfg, obs_dim, action_spec, device):
 def _marwil(cfg, obs_dim, action_spec, device):
     return MARWIL(obs_dim=obs_dim, action_spec=action_spec, hidden=tuple(cfg.policy.hidden), lr=cfg.policy.lr,
                   value_hidden=tuple(cfg.value.hidden), value_lr=cfg.value.lr, beta=cfg.beta, c2_init=cfg.c2_init,
-                  c2_rate=cfg.c2_rate, vf_coeff=cfg.vf_coeff, max_exponent=cfg.max_exponent,
+                  c2_rate=cfg.c2_rate, vf_coeff=cfg.vf_coeff, max_exponent=cfg.max_exponent, eps=cfg.eps,
                   batch_size=cfg.batch_size, epochs=cfg.epochs, device=device)
 
 

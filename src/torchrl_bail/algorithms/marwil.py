@@ -43,7 +43,7 @@ class MARWIL(DeterministicActorAlgorithm):
             :class:`~torchrl_bail.algorithms.bc.BehaviourCloning` (``hidden``/``lr`` are the actor's).
         value_hidden (sequence of int): value-net hidden sizes. Defaults to ``(128, 128)``.
         value_lr (float): the value net's Adam learning rate. Defaults to ``1e-3``.
-        beta, c2_init, c2_rate, vf_coeff, max_exponent: see :class:`~torchrl_bail.objectives.MARWILLoss`.
+        beta, c2_init, c2_rate, vf_coeff, max_exponent, eps: see :class:`~torchrl_bail.objectives.MARWILLoss`.
     """
 
     name = "marwil"
@@ -62,6 +62,7 @@ class MARWIL(DeterministicActorAlgorithm):
         c2_rate: float = 1e-8,
         vf_coeff: float = 1.0,
         max_exponent: float = 20.0,
+        eps: float = 1e-8,
         batch_size: int = 1000,
         epochs: float = 100,
         device="cpu",
@@ -70,7 +71,7 @@ class MARWIL(DeterministicActorAlgorithm):
                          epochs=epochs, device=device)
         self.value_network = make_value_network(obs_dim, value_hidden).to(self.device)
         self.loss = MARWILLoss(self.actor, self.value_network, beta=beta, c2_init=c2_init, c2_rate=c2_rate,
-                               vf_coeff=vf_coeff, max_exponent=max_exponent).to(self.device)
+                               vf_coeff=vf_coeff, max_exponent=max_exponent, eps=eps).to(self.device)
         self.modules["value"] = self.value_network
         self.optimizers["value"] = torch.optim.Adam(self.value_network.parameters(), lr=value_lr)
         self._optimizers = (self.optimizers["actor"], self.optimizers["value"])

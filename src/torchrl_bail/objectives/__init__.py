@@ -1,5 +1,23 @@
-from torchrl_bail.objectives.bcq import BCQLoss  # noqa: F401
-from torchrl_bail.objectives.bear import BEARLoss  # noqa: F401
-from torchrl_bail.objectives.common import BestOfNPolicy, soft_clipped_double_q_target  # noqa: F401
-from torchrl_bail.objectives.marwil import MARWILLoss  # noqa: F401
-from torchrl_bail.objectives.vae import VAELoss  # noqa: F401
+"""TorchRL loss modules, one per file: BAIL's upper envelope and the baselines MARWIL, BCQ and BEAR.
+
+BC (and BAIL's imitation step) is TorchRL's own :class:`~torchrl.objectives.BCLoss`.
+"""
+
+from torchrl_bail.objectives.bcq import BCQLoss
+from torchrl_bail.objectives.bear import BEARLoss, laplacian_mmd
+from torchrl_bail.objectives.common import BestOfNPolicy, soft_clipped_double_q_target
+from torchrl_bail.objectives.marwil import MARWILLoss
+from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss, envelope_penalty
+from torchrl_bail.objectives.vae import VAELoss
+
+__all__ = [
+    "BCQLoss",
+    "BEARLoss",
+    "BestOfNPolicy",
+    "MARWILLoss",
+    "UpperEnvelopeLoss",
+    "VAELoss",
+    "envelope_penalty",
+    "laplacian_mmd",
+    "soft_clipped_double_q_target",
+]

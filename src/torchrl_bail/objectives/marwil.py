@@ -255,7 +255,8 @@ class MARWILLoss(LossModule):
     def _reduce(self, loss: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """``reduction`` with per-seed means: the mean over ``B``, then over the seeds."""
         if self.reduction == "mean":
-            return self._mean_last(loss, mask).mean()
+            # without a mask every seed has B points, so the mean of the per-seed means is the plain mean
+            return loss.mean() if mask is None else self._mean_last(loss, mask).mean()
         if mask is not None:
             loss = torch.where(mask, loss, torch.zeros_like(loss))
         return loss.sum() if self.reduction == "sum" else loss
@@ -279,6 +280,10 @@ class MARWILLoss(LossModule):
         if target.dtype != value.dtype:
             target = target.to(value.dtype)
         return target - value, value
+
+    def _value_terms(self, advantage: torch.Tensor) -> torch.Tensor:
+        """``vf_coeff * 0.5 * A^2`` per point (the coefficient is folded first: one graph node, not two)."""
+        return advantage.square() * (0.5 * self.vf_coeff)
 
     @torch.no_grad()
     def _update_c2(self, advantage: torch.Tensor, mask: torch.Tensor | None) -> None:
@@ -352,7 +357,7 @@ class MARWILLoss(LossModule):
         """
         advantage, value = self._advantage(tensordict)
         mask = self._mask(tensordict, advantage)
-        loss = self._reduce(self.vf_coeff * 0.5 * advantage.square(), mask)
+        loss = self._reduce(self._value_terms(advantage), mask)
         metadata = {"advantage_mean": self._mean_last(advantage.detach(), mask),
                     "value_mean": self._mean_last(value.detach(), mask)}
         self._clear_weakrefs(tensordict, "value_network_params")
@@ -392,7 +397,7 @@ class MARWILLoss(LossModule):
         """
         advantage, value = self._advantage(tensordict)
         mask = self._mask(tensordict, advantage)
-        loss_value = self._reduce(self.vf_coeff * 0.5 * advantage.square(), mask)
+        loss_value = self._reduce(self._value_terms(advantage), mask)
         weight, clamped = self._weights(advantage, mask)
         loss_actor = self._reduce(weight * self._squared_error(tensordict), mask)
         out = TensorDict({"loss_actor": loss_actor, "loss_value": loss_value,
