@@ -86,3 +86,24 @@ def test_config_error_is_one_clear_line(tmp_path, data_dir):
     proc = _train(tmp_path / "bad", data_dir, "returns.augment=magic", check=False)
     assert proc.returncode != 0
     assert "returns.augment" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("ablation", ["oracle", "by_return", "plain_regression"])
+def test_ablations_are_config_switches(tmp_path, data_dir, ablation):
+    """Supp D.1-D.3: oracle returns, top-p by return without an envelope, ordinary regression (K = 1)."""
+    switches = {
+        "oracle": ["returns.augment=oracle", "batch.oracle.enabled=true", "batch.oracle.horizon=300",
+                   "batch.oracle.keep=200"],
+        "by_return": ["algo.selection.by=return"],
+        "plain_regression": ["algo.envelope.penalty=1"],
+    }[ablation]
+    run_dir = tmp_path / ablation
+    _train(run_dir, data_dir, "seed=1", *ALGO_TINY["bail"], *switches)
+    s = _summary(run_dir)
+    assert 0.29 <= s["selected_fraction"] <= 0.32
+    if ablation == "oracle":
+        assert s["returns_augment"] == "oracle" and s["batch"] == "hopper_ddpg05_oracle_b1"
+    elif ablation == "by_return":
+        assert s["envelope_fraction_below"] is None and not (run_dir / "envelope.png").exists()
+    else:  # a least-squares fit sits in the middle of the returns: far from an upper envelope
+        assert s["envelope_fraction_below"] > 0.2

@@ -44,7 +44,8 @@ def test_command_line_beats_exp_and_preset():
     "key,value,match",
     [("returns.augment", "magic", "returns.augment"), ("returns.gamma", 1.5, "returns.gamma"),
      ("eval.episodes", 0, "eval.episodes"), ("algo.batch_size", 0, "algo.batch_size"),
-     ("device", "tpu", "device"), ("algo.name", "dqn", "algo.name")],
+     ("device", "tpu", "device"), ("algo.name", "dqn", "algo.name"),
+     ("returns.augment", "oracle", "batch.oracle.enabled=true")],
 )
 def test_bad_values_name_their_key(key, value, match):
     cfg = _compose("+exp=hopper_ddpg05")

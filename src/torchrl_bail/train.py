@@ -48,6 +48,10 @@ def validate_config(cfg: DictConfig) -> None:
     need(0 < cfg.returns.gamma <= 1, "returns.gamma", "a discount in (0, 1]")
     need(cfg.returns.horizon >= 1, "returns.horizon", "an integer >= 1")
     need(cfg.returns.augment in ("gain", "none", "oracle"), "returns.augment", "gain | none | oracle")
+    if cfg.returns.augment == "oracle" and not cfg.get("dataset"):
+        need(bool(OmegaConf.select(cfg, "batch.oracle.enabled", default=False)), "returns.augment",
+             "gain | none, or oracle together with batch.oracle.enabled=true (oracle returns come from an oracle "
+             "batch's real continuations)")
     need(cfg.samples_per_epoch >= 1, "samples_per_epoch", "a positive integer")
     need(cfg.eval.episodes >= 1, "eval.episodes", "a positive integer")
     need(cfg.eval.every_epochs > 0, "eval.every_epochs", "a positive number of epochs")
