@@ -25,7 +25,8 @@ from torch import nn
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import _cache_values, _vmap_func
 
-from torchrl_bail.objectives.vae import _check_reduction, _vae_loss, reduce_per_seed
+from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
+from torchrl_bail.objectives.vae import _vae_loss
 
 __all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target"]
 
@@ -144,7 +145,7 @@ class TwinCriticVAELoss(LossModule):
         reduction: str | None,
         deactivate_vmap: bool,
     ) -> None:
-        reduction = _check_reduction(reduction)
+        reduction = check_reduction(reduction)
         if int(num_samples) < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
         if not 0.0 <= float(lmbda) <= 1.0:

@@ -14,12 +14,13 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
+
+from torchrl_bail.objectives._shared import LazyInKeysLoss, check_reduction, value_and_return
 
 __all__ = ["MARWILLoss"]
 
 
-class MARWILLoss(LossModule):
+class MARWILLoss(LazyInKeysLoss):
     r"""MARWIL's advantage-weighted imitation loss for a deterministic actor, and its value regression.
 
     Presented in "Exponentially Weighted Imitation Learning for Batched Historical Data", Wang et al.,
@@ -176,10 +177,7 @@ class MARWILLoss(LossModule):
         eps: float = 1e-8,
         reduction: Literal["mean", "sum", "none"] | None = None,
     ) -> None:
-        if reduction is None:
-            reduction = "mean"
-        if reduction not in ("mean", "sum", "none"):
-            raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")
+        reduction = check_reduction(reduction)
         for name, value, ok, expected in (
             ("beta", beta, float(beta) >= 0, ">= 0"),
             ("c2_init", c2_init, float(c2_init) > 0, "> 0"),
@@ -191,7 +189,6 @@ class MARWILLoss(LossModule):
             if not ok:
                 raise ValueError(f"MARWILLoss: {name} must be {expected}, got {value}")
         super().__init__()
-        self._in_keys = None
         self.convert_to_functional(actor_network, "actor_network")
         self.convert_to_functional(value_network, "value_network")
         self.register_coeff_buffer("beta", float(beta))
@@ -202,28 +199,9 @@ class MARWILLoss(LossModule):
         self.register_coeff_buffer("c2", float(c2_init), dtype=torch.float64)
         self.reduction = reduction
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    # -- keys --------------------------------------------------------------------------------------------
-    def _set_in_keys(self) -> None:
-        keys = [self.tensor_keys.action, self.tensor_keys.value_target, *self.actor_network.in_keys,
+    def _in_key_list(self) -> list[NestedKey]:
+        return [self.tensor_keys.action, self.tensor_keys.value_target, *self.actor_network.in_keys,
                 *self.value_network.in_keys]
-        self._in_keys = list(dict.fromkeys(keys))
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values) -> None:
-        self._in_keys = values
-
-    def set_keys(self, **kwargs) -> None:
-        super().set_keys(**kwargs)
-        self._in_keys = None
 
     # -- state dict: c2 may be per seed ------------------------------------------------------------------
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
@@ -263,22 +241,7 @@ class MARWILLoss(LossModule):
 
     def _advantage(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``(A, V)`` with shape ``[*B]``: ``A = G - V(s)`` carries ``V``'s graph."""
-        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            value = self.value_network(tensordict.select(*self.value_network.in_keys)).get(self.tensor_keys.value)
-        target = tensordict.get(self.tensor_keys.value_target)
-        batch_shape = tensordict.batch_size
-        if value.ndim == len(batch_shape) + 1 and value.shape[-1] == 1:
-            value = value.squeeze(-1)
-        if target.ndim == len(batch_shape) + 1 and target.shape[-1] == 1:
-            target = target.squeeze(-1)
-        if value.shape != batch_shape or target.shape != batch_shape:
-            raise ValueError(
-                f"MARWILLoss: the value {self.tensor_keys.value!r} has shape {tuple(value.shape)} and the return "
-                f"{self.tensor_keys.value_target!r} has shape {tuple(target.shape)}; expected both to be the batch "
-                f"shape {tuple(batch_shape)} (optionally with a trailing 1)"
-            )
-        if target.dtype != value.dtype:
-            target = target.to(value.dtype)
+        value, target = value_and_return(self, tensordict)
         return target - value, value
 
     def _value_terms(self, advantage: torch.Tensor) -> torch.Tensor:

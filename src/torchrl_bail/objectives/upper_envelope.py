@@ -14,7 +14,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
+
+from torchrl_bail.objectives._shared import LazyInKeysLoss, check_reduction, reduce_per_seed, value_and_return
 
 __all__ = ["UpperEnvelopeLoss", "envelope_penalty"]
 
@@ -44,7 +45,7 @@ def _penalised_gap(gap: torch.Tensor, penalty: torch.Tensor | float) -> tuple[to
     return torch.where(below, squared * penalty, squared), below
 
 
-class UpperEnvelopeLoss(LossModule):
+class UpperEnvelopeLoss(LazyInKeysLoss):
     """BAIL's upper-envelope loss: an asymmetric squared error that pushes ``V(s)`` above the returns ``G``.
 
     Presented in "BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning",
@@ -142,49 +143,16 @@ class UpperEnvelopeLoss(LossModule):
         penalty: float = 1000.0,
         reduction: Literal["mean", "sum", "none"] | None = None,
     ) -> None:
-        if reduction is None:
-            reduction = "mean"
-        if reduction not in ("mean", "sum", "none"):
-            raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")
+        reduction = check_reduction(reduction)
         if not float(penalty) > 0:
             raise ValueError(f"penalty (K) must be > 0, got {penalty}")
         super().__init__()
-        self._in_keys = None
         self.convert_to_functional(value_network, "value_network")
         self.register_coeff_buffer("penalty", penalty)
         self.reduction = reduction
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    def _set_in_keys(self) -> None:
-        keys = [self.tensor_keys.value_target, *self.value_network.in_keys]
-        self._in_keys = list(dict.fromkeys(keys))
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values) -> None:
-        self._in_keys = values
-
-    def set_keys(self, **kwargs) -> None:
-        super().set_keys(**kwargs)
-        self._in_keys = None
-
-    def _reduce_per_seed(self, loss: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
-        """``_reduce_loss`` for ``[B]``; for ``[S, B]`` under ``"mean"``: the mean over ``B``, then over ``S``."""
-        if self.reduction != "mean" or loss.ndim <= 1:
-            return self._reduce_loss(loss, tensordict=tensordict)
-        masked = self._reduce_loss(loss, tensordict=tensordict, reduction="none")
-        if masked is loss:  # no mask in the input
-            return loss.mean(-1).mean()
-        # the same masking applied to ones counts the points that enter each seed's mean
-        count = self._reduce_loss(torch.ones_like(loss), tensordict=tensordict, reduction="none")
-        return (masked.sum(-1) / count.sum(-1).clamp_min(1)).mean()
+    def _in_key_list(self) -> list[NestedKey]:
+        return [self.tensor_keys.value_target, *self.value_network.in_keys]
 
     def envelope_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The reduced penalty loss and its diagnostics.
@@ -197,24 +165,9 @@ class UpperEnvelopeLoss(LossModule):
             ``(loss_envelope, metadata)`` where ``metadata`` holds the detached ``fraction_below`` and
             ``value_mean``, reduced over the last batch dimension.
         """
-        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            value = self.value_network(tensordict.select(*self.value_network.in_keys)).get(self.tensor_keys.value)
-        target = tensordict.get(self.tensor_keys.value_target)
-        batch_ndim = tensordict.batch_dims
-        if value.ndim == batch_ndim + 1 and value.shape[-1] == 1:
-            value = value.squeeze(-1)
-        if target.ndim == batch_ndim + 1 and target.shape[-1] == 1:
-            target = target.squeeze(-1)
-        if value.shape != target.shape:
-            raise ValueError(
-                f"UpperEnvelopeLoss: the value {self.tensor_keys.value!r} has shape {tuple(value.shape)} but the "
-                f"return {self.tensor_keys.value_target!r} has shape {tuple(target.shape)}; expected both to be the "
-                f"batch shape {tuple(tensordict.batch_size)} (optionally with a trailing 1)"
-            )
-        if target.dtype != value.dtype:
-            target = target.to(value.dtype)
+        value, target = value_and_return(self, tensordict)
         loss, below = _penalised_gap(value - target, self.penalty)
-        loss = self._reduce_per_seed(loss, tensordict)
+        loss = reduce_per_seed(self, loss, tensordict)
         metadata = {
             "fraction_below": below.to(value.dtype).mean(-1),
             "value_mean": value.detach().mean(-1),

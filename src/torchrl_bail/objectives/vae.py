@@ -21,7 +21,9 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
-__all__ = ["VAELoss", "reduce_per_seed", "vae_loss_terms"]
+from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
+
+__all__ = ["VAELoss", "vae_loss_terms"]
 
 
 def vae_loss_terms(
@@ -42,28 +44,6 @@ def vae_loss_terms(
     recon = (reconstruction - action).pow(2).mean(-1)
     kl = -0.5 * (1 + 2 * log_std - mean.pow(2) - (2 * log_std).exp()).mean(-1)
     return recon, kl
-
-
-def reduce_per_seed(loss_module: LossModule, loss: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
-    """``loss_module._reduce_loss`` for ``[B]`` batches; for ``[S, B]`` under ``"mean"``: mean over ``B``, then ``S``.
-
-    Masks (``loss_module.loss_mask_key``) exclude points from each seed's mean; a seed whose points are all masked
-    contributes 0.
-    """
-    if loss_module.reduction != "mean" or loss.ndim <= 1:
-        return loss_module._reduce_loss(loss, tensordict=tensordict)
-    masked = loss_module._reduce_loss(loss, tensordict=tensordict, reduction="none")
-    if masked is loss:  # no mask in the input
-        return loss.mean(-1).mean()
-    count = loss_module._reduce_loss(torch.ones_like(loss), tensordict=tensordict, reduction="none")
-    return (masked.sum(-1) / count.sum(-1).clamp_min(1)).mean()
-
-
-def _check_reduction(reduction: str | None) -> str:
-    reduction = "mean" if reduction is None else reduction
-    if reduction not in ("mean", "sum", "none"):
-        raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")
-    return reduction
 
 
 class VAELoss(LossModule):
@@ -140,7 +120,7 @@ class VAELoss(LossModule):
         kl_weight: float = 0.5,
         reduction: Literal["mean", "sum", "none"] | None = None,
     ) -> None:
-        reduction = _check_reduction(reduction)
+        reduction = check_reduction(reduction)
         if not float(kl_weight) >= 0:
             raise ValueError(f"kl_weight must be >= 0, got {kl_weight}")
         super().__init__()
