@@ -379,7 +379,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
         "eval_time_s": timers["eval"],
         "env_steps_per_s": runner.t / max(wall, 1e-9),
         "updates_per_s": agent.updates / max(timers["train"], 1e-9),
-        "final_alpha": float(agent.loss.log_alpha.exp()),
+        "final_alpha": float(agent.loss.log_alpha.detach().exp()),
         "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     return data, record, snapshots
