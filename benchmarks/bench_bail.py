@@ -1,5 +1,6 @@
-"""BAIL throughput: Monte-Carlo returns on 10^6 transitions, and envelope / policy updates per second beside a
-bare PyTorch loop doing the same math (same networks, same mini-batch, same optimizer) in the same process.
+"""BAIL and Progressive BAIL throughput: Monte-Carlo returns on 10^6 transitions, and envelope / policy /
+Progressive BAIL updates per second beside a bare PyTorch loop doing the same math (same networks, same
+mini-batch, same optimizer) in the same process.
 
     python benchmarks/bench_bail.py [--transitions 1000000] [--updates 300] [--json PATH]
 
@@ -8,7 +9,9 @@ The library side is exactly what a run executes per iteration:
 * envelope: the body of :func:`torchrl_bail.envelope.fit_upper_envelope`'s inner loop (index a mini-batch of
   800 from the training split, :class:`UpperEnvelopeLoss`, Adam with coupled weight decay);
 * policy: :func:`torchrl_bail.trainer.train`'s iteration (``TensorDictReplayBuffer.sample()`` of 1000 with
-  replacement, then :meth:`BehaviourCloning.update`: TorchRL ``BCLoss`` + Adam).
+  replacement, then :meth:`BehaviourCloning.update`: TorchRL ``BCLoss`` + Adam);
+* Progressive BAIL: the same sample, then :meth:`ProgressiveBAIL.update` (envelope step on the non-validation
+  rows, selection of the top 25 % inside the mini-batch under the selection envelope, imitation step).
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ from _bench import bare_mlp, compare, print_table, write_json
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
+from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.algorithms.pbail import ProgressiveBAIL
 from torchrl_bail.data import monte_carlo_returns
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
@@ -33,7 +38,8 @@ def synthetic_batch(n: int, generator: torch.Generator) -> TensorDict:
     """Hopper-sized TED rows: 1000-step (time-limit) episodes mixed with falls of 20-400 steps."""
     lengths, total = [], 0
     while total < n:
-        length = 1000 if torch.rand((), generator=generator) < 0.5 else int(torch.randint(20, 400, (), generator=generator))
+        fell = torch.rand((), generator=generator) < 0.5
+        length = int(torch.randint(20, 400, (), generator=generator)) if fell else 1000
         length = min(length, n - total)
         lengths.append(length)
         total += length
@@ -140,6 +146,53 @@ def bench_policy(n_updates: int) -> dict:
     return compare("policy update (BC, batch 1000)", library, bare, n=n_updates)
 
 
+def bench_progressive(n_updates: int) -> dict:
+    n, batch = 300_000, 1000
+    g = torch.Generator().manual_seed(3)
+    data = TensorDict({"observation": torch.randn(n, OBS, generator=g),
+                       "action": torch.rand(n, ACT, generator=g) * 2 - 1,
+                       "return": torch.rand(n, generator=g) * 300}, [n])
+    spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
+
+    torch.manual_seed(0)
+    algo = ProgressiveBAIL(obs_dim=OBS, action_spec=spec, batch_size=batch, epochs=1,
+                           envelope={"validate_every": 10**9})  # validation (1 in 1250 updates) is not timed
+    prepared = algo.prepare(data, PrepareContext(generator=torch.Generator().manual_seed(0)))
+    buffer = TensorDictReplayBuffer(storage=TensorStorage(prepared), sampler=RandomSampler(), batch_size=batch)
+
+    def library():
+        algo.update(buffer.sample())
+
+    torch.manual_seed(0)
+    envelope, selector = bare_mlp(OBS, 1, (128, 128)), bare_mlp(OBS, 1, (128, 128))
+    actor = bare_mlp(OBS, ACT, (400, 300))
+    env_opt = torch.optim.Adam(envelope.parameters(), lr=3e-3, weight_decay=0.02)
+    act_opt = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    obs, act, ret = data["observation"], data["action"], data["return"]
+    is_val = torch.rand(n, generator=g) < 0.2
+    k = int(0.25 * batch)
+
+    def bare():
+        index = torch.randint(n, (batch,))
+        s, a, r, train_rows = obs[index], act[index], ret[index], (~is_val[index]).float()
+        gap = envelope(s).squeeze(-1) - r
+        loss_env = (torch.where(gap < 0, 1000.0 * gap.square(), gap.square()) * train_rows).sum() / train_rows.sum()
+        env_opt.zero_grad(set_to_none=True)
+        loss_env.backward()
+        env_opt.step()
+        with torch.no_grad():
+            v = selector(s).squeeze(-1)
+            v = torch.where(v < 1, torch.exp(v - 1), v)
+            ratio = r / v
+            selected = ratio >= torch.topk(ratio, k).values[-1]
+        loss_bc = ((torch.tanh(actor(s)) - a).square() * selected.float().unsqueeze(-1)).mean()
+        act_opt.zero_grad(set_to_none=True)
+        loss_bc.backward()
+        act_opt.step()
+
+    return compare("Progressive BAIL update (batch 1000)", library, bare, n=n_updates)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--transitions", type=int, default=1_000_000)
@@ -147,7 +200,7 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="also write the numbers here")
     args = parser.parse_args()
     returns_row = bench_returns(args.transitions)
-    rows = [bench_envelope(args.updates), bench_policy(args.updates)]
+    rows = [bench_envelope(args.updates), bench_policy(args.updates), bench_progressive(args.updates)]
     print_table(rows, "BAIL updates/s: torchrl_bail vs bare PyTorch, same process (ratio = torchrl_bail / bare)")
     write_json([returns_row, *rows], args.json)
 
