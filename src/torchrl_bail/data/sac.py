@@ -172,7 +172,8 @@ class SACAgent:
         self.target_entropy = float(target_entropy)
         self.loss = SACLoss(self.actor, self.qvalue, num_qvalue_nets=2, loss_function=loss_function,
                             alpha_init=alpha_init, target_entropy=self.target_entropy, delay_actor=False,
-                            delay_qvalue=True, action_spec=action_spec)
+                            delay_qvalue=True, action_spec=action_spec,
+                            deactivate_vmap=True)  # on CPU two plain critic calls beat one vmapped call
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)  # bootstraps on ~terminated
         self.target_updater = fused_soft_update(self.loss, eps=polyak)  # a SoftUpdate(eps=0.995)
         self.actor_optim = torch.optim.Adam(self.loss.actor_network_params.values(True, True), lr=actor_lr)
