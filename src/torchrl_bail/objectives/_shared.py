@@ -44,7 +44,7 @@ class LazyInKeysLoss(LossModule):
     _in_keys: list[NestedKey] | None = None
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass  # no value estimator: returns are precomputed Monte-Carlo returns
+        """No value estimator: the returns are precomputed Monte-Carlo returns."""
 
     @property
     def in_keys(self) -> list[NestedKey]:
