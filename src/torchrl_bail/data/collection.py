@@ -86,7 +86,6 @@ __all__ = [
     "BehaviourRun",
     "BehaviourBuffers",
     "TRANSITION_KEYS",
-    "fused_soft_update",
 ]
 
 log = logging.getLogger("torchrl_bail")
@@ -542,44 +541,6 @@ def format_bytes(n: int) -> str:
 # --------------------------------------------------------------------------------------------------------------
 # the shared collection loop
 # --------------------------------------------------------------------------------------------------------------
-
-
-_FUSED_DOC = """A :class:`~torchrl.objectives.SoftUpdate` whose ``step`` is one fused kernel (same result).
-
-TorchRL's ``SoftUpdate.step`` rebuilds ``.data`` views of every parameter TensorDict on each call (1-2 ms per step
-on this CPU, as much as a small network's whole update). This subclass keeps the updater's construction and
-initialisation (target = source at start, same ``eps``/``tau``) and replaces ``step`` by one
-``torch._foreach_lerp_`` over the cached leaf tensors: ``target <- target + (1 - eps) * (source - target)``.
-Parameters are updated in place by the optimizers, so the cached views stay valid.
-"""
-
-
-def fused_soft_update(loss_module, *, eps: float | None = None, tau: float | None = None):
-    """A :class:`~torchrl.objectives.SoftUpdate` whose ``step()`` is one fused ``lerp_`` (identical result)."""
-    from torchrl.objectives import SoftUpdate
-
-    class _FusedSoftUpdate(SoftUpdate):
-        __doc__ = _FUSED_DOC
-
-        def _pairs(self):
-            pairs = self.__dict__.get("_fused_pairs")
-            if pairs is None:
-                targets, sources = [], []
-                for key, param in self._sources.items(True, True):
-                    key = key if isinstance(key, tuple) else (key,)
-                    targets.append(self._targets.get(("target_" + key[0], *key[1:])).data)
-                    sources.append(param.data)
-                pairs = self.__dict__["_fused_pairs"] = (targets, sources)
-            return pairs
-
-        def step(self) -> None:
-            if not self.initialized:
-                raise RuntimeError("the target updater must be initialized before step()")
-            targets, sources = self._pairs()
-            with torch.no_grad():
-                torch._foreach_lerp_(targets, sources, 1.0 - self.eps)
-
-    return _FusedSoftUpdate(loss_module, eps=eps, tau=tau)
 
 
 def seed_all(seed: int) -> None:

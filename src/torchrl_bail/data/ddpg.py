@@ -50,12 +50,12 @@ from torchrl_bail.data.collection import (
     behaviour_seed,
     env_bounds,
     episode_limit,
-    fused_soft_update,
     make_collection_env,
     oracle_settings,
     seed_all,
 )
 from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor, make_qvalue_network
+from torchrl_bail.objectives._shared import fused_soft_update
 
 __all__ = ["LateActionCritic", "make_ddpg_critic", "DDPGAgent", "collect_ddpg"]
 

@@ -71,13 +71,13 @@ from torchrl_bail.data.collection import (
     env_bounds,
     episode_limit,
     file_lock,
-    fused_soft_update,
     make_collection_env,
     oracle_settings,
     scratch_directory,
     seed_all,
 )
 from torchrl_bail.modules import action_spec_from_bounds, make_qvalue_network, mlp
+from torchrl_bail.objectives._shared import fused_soft_update
 
 __all__ = [
     "TanhGaussianParams",
