@@ -1,49 +1,73 @@
-"""Deterministic policy evaluation on a batched environment (spec section 7).
+"""Deterministic policy evaluation at simulator speed (arXiv:1910.12179, supplement C.4).
 
-``N`` test episodes run side by side in one :class:`~torchrl.envs.SerialEnv`. Each episode's return is read
-from :class:`~torchrl.envs.RewardSum` at that episode's *first* done, so episodes that end early are neither
-cut short by the others (``break_when_any_done``) nor padded with repeated rewards (``break_when_all_done``);
-see ``torchrl_idioms.md`` section 3.2.
+The ``N`` test episodes of an evaluation run side by side: ``N`` gymnasium envs, one policy call per step on the
+stacked observations ``[N, obs_dim]`` (float64 -> float32 once, one host-to-device transfer and one back per step
+when the policy runs on a GPU), then one simulator step per running episode. There is no per-step TensorDict
+env machinery in between: the loop is as fast as a hand-written gymnasium loop (``benchmarks/bench_evaluation.py``).
 
-A simulator failure (an exception raised while stepping) or a non-finite observation or reward scores that
-episode 0 — as the paper does for MuJoCo errors — and is counted in :attr:`EvalResult.failures`; the run goes
-on. When the batched rollout raises, the episodes are replayed one by one so that only the failing ones score 0.
+Semantics:
 
-The test env is seeded once with the run seed; successive evaluations continue its random stream.
+* each episode's return is the undiscounted sum of its rewards up to its *own* first ``terminated`` or
+  ``truncated`` (the env's time limit), or up to ``max_steps`` steps; an episode that ended is not stepped again,
+  the others go on;
+* the policy acts deterministically (:class:`~torchrl.envs.utils.ExplorationType` ``DETERMINISTIC``) and is
+  always called on the whole ``[*batch_shape]`` batch (finished episodes keep their last observation), so its
+  outputs never depend on which other episodes are still running;
+* a simulator failure scores the episode 0 and is counted in :attr:`EvalResult.failures`: an exception raised by
+  the env, or a step that :class:`~torchrl_bail.simulator.SimulatorGuard` flags (a MuJoCo instability warning --
+  MuJoCo >= 3 resets the simulation instead of raising -- or a non-finite observation or reward); the run goes on.
+
+Seeding: the ``k``-th call (``k = 0, 1, ...``, :attr:`Evaluator.evaluations`) resets episode ``i`` with the seed
+``numpy.random.SeedSequence(seed, spawn_key=(k, i)).generate_state(1)[0]``: every evaluation sees new start
+states, the same ``seed`` always gives the same returns, and the ``k``-th evaluation does not depend on what the
+earlier ones did (set :attr:`Evaluator.evaluations` to resume a stream).
+
+Several training seeds at once: ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step
+loop; the policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. a vmapped
+ensemble of ``S`` policies) and the call returns one :class:`EvalResult` per seed, each equal to what
+``Evaluator(..., seed=s_j)`` gives for that seed's policy.
 
 Examples:
     >>> from torchrl_bail.modules import make_deterministic_actor
     >>> evaluator = Evaluator("Hopper-v5", episodes=2, seed=0, max_steps=20)
     >>> actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(8,))
     >>> result = evaluator(actor)
-    >>> len(result.returns), result.failures
-    (2, 0)
+    >>> len(result.returns), result.failures, evaluator.evaluations
+    (2, 0, 1)
     >>> evaluator.close()
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
+import numpy as np
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import Compose, DoubleToFloat, GymEnv, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["EvalResult", "Evaluator", "make_env"]
+from torchrl_bail.modules import action_spec_from_bounds
+from torchrl_bail.simulator import make_guarded_env
+
+__all__ = ["EvalResult", "Evaluator", "episode_seed"]
 
 
-def make_env(env_id: str, *, max_episode_steps: int | None = None, device="cpu") -> TransformedEnv:
-    """A gymnasium MuJoCo env with float32 observations, an episode-return sum and a step counter."""
-    kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
-    env = GymEnv(env_id, device=device, **kwargs)
-    return TransformedEnv(env, Compose(DoubleToFloat(), RewardSum(), StepCounter()))
+def episode_seed(seed: int, evaluation: int, episode: int) -> int:
+    """The reset seed of episode ``episode`` in the ``evaluation``-th evaluation of a run seeded ``seed``.
+
+    >>> episode_seed(0, 0, 0) == episode_seed(0, 0, 0) != episode_seed(0, 1, 0)
+    True
+    """
+    return int(np.random.SeedSequence(int(seed), spawn_key=(int(evaluation), int(episode))).generate_state(1)[0])
 
 
 @dataclass
 class EvalResult:
-    """Returns and lengths of the evaluation episodes; failed episodes score 0."""
+    """Returns and lengths (steps taken) of the evaluation episodes; failed episodes score 0."""
 
     returns: list[float]
     lengths: list[int]
@@ -61,18 +85,22 @@ class EvalResult:
 
 
 class Evaluator:
-    """Runs ``episodes`` deterministic episodes of a policy in one batched env.
+    """Runs ``episodes`` deterministic episodes of a policy side by side and reads each one's return.
 
     Args:
         env_id: gymnasium id, e.g. ``"Hopper-v5"``.
 
     Keyword Args:
-        episodes (int): number of test episodes. Defaults to ``10``.
-        seed (int): seeds the env once; later evaluations continue the stream. Defaults to ``0``.
-        max_steps (int): step budget of one evaluation (the env's time limit ends episodes first).
+        episodes (int): number of test episodes (per seed). Defaults to ``10``.
+        seed (int): the run seed; see the module docstring for the per-episode reset seeds. Defaults to ``0``.
+        seeds (sequence of int, optional): evaluate ``S`` seeds at once (``S x episodes`` episodes, policy batch
+            ``[S, episodes]``, one :class:`EvalResult` per seed); overrides ``seed``. Defaults to ``None``.
+        max_steps (int): step budget of one episode (the env's time limit ends episodes first when shorter).
             Defaults to ``1000``.
         max_episode_steps (int, optional): overrides the env's time limit.
-        device: device of the env outputs (the policy's device). Defaults to ``"cpu"``.
+        device: the policy's device; observations are sent there once per step. Defaults to ``"cpu"``.
+        env_kwargs (dict, optional): extra keyword arguments of ``gymnasium.make`` (e.g.
+            ``{"terminate_when_unhealthy": False}``). Defaults to ``None``.
     """
 
     def __init__(
@@ -81,86 +109,90 @@ class Evaluator:
         *,
         episodes: int = 10,
         seed: int = 0,
+        seeds: Sequence[int] | None = None,
         max_steps: int = 1000,
         max_episode_steps: int | None = None,
         device="cpu",
+        env_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         if episodes < 1:
             raise ValueError(f"eval.episodes must be >= 1, got {episodes}")
         if max_steps < 1:
             raise ValueError(f"eval.max_steps must be >= 1, got {max_steps}")
+        if seeds is not None and len(seeds) < 1:
+            raise ValueError("eval seeds must name at least one seed, got an empty list")
         self.env_id = env_id
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
         self.seed = int(seed)
-        self._env_kwargs = {"max_episode_steps": max_episode_steps, "device": device}
-        self.env = SerialEnv(self.episodes, lambda: make_env(env_id, **self._env_kwargs))
-        self.env.set_seed(self.seed)
-        self._fallback_calls = 0
-
-    @property
-    def action_spec(self):
-        return self.env.action_spec[0] if self.env.action_spec.ndim > 1 else self.env.action_spec
-
-    @property
-    def obs_dim(self) -> int:
-        return int(self.env.observation_spec["observation"].shape[-1])
+        self.seeds = None if seeds is None else [int(s) for s in seeds]
+        self.batch_shape = torch.Size([self.episodes] if seeds is None else [len(self.seeds), self.episodes])
+        self.device = torch.device(device)
+        self.evaluations = 0
+        make_kwargs = {"disable_env_checker": True, **(env_kwargs or {})}
+        self.envs = [make_guarded_env(env_id, max_episode_steps=max_episode_steps, **make_kwargs)
+                     for _ in range(self.batch_shape.numel())]
+        space = self.envs[0].action_space
+        self.action_spec = action_spec_from_bounds(space.low, space.high).to(self.device)
+        self.obs_dim = int(self.envs[0].observation_space.shape[-1])
 
     @torch.no_grad()
-    def __call__(self, policy: TensorDictModuleBase) -> EvalResult:
-        try:
-            with set_exploration_type(ExplorationType.DETERMINISTIC):
-                rollout = self.env.rollout(
-                    self.max_steps, policy, break_when_any_done=False, break_when_all_done=True,
-                    auto_cast_to_device=True,
-                )
-        except Exception:  # noqa: BLE001 - any simulator error scores the affected episodes 0
-            return self._episode_by_episode(policy)
-        return _read_episodes(rollout)
+    def __call__(self, policy: TensorDictModuleBase) -> EvalResult | list[EvalResult]:
+        """Plays one evaluation; returns an :class:`EvalResult` (a list of them, one per seed, with ``seeds``)."""
+        n = len(self.envs)
+        seeds = [self.seed] if self.seeds is None else self.seeds
+        obs = np.zeros((n, self.obs_dim), dtype=np.float32)
+        returns = np.zeros(n)
+        lengths = np.zeros(n, dtype=np.int64)
+        running = np.ones(n, dtype=bool)
+        failed = np.zeros(n, dtype=bool)
 
-    def _episode_by_episode(self, policy) -> EvalResult:
-        """Replays each episode in its own env so that only the failing ones score 0."""
-        returns, lengths, failed = [], [], []
-        self._fallback_calls += 1
-        for i in range(self.episodes):
-            env = make_env(self.env_id, **self._env_kwargs)
-            env.set_seed(self.seed + 1_000_003 * self._fallback_calls + i)
+        def fail(i: int) -> None:
+            failed[i], running[i] = True, False
+
+        for i, env in enumerate(self.envs):
             try:
-                with set_exploration_type(ExplorationType.DETERMINISTIC):
-                    ro = env.rollout(self.max_steps, policy, break_when_any_done=True, auto_cast_to_device=True)
-                res = _read_episodes(ro.unsqueeze(0))
-                returns += res.returns
-                lengths += res.lengths
-                if res.failures:
-                    failed.append(i)
-            except Exception:  # noqa: BLE001
-                returns.append(0.0)
-                lengths.append(0)
-                failed.append(i)
-            finally:
-                env.close()
-        return EvalResult(returns, lengths, len(failed), failed)
+                obs[i], _ = env.reset(seed=episode_seed(seeds[i // self.episodes], self.evaluations, i % self.episodes))
+            except Exception:  # noqa: BLE001 - a simulator error scores the episode 0
+                fail(i)
+        self.evaluations += 1
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            for _ in range(self.max_steps):
+                if not running.any():
+                    break
+                observation = torch.tensor(obs, device=self.device).view(*self.batch_shape, self.obs_dim)
+                td = policy(TensorDict({"observation": observation}, batch_size=self.batch_shape, device=self.device))
+                actions = td["action"].reshape(n, -1).cpu().numpy()
+                for i in np.flatnonzero(running):
+                    try:
+                        o, r, terminated, truncated, info = self.envs[i].step(actions[i])
+                    except Exception:  # noqa: BLE001
+                        fail(i)
+                        continue
+                    lengths[i] += 1
+                    if info["simulator_unstable"]:
+                        fail(i)
+                        continue
+                    returns[i] += r
+                    obs[i] = o
+                    running[i] = not (terminated or truncated)
+        returns[failed] = 0.0
+        results = [_result(returns[j], lengths[j], failed[j])
+                   for j in np.split(np.arange(n), len(seeds))]
+        return results[0] if self.seeds is None else results
 
     def close(self) -> None:
-        if not self.env.is_closed:
-            self.env.close()
+        for env in self.envs:
+            env.close()
+        self.envs = []
+
+    def __enter__(self) -> Evaluator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
-def _read_episodes(rollout) -> EvalResult:
-    """Reads each episode's return at its first done from a ``[n, T]`` rollout."""
-    done = rollout["next", "done"].squeeze(-1)
-    n, horizon = done.shape
-    first = torch.where(done.any(-1), done.float().argmax(-1), torch.full((n,), horizon - 1))
-    idx = torch.arange(n)
-    returns = rollout["next", "episode_reward"][idx, first].squeeze(-1).double()
-    lengths = rollout["next", "step_count"][idx, first].squeeze(-1)
-    # Non-finite states or rewards before (or at) the episode's first done count as simulator failures.
-    steps = torch.arange(horizon).expand(n, horizon)
-    alive = steps <= first.unsqueeze(-1)
-    obs = rollout["next", "observation"]
-    bad_obs = ~torch.isfinite(obs).flatten(2).all(-1)
-    bad_rew = ~torch.isfinite(rollout["next", "reward"]).flatten(2).all(-1)
-    failed = ((bad_obs | bad_rew) & alive).any(-1) | ~torch.isfinite(returns)
-    returns = torch.where(failed, torch.zeros_like(returns), returns)
-    failed_idx = failed.nonzero().flatten().tolist()
-    return EvalResult(returns.tolist(), lengths.tolist(), len(failed_idx), failed_idx)
+def _result(returns: np.ndarray, lengths: np.ndarray, failed: np.ndarray) -> EvalResult:
+    failed_idx = np.flatnonzero(failed).tolist()
+    return EvalResult([float(r) for r in returns], [int(x) for x in lengths], len(failed_idx), failed_idx)
