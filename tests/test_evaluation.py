@@ -1,54 +1,147 @@
-"""Evaluation reads each episode's true return, scores failures 0, and keeps going."""
+"""Evaluation reads each episode's true return, scores simulator failures 0, and keeps going."""
 
 from __future__ import annotations
 
 import math
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 
-from torchrl_bail.evaluation import EvalResult, Evaluator, _read_episodes
-from torchrl_bail.modules import make_deterministic_actor
-
-
-def _rollout(rewards: torch.Tensor, done_at: list[int | None], obs_dim: int = 2) -> TensorDict:
-    """A [n, T] rollout like break_when_all_done produces: finished envs repeat their last entries."""
-    n, horizon = rewards.shape
-    done = torch.zeros(n, horizon, 1, dtype=torch.bool)
-    episode_reward = torch.zeros(n, horizon, 1)
-    step_count = torch.zeros(n, horizon, 1, dtype=torch.int64)
-    for i, d in enumerate(done_at):
-        running = 0.0
-        for t in range(horizon):
-            last = d if d is not None else horizon - 1
-            if t <= last:
-                running += float(rewards[i, t])
-            step_count[i, t] = min(t, last) + 1
-            episode_reward[i, t] = running
-            if d is not None and t >= d:
-                done[i, t] = True
-    return TensorDict({"next": {"done": done, "reward": rewards.unsqueeze(-1), "episode_reward": episode_reward,
-                                "step_count": step_count, "observation": torch.zeros(n, horizon, obs_dim)}},
-                      [n, horizon])
+from torchrl_bail.evaluation import EvalResult, Evaluator, episode_seed
+from torchrl_bail.simulator import SimulatorGuard, make_guarded_env
 
 
-def test_returns_read_at_each_episodes_first_done():
-    rewards = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, -7.0, -7.0, -7.0], [1.0, 1.0, 1.0, 1.0]])
-    res = _read_episodes(_rollout(rewards, [3, 0, None]))
-    assert res.returns == [10.0, 5.0, 4.0]  # the repeated -7 rewards after env 1's done are not counted
-    assert res.lengths == [4, 1, 4]
+def _policy(hook=None):
+    """A deterministic policy computed element by element, so its outputs never depend on the batch shape."""
+    shapes = []
+
+    def act(obs):
+        shapes.append(tuple(obs.shape))
+        if hook is not None:
+            hook(len(shapes))
+        return (3 * obs[..., 5:8]).clamp(-1, 1)  # exactly rounded ops: no SIMD-dependent bits
+
+    module = TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
+    module.shapes = shapes
+    return module
+
+
+def _one_episode(env_id, seed, policy, max_steps, **make_kwargs):
+    """Reference: one gymnasium env alone, run to its first done (or max_steps); (return, length)."""
+    env = gym.make(env_id, **make_kwargs)
+    obs, _ = env.reset(seed=seed)
+    ret, length = 0.0, 0
+    for _ in range(max_steps):
+        action = policy.module(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))[0].numpy()
+        obs, r, terminated, truncated, _ = env.step(action)
+        ret, length = ret + r, length + 1
+        if terminated or truncated:
+            break
+    env.close()
+    return ret, length
+
+
+def test_each_episode_runs_to_its_own_first_done():
+    """Batched evaluation equals running each seeded episode alone: none is cut at another's end or padded."""
+    with Evaluator("Hopper-v5", episodes=3, seed=3, max_steps=300) as evaluator:
+        policy = _policy()
+        res = evaluator(policy)
+    assert policy.shapes[0] == (3, 11)  # one call per step on the stacked float32 observations
+    reference = [_one_episode("Hopper-v5", episode_seed(3, 0, i), _policy(), 300) for i in range(3)]
+    assert res.returns == [r for r, _ in reference]
+    assert res.lengths == [n for _, n in reference]
+    assert len(set(res.lengths)) > 1 and max(res.lengths) < 300, res.lengths  # Hopper fell, each at its own step
     assert res.failures == 0
 
 
-def test_non_finite_state_scores_zero_and_is_counted():
-    rewards = torch.ones(3, 4)
-    ro = _rollout(rewards, [3, 3, 1])
-    ro["next", "observation"][0, 2, 1] = float("nan")  # env 0 diverges before its done: a failure
-    ro["next", "observation"][2, 3, 0] = float("inf")  # env 2 diverges after its done: ignored
-    res = _read_episodes(ro)
-    assert res.returns == [0.0, 4.0, 2.0]
+def test_same_seed_same_returns_new_start_states_each_evaluation():
+    a = Evaluator("Hopper-v5", episodes=2, seed=1, max_steps=30)
+    b = Evaluator("Hopper-v5", episodes=2, seed=1, max_steps=30)
+    first, again = a(_policy()), b(_policy())
+    assert first.returns == again.returns
+    second = a(_policy())
+    assert second.returns != first.returns  # the next evaluation starts from new states
+    a.evaluations = 0  # resuming the stream reproduces the first evaluation
+    assert a(_policy()).returns == first.returns
+    a.close()
+    b.close()
+
+
+def test_time_limit_and_step_budget_end_episodes():
+    kwargs = {"terminate_when_unhealthy": False}
+    with Evaluator("Hopper-v5", episodes=2, max_steps=50, max_episode_steps=7, env_kwargs=kwargs) as ev:
+        assert ev(_policy()).lengths == [7, 7]
+    with Evaluator("Hopper-v5", episodes=2, max_steps=5, env_kwargs=kwargs) as ev:
+        assert ev(_policy()).lengths == [5, 5]
+
+
+def test_guard_ends_the_episode_mujoco_would_silently_reset():
+    raw = gym.make("Hopper-v5")
+    raw.reset(seed=0)
+    raw.unwrapped.data.qvel[:] = 1e20
+    obs, reward, terminated, _, _ = raw.step(np.zeros(3))
+    # MuJoCo >= 3 raises nothing: it resets the simulation and the episode goes on from the initial state
+    assert not terminated and np.isfinite(obs).all() and math.isfinite(reward)
+    raw.close()
+
+    env = make_guarded_env("Hopper-v5")
+    _, info = env.reset(seed=0)
+    assert info["simulator_unstable"] is False
+    _, _, terminated, _, info = env.step(np.zeros(3))
+    assert not terminated and info["simulator_unstable"] is False
+    env.unwrapped.data.qpos[2] = float("nan")
+    _, _, terminated, _, info = env.step(np.zeros(3))
+    assert terminated and info["simulator_unstable"] is True and env.unstable_episodes == 1
+    _, info = env.reset(seed=1)  # a reset clears MuJoCo's counters: the next episode is healthy again
+    _, _, terminated, _, info = env.step(np.zeros(3))
+    assert not terminated and info["simulator_unstable"] is False
+    assert isinstance(env, SimulatorGuard)
+    env.close()
+
+
+def test_unstable_simulator_scores_zero_and_is_counted():
+    evaluator = Evaluator("Hopper-v5", episodes=3, seed=0, max_steps=200)
+
+    def diverge(call):  # before the 4th step, episode 1's simulation blows up
+        if call == 4:
+            evaluator.envs[1].unwrapped.data.qvel[:] = 1e20
+
+    res = evaluator(_policy(diverge))
+    assert res.failures == 1 and res.failed_episodes == [1]
+    assert res.returns[1] == 0.0 and res.lengths[1] == 4
+    assert res.returns[0] != 0.0 and res.returns[2] != 0.0 and min(res.lengths[0], res.lengths[2]) > 4
+    # the next evaluation is healthy again
+    assert evaluator(_policy()).failures == 0
+    evaluator.close()
+
+
+def test_simulator_exception_scores_only_that_episode_zero(monkeypatch):
+    evaluator = Evaluator("Hopper-v5", episodes=2, seed=0, max_steps=20)
+
+    def broken_step(action):
+        raise RuntimeError("mujoco exploded")
+
+    monkeypatch.setattr(evaluator.envs[0], "step", broken_step)
+    res = evaluator(_policy())
+    evaluator.close()
     assert res.failures == 1 and res.failed_episodes == [0]
+    assert res.returns[0] == 0.0 and res.returns[1] != 0.0 and res.lengths[1] > 0
+
+
+def test_several_seeds_in_one_step_loop_equal_separate_evaluations():
+    policy = _policy()
+    with Evaluator("Hopper-v5", episodes=2, seeds=[3, 4], max_steps=40) as ev:
+        together = ev(policy)
+    assert policy.shapes[0] == (2, 2, 11)  # [seeds, episodes, obs]
+    separate = []
+    for s in (3, 4):
+        with Evaluator("Hopper-v5", episodes=2, seed=s, max_steps=40) as ev:
+            separate.append(ev(_policy()))
+    assert [r.returns for r in together] == [r.returns for r in separate]
+    assert [r.lengths for r in together] == [r.lengths for r in separate]
 
 
 def test_eval_result_statistics():
@@ -56,44 +149,8 @@ def test_eval_result_statistics():
     assert res.mean_return == 2.0 and math.isclose(res.std_return, 1.0)
 
 
-def test_simulator_exception_scores_only_failing_episodes_zero(monkeypatch):
-    evaluator = Evaluator("Hopper-v5", episodes=2, seed=0, max_steps=5)
-    actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(4,))
-
-    def broken_rollout(*args, **kwargs):
-        raise RuntimeError("mujoco exploded")
-
-    monkeypatch.setattr(evaluator.env, "rollout", broken_rollout)
-    calls = {"n": 0}
-    real_make_env = __import__("torchrl_bail.evaluation", fromlist=["make_env"]).make_env
-
-    def flaky_make_env(*args, **kwargs):
-        calls["n"] += 1
-        env = real_make_env(*args, **kwargs)
-        if calls["n"] == 1:  # the first replayed episode fails too
-            monkeypatch.setattr(env, "rollout", broken_rollout)
-        return env
-
-    monkeypatch.setattr("torchrl_bail.evaluation.make_env", flaky_make_env)
-    res = evaluator(actor)
-    evaluator.close()
-    assert res.failures == 1 and res.failed_episodes == [0]
-    assert res.returns[0] == 0.0 and res.returns[1] != 0.0
-
-
-def test_real_hopper_episode_returns_are_whole():
-    """Batched evaluation equals running each seeded env alone (no truncation by the other episodes)."""
-    evaluator = Evaluator("Hopper-v5", episodes=3, seed=3, max_steps=200)
-    torch.manual_seed(0)
-    actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(8,))
-    res = evaluator(actor)
-    evaluator.close()
-    assert len(res.returns) == 3 and all(math.isfinite(r) for r in res.returns)
-    assert all(1 <= length <= 200 for length in res.lengths)
-    # the episodes end at different steps: none was cut at another episode's end
-    assert len(set(res.lengths)) > 1, res.lengths
-
-
 def test_bad_settings_are_rejected():
     with pytest.raises(ValueError, match="eval.episodes"):
         Evaluator("Hopper-v5", episodes=0)
+    with pytest.raises(ValueError, match="eval.max_steps"):
+        Evaluator("Hopper-v5", max_steps=0)
