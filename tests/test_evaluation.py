@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
+from torchrl.envs import DoubleToFloat, GymEnv, GymWrapper, TransformedEnv
 
 from torchrl_bail.evaluation import EvalResult, Evaluator, episode_seed
 from torchrl_bail.simulator import SimulatorGuard, make_guarded_env
@@ -154,3 +155,23 @@ def test_bad_settings_are_rejected():
         Evaluator("Hopper-v5", episodes=0)
     with pytest.raises(ValueError, match="eval.max_steps"):
         Evaluator("Hopper-v5", max_steps=0)
+
+
+def test_guard_is_a_drop_in_for_torchrl_collection_envs():
+    """``GymWrapper(make_guarded_env(id))`` steps exactly like ``GymEnv(id)`` and ends an unstable episode."""
+    plain = TransformedEnv(GymEnv("Hopper-v5"), DoubleToFloat())
+    guard = make_guarded_env("Hopper-v5")
+    guarded = TransformedEnv(GymWrapper(guard), DoubleToFloat())
+    rollouts = []
+    for env in (plain, guarded):
+        env.set_seed(5)
+        torch.manual_seed(1)
+        rollouts.append(env.rollout(80, break_when_any_done=False))  # random actions, resets after done
+    assert rollouts[0]["next", "done"].any()
+    assert (rollouts[0] == rollouts[1]).all()
+    td = guarded.reset()
+    guard.unwrapped.data.qvel[:] = 1e20
+    td = guarded.step(td.set("action", torch.zeros(3)))
+    assert td["next", "terminated"].item() and td["next", "done"].item() and guard.unstable_episodes == 1
+    plain.close()
+    guarded.close()
