@@ -25,7 +25,8 @@ earlier ones did (set :attr:`Evaluator.evaluations` to resume a stream).
 Several training seeds at once: ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step
 loop; the policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. a vmapped
 ensemble of ``S`` policies) and the call returns one :class:`EvalResult` per seed, each equal to what
-``Evaluator(..., seed=s_j)`` gives for that seed's policy.
+``Evaluator(..., seed=s_j)`` gives for that seed's policy (as long as the policy computes each row as it would
+alone: a matrix product's last bits can depend on the batch shape).
 
 Examples:
     >>> from torchrl_bail.modules import make_deterministic_actor
