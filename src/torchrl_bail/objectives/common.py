@@ -28,7 +28,7 @@ from torchrl.objectives.utils import _cache_values, _vmap_func
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
 from torchrl_bail.objectives.vae import conditional_vae_loss
 
-__all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target"]
+__all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target", "expand_samples"]
 
 
 def soft_clipped_double_q_target(

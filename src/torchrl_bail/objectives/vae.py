@@ -23,7 +23,7 @@ from torchrl.objectives import LossModule
 
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
 
-__all__ = ["VAELoss", "vae_loss_terms"]
+__all__ = ["VAELoss", "vae_loss_terms", "conditional_vae_loss"]
 
 
 def vae_loss_terms(
