@@ -32,14 +32,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import matplotlib.pyplot as plt
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.plots import save_figure
+from torchrl_bail.plots import new_figure, save_figure
 
 __all__ = [
     "EarlyStopping",
@@ -602,7 +601,8 @@ def plot_envelope(
     order = torch.argsort(values, stable=True)
     x = torch.arange(len(values)).numpy()
     below = fraction_below(values, returns) if len(values) else math.nan
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig = new_figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
     ax.plot(x, returns[order].numpy(), linestyle="none", marker=".", markersize=1.0, alpha=0.5,
             color="tab:blue", label="return G", rasterized=True)
     ax.plot(x, values[order].numpy(), color="tab:red", linewidth=1.5, label="upper envelope V")

@@ -29,6 +29,8 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 
+from torchrl_bail import fast_tensordict_outputs
+
 __all__ = [
     "mlp",
     "action_spec_from_bounds",
@@ -47,7 +49,11 @@ __all__ = [
 
 
 def mlp(in_features: int, out_features: int, hidden: Sequence[int]) -> MLP:
-    """A ReLU MLP ``in -> hidden... -> out`` with PyTorch's default init (never TorchRL's 1-layer default)."""
+    """A ReLU MLP ``in -> hidden... -> out`` with PyTorch's default init (never TorchRL's 1-layer default).
+
+    Every builder below goes through here, which applies :func:`torchrl_bail.fast_tensordict_outputs` once.
+    """
+    fast_tensordict_outputs()
     return MLP(
         in_features=in_features,
         out_features=out_features,
