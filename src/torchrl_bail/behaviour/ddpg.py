@@ -42,7 +42,14 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, ValueEstimators
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
-from torchrl_bail.behaviour.loop import BehaviourRun, ReturnTracker, env_bounds, make_collection_env, seed_all
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.data.cache import batch_name, behaviour_seed, config_value, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
@@ -188,12 +195,7 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
 
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
+        data, wall = collect_timed(buffers, runner)
     finally:
         env.close()
     returns = tracker.all_returns

@@ -17,7 +17,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
-from torchrl_bail.behaviour.loop import BehaviourRun, ReturnTracker, env_bounds, make_collection_env, seed_all
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.behaviour.sac import ensure_sac_run
 from torchrl_bail.data.cache import (
     batch_name,
@@ -68,12 +75,7 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
         buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg), replay_batch_size=None)
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
+        data, wall = collect_timed(buffers, runner)
     finally:
         env.close()
     extra = {

@@ -19,6 +19,7 @@ Examples:
 from __future__ import annotations
 
 import random
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -29,9 +30,10 @@ from tensordict import TensorDictBase
 from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
 from tqdm.auto import tqdm
 
-from torchrl_bail.behaviour.buffers import BatchSink
+from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
 
-__all__ = ["TRANSITION_KEYS", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker", "BehaviourRun"]
+__all__ = ["TRANSITION_KEYS", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker", "BehaviourRun",
+           "collect_timed"]
 
 #: the keys one stored transition carries (TED layout); ``episode`` (and ``oracle_return``) are added per episode
 TRANSITION_KEYS = (
@@ -193,3 +195,17 @@ class BehaviourRun:
             else:
                 sink.extend(episode)
 
+
+def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
+                  after: Callable[[], None] | None = None) -> tuple[TensorDictBase, float]:
+    """``buffers.collect(runner)``, then ``after()`` (e.g. a final evaluation), closing the runner's progress bar
+    in every case; returns ``(batch, wall seconds)``."""
+    start = time.perf_counter()
+    try:
+        data = buffers.collect(runner)
+        if after is not None:
+            after()
+    finally:
+        if runner.tracker is not None:
+            runner.tracker.close()
+    return data, time.perf_counter() - start

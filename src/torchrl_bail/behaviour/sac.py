@@ -56,7 +56,14 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, ValueEstimators
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
-from torchrl_bail.behaviour.loop import BehaviourRun, ReturnTracker, env_bounds, make_collection_env, seed_all
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     LOCKS,
@@ -309,15 +316,12 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
             if t % eval_every == 0:
                 evaluate(t)
 
-        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
+        def evaluate_final() -> None:  # the final policy is always evaluated and saved
             if not evaluations or evaluations[-1]["step"] != runner.t:
-                evaluate(runner.t)  # the final policy is always evaluated and saved
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
+                evaluate(runner.t)
+
+        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
+        data, wall = collect_timed(buffers, runner, after=evaluate_final)
     finally:
         env.close()
         evaluator.close()
