@@ -56,10 +56,20 @@ def test_as_coded_tracker_aliases_the_live_weights_and_never_reverts():
     assert tracker.reverts == [] and tracker.increases == 2
 
 
-def test_tracker_skips_missing_validation():
-    tracker = EarlyStoppingTracker(torch.nn.Linear(1, 1), patience=1)
-    assert [tracker.observe(math.nan) for _ in range(3)] == ["skipped"] * 3
-    assert tracker.reverts == [] and not tracker.best.recorded
+def test_a_diverged_envelope_counts_as_non_improving():
+    net = torch.nn.Linear(1, 1)
+    tracker = EarlyStoppingTracker(net, patience=2)
+    tracker.observe(1.0)
+    best = _weights(net)
+    _perturb(net)
+    assert [tracker.observe(math.nan) for _ in range(2)] == ["worse", "reverted"]
+    assert _equal(_weights(net), best)
+
+
+def test_pbail_without_validation_set_never_reverts():
+    algo, data = _pbail(envelope={"val_fraction": 0.0})
+    _updates(algo, data, 10, seed=1)
+    assert algo.early_stopping.step == 0 and algo.summary()["envelope_reverts"] == 0
 
 
 def test_tracker_state_round_trip():
@@ -106,11 +116,12 @@ def test_fit_returns_the_best_weights_in_paper_mode_and_the_last_as_coded():
     assert _equal(_weights(net), snapshots[-1])
 
 
-def _pbail(**kwargs) -> tuple[ProgressiveBAIL, TensorDict]:
+def _pbail(envelope: dict | None = None, **kwargs) -> tuple[ProgressiveBAIL, TensorDict]:
     torch.manual_seed(0)
     spec = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
+    envelope = {"hidden": (16, 16), "validate_every": 1, "patience": 2, "lr": 0.05, **(envelope or {})}
     algo = ProgressiveBAIL(obs_dim=3, action_spec=spec, hidden=(16, 16), batch_size=40, epochs=1,
-                           envelope={"hidden": (16, 16), "validate_every": 1, "patience": 2, "lr": 0.05}, **kwargs)
+                           envelope=envelope, **kwargs)
     g = torch.Generator().manual_seed(0)
     data = TensorDict({"observation": torch.randn(200, 3, generator=g), "action": torch.rand(200, 2, generator=g),
                        "return": torch.rand(200, generator=g) * 100}, [200])

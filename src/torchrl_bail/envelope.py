@@ -5,6 +5,10 @@ parameter, a train/validation split that forces the highest return into training
 mini-batches over the reshuffled training split, a validation loss after every epoch and early stopping with
 patience ``C = 4``. The penalty loss itself is :class:`~torchrl_bail.objectives.upper_envelope.UpperEnvelopeLoss`.
 
+It is built from named steps that Progressive BAIL (:mod:`torchrl_bail.algorithms.pbail`) reuses:
+:func:`envelope_split`, :func:`train_one_epoch` (made of :func:`envelope_step`), :func:`validation_loss`, and the
+one early-stopping rule, :class:`EarlyStoppingTracker`, with its :class:`BestWeights` record ``phi'``.
+
 :func:`envelope_values` evaluates a fitted envelope over a whole batch, :func:`fraction_below` measures how
 many returns it fails to cover and :func:`plot_envelope` draws the paper's Fig. 13.
 
@@ -260,7 +264,9 @@ class EarlyStoppingTracker:
     * otherwise the count grows by one; when it reaches ``patience`` (``C = 4``) and reverting is on (and a best
       record exists), ``phi <- phi'`` and **the count restarts at 0**: the next revert needs ``C`` more
       non-improving validations. Returns ``"reverted"`` then, else ``"worse"``.
-    * ``L`` is ``nan`` (no validation set): nothing happens; returns ``"skipped"``.
+    * a ``nan`` loss (a diverged envelope) never improves: it counts as non-improving.
+
+    Without a validation set there is nothing to observe: callers do not call :meth:`observe` (no early stopping).
 
     The restart after a revert is the chosen reading of B.1 ("returned to phi' once there are C consecutive times
     with L_phi > L_phi'"): after a revert the streak that triggered it is used up. The authors' code resets the
@@ -299,11 +305,9 @@ class EarlyStoppingTracker:
         self.step = 0
         self.reverts: list[int] = []
 
-    def observe(self, loss: float) -> Literal["improved", "worse", "reverted", "skipped"]:
+    def observe(self, loss: float) -> Literal["improved", "worse", "reverted"]:
         """Feeds one validation loss (validations are counted 1, 2, ... as ``step``); see the class docstring."""
         self.step += 1
-        if math.isnan(loss):
-            return "skipped"
         if loss < self.best_loss:
             self.best_loss, self.best_step, self.increases = loss, self.step, 0
             self.best.save()
@@ -501,7 +505,8 @@ def fit_upper_envelope(
         train_losses.append(train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size,
                                             generator=generator))
         val_losses.append(validation_loss(loss_module, validation))
-        tracker.observe(val_losses[-1])
+        if len(validation):
+            tracker.observe(val_losses[-1])
         best_epoch = tracker.best_step if len(validation) else epoch
         bar.set_postfix(train=f"{train_losses[-1]:.4g}", val=f"{val_losses[-1]:.4g}", best=best_epoch)
         if callback is not None:

@@ -137,8 +137,9 @@ class ProgressiveBAIL(BehaviourCloning):
         """One validation of the training envelope; the tracker may revert it, then the selection network follows
         ``phi'`` (see the module docstring)."""
         val = self._validation_data
-        event = self.early_stopping.observe(validation_loss(self.envelope_loss, val) if val is not None
-                                            else float("nan"))
+        if val is None or len(val) == 0:  # no validation set: no early stopping
+            return
+        event = self.early_stopping.observe(validation_loss(self.envelope_loss, val))
         best = self.early_stopping.best
         if self.best_envelope == "paper" and event == "improved":
             best.load_into(self.selection_network)
