@@ -83,7 +83,7 @@ def test_exec_and_sac_recipes_are_validated():
 @pytest.fixture(scope="module")
 def sac_family(tmp_path_factory):
     """med_det first (trains the SAC run once), then opt_stoch and sac reuse it."""
-    from torchrl_bail.data import sac
+    from torchrl_bail.behaviour import sac
 
     data_dir = tmp_path_factory.mktemp("sac")
     runs = []
