@@ -6,8 +6,9 @@ mini-batch, same optimizer) in the same process.
 
 The library side is exactly what a run executes per iteration:
 
-* envelope: the body of :func:`torchrl_bail.envelope.fit_upper_envelope`'s inner loop (index a mini-batch of
-  800 from the training split, :class:`UpperEnvelopeLoss`, Adam with coupled weight decay);
+* envelope: the body of :func:`torchrl_bail.envelope.train_one_epoch` (index a mini-batch of 800 from the
+  training split, :func:`~torchrl_bail.envelope.envelope_step`: :class:`UpperEnvelopeLoss`, Adam with coupled weight
+  decay);
 * policy: :func:`torchrl_bail.trainer.train`'s iteration (``TensorDictReplayBuffer.sample()`` of 1000 with
   replacement, then :meth:`BehaviourCloning.update`: TorchRL ``BCLoss`` + Adam);
 * Progressive BAIL: the same sample, then :meth:`ProgressiveBAIL.update` (envelope step on the non-validation
@@ -28,6 +29,7 @@ from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
 from torchrl_bail.data import monte_carlo_returns
+from torchrl_bail.envelope import envelope_step
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
 
@@ -79,7 +81,7 @@ def bench_envelope(n_updates: int) -> dict:
     observations, returns = torch.randn(n, OBS, generator=g), torch.rand(n, generator=g) * 300
     train_index = torch.randperm(n, generator=g)[: int(0.8 * n)]
 
-    # library: the inner loop of fit_upper_envelope
+    # library: the inner loop of train_one_epoch
     torch.manual_seed(0)
     value = make_value_network(OBS)
     loss_module = UpperEnvelopeLoss(value, penalty=1000.0)
@@ -91,10 +93,7 @@ def bench_envelope(n_updates: int) -> dict:
         index = train_index[start:start + batch]
         obs_b = observations.index_select(0, index)
         td = TensorDict({"observation": obs_b, "return": returns.index_select(0, index)}, batch_size=obs_b.shape[:1])
-        loss, _ = loss_module.envelope_loss(td)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        envelope_step(loss_module, optimizer, td)
 
     # bare: the same math on a plain nn.Sequential
     torch.manual_seed(0)

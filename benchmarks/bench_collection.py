@@ -26,9 +26,10 @@ from _bench import bare_mlp, compare, print_table  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 
-from torchrl_bail.data.collection import EpisodeStore, make_collection_env  # noqa: E402
-from torchrl_bail.data.ddpg import DDPGAgent  # noqa: E402
-from torchrl_bail.data.sac import SACAgent  # noqa: E402
+from torchrl_bail.behaviour.buffers import EpisodeStore  # noqa: E402
+from torchrl_bail.behaviour.ddpg import DDPGAgent  # noqa: E402
+from torchrl_bail.behaviour.loop import BehaviourRun, make_collection_env  # noqa: E402
+from torchrl_bail.behaviour.sac import SACAgent  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 
@@ -152,7 +153,6 @@ def bench_updates(obs_dim, act_dim, updates: int, scratch: Path) -> list[dict]:
 
 def bench_env(env_id: str, steps: int, obs_dim: int, act_dim: int) -> dict:
     """Env steps/s of the collection loop without learning: random actions, DDPG actor + noise, SAC sampling."""
-    from torchrl_bail.data.collection import BehaviourRun
 
     out = {}
     spec = action_spec_from_bounds([-1.0] * act_dim, [1.0] * act_dim)

@@ -16,16 +16,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.data.collection import (
-    SCRATCH,
-    CollectionConfigError,
-    batch_name,
-    batch_path,
-    clean_stale,
-    ensure_batch,
-    list_batches,
-    validate_recipe,
-)
+from torchrl_bail.behaviour import CollectionConfigError, ensure_batch, validate_recipe
+from torchrl_bail.data.cache import SCRATCH, batch_name, batch_path, clean_stale, list_batches
 
 ENVS = ["hopper", "walker", "halfcheetah", "ant", "humanoid"]
 SAC_KINDS = ["sac", "med_det", "med_stoch", "opt_det", "opt_stoch"]
@@ -91,7 +83,7 @@ def test_exec_and_sac_recipes_are_validated():
 @pytest.fixture(scope="module")
 def sac_family(tmp_path_factory):
     """med_det first (trains the SAC run once), then opt_stoch and sac reuse it."""
-    from torchrl_bail.data import sac
+    from torchrl_bail.behaviour import sac
 
     data_dir = tmp_path_factory.mktemp("sac")
     runs = []
@@ -110,7 +102,7 @@ def sac_family(tmp_path_factory):
 
 
 def test_one_sac_run_serves_mediocre_optimal_and_training_batches(sac_family):
-    from torchrl_bail.data.sac import load_sac_run
+    from torchrl_bail.behaviour.sac import load_sac_run
 
     assert len(sac_family["runs"]) == 1, "the SAC run must be trained once and reused"
     med, opt, sac_batch = sac_family["med"], sac_family["opt"], sac_family["sac"]
@@ -134,7 +126,7 @@ def test_execution_batches_follow_the_saved_policy(sac_family):
     from tensordict import TensorDict
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from torchrl_bail.data.sac import SACRun, load_sac_run
+    from torchrl_bail.behaviour.sac import SACRun, load_sac_run
 
     med, opt = sac_family["med"], sac_family["opt"]
     run = load_sac_run(Path(med.metadata["behaviour_policy"]["run"]))
@@ -155,7 +147,7 @@ def test_execution_batches_follow_the_saved_policy(sac_family):
 
 
 def test_mediocre_is_the_first_evaluation_reaching_the_threshold(tmp_path):
-    from torchrl_bail.data.sac import SACRun
+    from torchrl_bail.behaviour.sac import SACRun
 
     evals = [{"step": s, "return_mean": r, "file": f"e{s}"} for s, r in [(5, 10.0), (10, 60.0), (15, 40.0),
                                                                           (20, 90.0)]]
@@ -195,8 +187,8 @@ def _child_script(cfg_overrides: list[str], data_dir: Path) -> str:
         sys.path.insert(0, {SRC!r})
         from hydra import compose, initialize_config_dir
         from torchrl_bail import config_dir
-        from torchrl_bail.data import ddpg
-        from torchrl_bail.data.collection import ensure_batch
+        from torchrl_bail.behaviour import ddpg
+        from torchrl_bail.behaviour import ensure_batch
         original = ddpg.DDPGAgent.train
         def slow(self, replay, n):
             print("TRAINING", flush=True)

@@ -14,16 +14,11 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.data import collection
-from torchrl_bail.data.collection import (
-    CollectionConfigError,
-    batch_name,
-    batch_path,
-    behaviour_seed,
-    ensure_batch,
-    validate_recipe,
-)
-from torchrl_bail.data.ddpg import DDPGAgent, collect_ddpg
+from torchrl_bail.behaviour import catalogue
+from torchrl_bail.behaviour.catalogue import ensure_batch
+from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg
+from torchrl_bail.behaviour.recipes import CollectionConfigError, validate_recipe
+from torchrl_bail.data.cache import batch_name, batch_path, behaviour_seed
 
 #: short enough that a random or barely trained Hopper outlives it now and then
 LIMIT = 20
@@ -181,7 +176,7 @@ def test_second_call_is_a_cache_hit(ddpg_run, monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("the cached batch must not be collected again")
 
-    monkeypatch.setattr(collection, "collect_batch", boom)
+    monkeypatch.setattr(catalogue, "collect_batch", boom)
     again = ensure_batch(cfg, progress=False, data_dir=data_dir)
     assert again.path == batch.path and again.num_transitions == batch.num_transitions
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 
 import pytest
@@ -12,8 +11,6 @@ from tensordict import TensorDict
 from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
-import torchrl_bail.algorithms.marwil as marwil_algorithm_module
-import torchrl_bail.objectives.marwil as marwil_module
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, MARWIL, BehaviourCloning, build_algorithm
 from torchrl_bail.algorithms.bc import make_bc_loss
@@ -85,10 +82,6 @@ def _random_batch(batch_size=(16,), obs_dim=5, act_dim=2, scale=10.0) -> TensorD
                        "action": torch.rand(*batch_size, act_dim) * 2 - 1,
                        "return": torch.randn(*batch_size) * scale}, list(batch_size))
 
-
-def test_doctests():
-    assert doctest.testmod(marwil_module).failed == 0
-    assert doctest.testmod(marwil_algorithm_module).failed == 0
 
 
 def test_weights_and_losses_by_hand():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 
 import pytest
 import torch
@@ -10,7 +9,6 @@ from tensordict import TensorDict
 from tensordict.nn import EnsembleModule, TensorDictModule
 from torch import nn
 
-import torchrl_bail.objectives.upper_envelope as upper_envelope_module
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss, envelope_penalty
 
@@ -47,9 +45,6 @@ def _batch(values, returns) -> TensorDict:
     returns = torch.as_tensor(returns, dtype=torch.float32)
     return TensorDict({"observation": values.unsqueeze(-1), "return": returns}, batch_size=returns.shape)
 
-
-def test_doctests():
-    assert doctest.testmod(upper_envelope_module).failed == 0
 
 
 def test_asymmetry_below_costs_k_times_above():

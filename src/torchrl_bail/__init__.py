@@ -17,14 +17,16 @@ def fast_tensordict_outputs() -> None:
     ``TensorDict.from_any``, which calls ``importlib.util.find_spec("pandas")`` -- a scan of ``sys.path`` (about
     0.2 ms, several times per update) when pandas is not installed. Registering pandas as absent in ``sys.modules``
     makes that lookup instant; ``import pandas`` fails exactly as before (``ImportError``). No-op when pandas is
-    installed. Applied when ``torchrl_bail`` is imported, so the loss modules are fast in other people's loops too;
-    the one visible effect is that pandas installed *later in the same process* needs a restart to import.
+    installed, and after the first call (one dictionary lookup).
+
+    Not applied at import: every network builder of :mod:`torchrl_bail.modules` calls it (through
+    :func:`~torchrl_bail.modules.mlp`), so the package's algorithms, behaviour agents and evaluation are fast
+    without anything happening when :mod:`torchrl_bail` is merely imported. Call it yourself when you use the loss
+    modules with networks of your own. The one visible effect: pandas installed *later in the same process* needs
+    a restart to import.
     """
     if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
         sys.modules["pandas"] = None  # type: ignore[assignment]
-
-
-fast_tensordict_outputs()
 
 
 def config_dir() -> Path:

@@ -1,7 +1,7 @@
 """Make (or find) a behaviour batch: ``python -m torchrl_bail.collect +exp=hopper_ddpg05 [preset=quick]``.
 
 The batch for ``env`` x ``batch`` is collected once and cached under ``data_dir`` (see
-:mod:`torchrl_bail.data.collection`); a second call only reports it. Multirun works as for training::
+:mod:`torchrl_bail.data.cache`, made by :mod:`torchrl_bail.behaviour`); a second call only reports it. Multirun works as for training::
 
     python -m torchrl_bail.collect -m +exp=hopper_ddpg05 batch.index=1,2
 
@@ -34,11 +34,12 @@ log = logging.getLogger("torchrl_bail")
 
 def collect(cfg: DictConfig) -> dict:
     """Ensures the batch of ``cfg`` exists; returns a summary (path, cached, statistics)."""
-    from torchrl_bail.data.collection import _try_load, batch_path, ensure_batch, validate_recipe
+    from torchrl_bail.behaviour import ensure_batch, validate_recipe
+    from torchrl_bail.data.cache import batch_path, load_cached_batch
 
     validate_recipe(cfg)
     path = batch_path(cfg)
-    cached = _try_load(path) is not None
+    cached = load_cached_batch(path) is not None
     batch = ensure_batch(cfg, progress=bool(cfg.get("progress", True)))
     returns = batch.episode_returns()
     data = batch.data
@@ -83,7 +84,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def format_listing(rows: list[dict]) -> str:
     """The ``--list`` table."""
-    from torchrl_bail.data.collection import format_bytes
+    from torchrl_bail.data.cache import format_bytes
 
     if not rows:
         return "no cached batches"
@@ -108,7 +109,7 @@ def format_listing(rows: list[dict]) -> str:
 
 
 def _list_main(argv: list[str]) -> int:
-    from torchrl_bail.data.collection import data_dir_of, list_batches
+    from torchrl_bail.data.cache import data_dir_of, list_batches
 
     data_dir = None
     it = iter(argv)

@@ -5,6 +5,10 @@ parameter, a train/validation split that forces the highest return into training
 mini-batches over the reshuffled training split, a validation loss after every epoch and early stopping with
 patience ``C = 4``. The penalty loss itself is :class:`~torchrl_bail.objectives.upper_envelope.UpperEnvelopeLoss`.
 
+It is built from named steps that Progressive BAIL (:mod:`torchrl_bail.algorithms.pbail`) reuses:
+:func:`envelope_split`, :func:`train_one_epoch` (made of :func:`envelope_step`), :func:`validation_loss`, and the
+one early-stopping rule, :class:`EarlyStoppingTracker`, with its :class:`BestWeights` record ``phi'``.
+
 :func:`envelope_values` evaluates a fitted envelope over a whole batch, :func:`fraction_below` measures how
 many returns it fails to cover and :func:`plot_envelope` draws the paper's Fig. 13.
 
@@ -32,20 +36,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import matplotlib.pyplot as plt
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.plots import save_figure
+from torchrl_bail.plots import new_figure, save_figure
 
 __all__ = [
     "EarlyStopping",
+    "BestWeights",
+    "EarlyStoppingTracker",
     "EnvelopeFit",
     "envelope_split",
     "fit_upper_envelope",
+    "check_fit_arguments",
+    "envelope_step",
+    "train_one_epoch",
+    "validation_loss",
     "envelope_values",
     "fraction_below",
     "plot_envelope",
@@ -186,9 +195,204 @@ def _module_dtype(module: torch.nn.Module) -> torch.dtype:
     return torch.get_default_dtype()
 
 
-def _snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
-    """A real copy of the weights (the authors' ``state_dict()`` aliases the live tensors, spec 3.7)."""
-    return {key: value.detach().clone() for key, value in module.state_dict().items()}
+class BestWeights:
+    """The record ``phi'`` of the lowest-validation envelope weights (supplementary material B.1).
+
+    ``copy=True`` keeps a real copy (what the paper describes). ``copy=False`` reproduces the authors' released
+    code, whose "best" record is ``module.state_dict()``: references to the *live* tensors, so the record always
+    equals the current weights and loading it back changes nothing (spec: the aliasing bug).
+
+    Examples:
+        >>> net = torch.nn.Linear(2, 1)
+        >>> best = BestWeights(net)
+        >>> best.save()
+        >>> with torch.no_grad():
+        ...     _ = net.weight.add_(1.0)
+        >>> best.load_into(net)  # back to the recorded weights
+        >>> aliased = BestWeights(net, copy=False)
+        >>> aliased.save()
+        >>> with torch.no_grad():
+        ...     _ = net.weight.add_(1.0)
+        >>> torch.equal(aliased.state["weight"], net.weight)  # the record follows the live weights
+        True
+    """
+
+    def __init__(self, module: torch.nn.Module, *, copy: bool = True) -> None:
+        self.module = module
+        self.copy = bool(copy)
+        self.state: dict[str, torch.Tensor] | None = None
+
+    def save(self) -> None:
+        """``phi' <- phi``: a real copy, or (``copy=False``) the live references."""
+        if self.copy:
+            self.state = {key: value.detach().clone() for key, value in self.module.state_dict().items()}
+        else:
+            self.state = self.module.state_dict()
+
+    @property
+    def recorded(self) -> bool:
+        return self.state is not None
+
+    def load_into(self, module: torch.nn.Module) -> None:
+        """Loads ``phi'`` into ``module`` (the training envelope on a revert, or the selection envelope)."""
+        if self.state is None:
+            raise RuntimeError("no best weights recorded yet")
+        module.load_state_dict(self.state)
+
+    def state_dict(self) -> dict[str, Any]:
+        """For checkpoints: the copy (``None`` when aliased: the live weights are checkpointed anyway)."""
+        copied = self.state if self.copy else None
+        return {"state": None if copied is None else {k: v.clone() for k, v in copied.items()},
+                "recorded": self.recorded}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.copy:
+            self.state = state["state"]
+        else:
+            self.state = self.module.state_dict() if state["recorded"] else None
+
+
+class EarlyStoppingTracker:
+    """The early-stopping rule of BAIL's envelope (supplementary material B.1), one instance per fit, shared by
+    static BAIL (:func:`fit_upper_envelope`, one validation per epoch) and Progressive BAIL (one validation every
+    ``validate_every`` iterations).
+
+    After every validation loss ``L``:
+
+    * ``L < best`` (strictly): ``phi' <- phi`` (:class:`BestWeights`), the count of non-improving validations is
+      reset to 0; returns ``"improved"``.
+    * otherwise the count grows by one; when it reaches ``patience`` (``C = 4``) and reverting is on (and a best
+      record exists), ``phi <- phi'`` and **the count restarts at 0**: the next revert needs ``C`` more
+      non-improving validations. Returns ``"reverted"`` then, else ``"worse"``.
+    * a ``nan`` loss (a diverged envelope) never improves: it counts as non-improving.
+
+    Without a validation set there is nothing to observe: callers do not call :meth:`observe` (no early stopping).
+
+    The restart after a revert is the chosen reading of B.1 ("returned to phi' once there are C consecutive times
+    with L_phi > L_phi'"): after a revert the streak that triggered it is used up. The authors' code resets the
+    count only on an improvement, but its revert is a no-op (aliasing), so the two readings only differ in the
+    paper variants; static BAIL has always restarted the count, and Progressive BAIL follows the same rule.
+
+    Args:
+        network: the training envelope ``phi``.
+
+    Keyword Args:
+        patience (int): ``C``. Defaults to ``4``.
+        revert (bool): ``phi <- phi'`` after ``patience`` non-improving validations. Defaults to ``True``.
+        copy_best (bool): ``phi'`` is a real copy (``False``: the authors' aliasing, see :class:`BestWeights`).
+            Defaults to ``True``.
+
+    Examples:
+        >>> net = torch.nn.Linear(1, 1)
+        >>> tracker = EarlyStoppingTracker(net, patience=2)
+        >>> [tracker.observe(loss) for loss in (3.0, 2.0, 2.5, 2.1, 2.4, 1.0, 1.5)]
+        ['improved', 'improved', 'worse', 'reverted', 'worse', 'improved', 'worse']
+        >>> tracker.best_loss, tracker.best_step, tracker.reverts
+        (1.0, 6, [4])
+    """
+
+    def __init__(self, network: torch.nn.Module, *, patience: int = 4, revert: bool = True,
+                 copy_best: bool = True) -> None:
+        if int(patience) < 1:
+            raise ValueError(f"patience must be >= 1, got {patience}")
+        self.network = network
+        self.patience = int(patience)
+        self.revert = bool(revert)
+        self.best = BestWeights(network, copy=copy_best)
+        self.best_loss = math.inf
+        self.best_step = 0
+        self.increases = 0
+        self.step = 0
+        self.reverts: list[int] = []
+
+    def observe(self, loss: float) -> Literal["improved", "worse", "reverted"]:
+        """Feeds one validation loss (validations are counted 1, 2, ... as ``step``); see the class docstring."""
+        self.step += 1
+        if loss < self.best_loss:
+            self.best_loss, self.best_step, self.increases = loss, self.step, 0
+            self.best.save()
+            return "improved"
+        self.increases += 1
+        if self.revert and self.increases == self.patience and self.best.recorded:
+            self.best.load_into(self.network)
+            self.reverts.append(self.step)
+            self.increases = 0
+            return "reverted"
+        return "worse"
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"best_loss": self.best_loss, "best_step": self.best_step, "increases": self.increases,
+                "step": self.step, "reverts": list(self.reverts), "best": self.best.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.best_loss, self.best_step = float(state["best_loss"]), int(state["best_step"])
+        self.increases, self.step, self.reverts = int(state["increases"]), int(state["step"]), list(state["reverts"])
+        self.best.load_state_dict(state["best"])
+
+
+def check_fit_arguments(*, batch_size: int, epochs: int, patience: int, val_fraction: float,
+                        early_stopping: str) -> str:
+    """Validates :func:`fit_upper_envelope`'s settings; returns the resolved early-stopping mode."""
+    mode = _MODES.get(early_stopping)
+    if mode is None:
+        raise ValueError(f"early_stopping must be one of {sorted(_MODES)}, got {early_stopping!r}")
+    if int(batch_size) < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if int(epochs) < 1:
+        raise ValueError(f"epochs must be >= 1, got {epochs}")
+    if int(patience) < 1:
+        raise ValueError(f"patience must be >= 1, got {patience}")
+    if not 0.0 <= float(val_fraction) < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    return mode
+
+
+def envelope_step(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimizer,
+                  batch: TensorDictBase) -> torch.Tensor:
+    """One Adam step on the penalty loss of ``batch``; returns the detached loss."""
+    loss, _ = loss_module.envelope_loss(batch)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return loss.detach()
+
+
+def train_one_epoch(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimizer, data: TensorDict,
+                    train_index: torch.Tensor, batch_size: int, *,
+                    generator: torch.Generator | None = None) -> float:
+    """One pass over the reshuffled training split in sequential mini-batches of ``batch_size`` (the last, partial
+    one kept); returns the mean loss over the epoch (mini-batch losses weighted by their size).
+
+    ``data`` holds the observations (the envelope's in-key) and returns (the loss' ``value_target``) of the whole
+    batch on the training device; ``train_index`` (same device) selects the training split; the shuffle draws from
+    ``generator`` on the CPU.
+    """
+    n_train = len(train_index)
+    order = train_index[torch.randperm(n_train, generator=generator).to(train_index.device)]
+    obs_key, return_key = loss_module.value_network.in_keys[0], loss_module.tensor_keys.value_target
+    observations, returns = data.get(obs_key), data.get(return_key)
+    running = None
+    for start in range(0, n_train, batch_size):
+        index = order[start : start + batch_size]
+        obs_b = observations.index_select(0, index)
+        batch = TensorDict({obs_key: obs_b, return_key: returns.index_select(0, index)}, batch_size=obs_b.shape[:1])
+        loss = envelope_step(loss_module, optimizer, batch) * obs_b.shape[0]
+        running = loss if running is None else running + loss
+    return float(running) / n_train
+
+
+@torch.no_grad()
+def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> float:
+    """The mean penalty loss over every validation point (``nan`` for an empty set), evaluated in chunks for
+    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``)."""
+    n = len(validation)
+    if n == 0:
+        return math.nan
+    total = 0
+    for chunk in validation.split(_VALIDATION_CHUNK):
+        loss, _ = loss_module.envelope_loss(chunk)
+        total = total + loss.mean() * len(chunk)
+    return float(total / n)
 
 
 def fit_upper_envelope(
@@ -267,26 +471,15 @@ def fit_upper_envelope(
     Returns:
         :class:`EnvelopeFit`.
     """
-    mode = _MODES.get(early_stopping)
-    if mode is None:
-        raise ValueError(f"early_stopping must be one of {sorted(_MODES)}, got {early_stopping!r}")
-    if int(batch_size) < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    if int(epochs) < 1:
-        raise ValueError(f"epochs must be >= 1, got {epochs}")
-    if int(patience) < 1:
-        raise ValueError(f"patience must be >= 1, got {patience}")
-    if not 0.0 <= float(val_fraction) < 1.0:
-        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    mode = check_fit_arguments(batch_size=batch_size, epochs=epochs, patience=patience, val_fraction=val_fraction,
+                               early_stopping=early_stopping)
     returns = _flat_returns(observations, returns)
-    batch_size, epochs, patience = int(batch_size), int(epochs), int(patience)
+    batch_size, epochs = int(batch_size), int(epochs)
 
     device = torch.device(device) if device is not None else _module_device(value_network)
     value_network.to(device)
     dtype = _module_dtype(value_network)
     loss_module = UpperEnvelopeLoss(value_network, penalty=penalty)
-    obs_key = value_network.in_keys[0]
-    return_key = loss_module.tensor_keys.value_target
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
 
     train_index, val_index = envelope_split(returns.cpu(), val_fraction, generator=generator)
@@ -296,89 +489,51 @@ def fit_upper_envelope(
             "training without validation or early stopping (the last weights are returned)",
             stacklevel=2,
         )
-    observations = observations.to(device=device, dtype=dtype)
-    returns = returns.to(device=device, dtype=dtype)
+    keys = (value_network.in_keys[0], loss_module.tensor_keys.value_target)
+    data = TensorDict(dict(zip(keys, (observations.to(device=device, dtype=dtype),
+                                      returns.to(device=device, dtype=dtype)))), batch_size=[len(returns)])
+    validation = data[val_index.to(device)]
     train_on_device = train_index.to(device)
-    validation = TensorDict(
-        {obs_key: observations[val_index.to(device)], return_key: returns[val_index.to(device)]},
-        batch_size=[len(val_index)],
-    )
-    n_train = len(train_index)
+    # as coded, the "best" record aliases the live weights and is never loaded back
+    tracker = EarlyStoppingTracker(value_network, patience=patience, revert=mode != "as_coded",
+                                   copy_best=mode != "as_coded")
 
     train_losses: list[float] = []
     val_losses: list[float] = []
-    revert_epochs: list[int] = []
-    best_val, best_epoch, best_state, increases = math.inf, 0, None, 0
     bar = tqdm(range(1, epochs + 1), desc="upper envelope", unit="epoch", disable=not progress, leave=False)
     for epoch in bar:
-        # one pass over the reshuffled training split, sequential mini-batches, last partial one kept
-        order = train_on_device[torch.randperm(n_train, generator=generator).to(device)]
-        running = torch.zeros((), device=device, dtype=dtype)
-        for start in range(0, n_train, batch_size):
-            index = order[start : start + batch_size]
-            obs_b = observations.index_select(0, index)
-            batch = TensorDict({obs_key: obs_b, return_key: returns.index_select(0, index)},
-                               batch_size=obs_b.shape[:1])
-            loss, _ = loss_module.envelope_loss(batch)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            running += loss.detach() * obs_b.shape[0]
-        train_losses.append(float(running) / n_train)
-        val_loss = _validation_loss(loss_module, validation)
-        val_losses.append(val_loss)
-
+        train_losses.append(train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size,
+                                            generator=generator))
+        val_losses.append(validation_loss(loss_module, validation))
         if len(validation):
-            if val_loss < best_val:
-                best_val, best_epoch, best_state, increases = val_loss, epoch, _snapshot(value_network), 0
-            else:
-                increases += 1
-                if mode != "as_coded" and increases == patience and best_state is not None:
-                    value_network.load_state_dict(best_state)
-                    revert_epochs.append(epoch)
-                    increases = 0
-        else:
-            best_epoch, best_val = epoch, math.nan
-        bar.set_postfix(train=f"{train_losses[-1]:.4g}", val=f"{val_loss:.4g}", best=best_epoch)
+            tracker.observe(val_losses[-1])
+        best_epoch = tracker.best_step if len(validation) else epoch
+        bar.set_postfix(train=f"{train_losses[-1]:.4g}", val=f"{val_losses[-1]:.4g}", best=best_epoch)
         if callback is not None:
-            info = {"train_loss": train_losses[-1], "val_loss": val_loss, "best_epoch": best_epoch,
-                    "best_val_loss": best_val, "reverted": bool(revert_epochs)}
+            info = {"train_loss": train_losses[-1], "val_loss": val_losses[-1], "best_epoch": best_epoch,
+                    "best_val_loss": tracker.best_loss if len(validation) else math.nan,
+                    "reverted": bool(tracker.reverts)}
             if callback(epoch, info):
                 break
     bar.close()
 
     returned: Literal["best", "last"] = "last"
-    if mode == "paper_best" and best_state is not None:
-        value_network.load_state_dict(best_state)
+    if mode == "paper_best" and tracker.best.recorded:
+        tracker.best.load_into(value_network)
         returned = "best"
-    if not len(validation):
-        best_epoch = len(train_losses)
     return EnvelopeFit(
         value_network=value_network,
         train_loss=train_losses,
         val_loss=val_losses,
-        best_epoch=best_epoch,
-        best_val_loss=best_val,
+        best_epoch=tracker.best_step if len(validation) else len(train_losses),
+        best_val_loss=tracker.best_loss if len(validation) else math.nan,
         train_index=train_index,
         val_index=val_index,
-        revert_epochs=revert_epochs,
+        revert_epochs=tracker.reverts,
         early_stopping=mode,
         returned=returned,
         optimizer=optimizer,
     )
-
-
-@torch.no_grad()
-def _validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDict) -> float:
-    """The mean penalty loss over every validation point (chunked for memory)."""
-    n = len(validation)
-    if n == 0:
-        return math.nan
-    total = 0.0
-    for chunk in validation.split(_VALIDATION_CHUNK):
-        loss, _ = loss_module.envelope_loss(chunk)
-        total = total + loss * len(chunk)
-    return float(total) / n
 
 
 @torch.no_grad()
@@ -451,7 +606,8 @@ def plot_envelope(
     order = torch.argsort(values, stable=True)
     x = torch.arange(len(values)).numpy()
     below = fraction_below(values, returns) if len(values) else math.nan
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig = new_figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
     ax.plot(x, returns[order].numpy(), linestyle="none", marker=".", markersize=1.0, alpha=0.5,
             color="tab:blue", label="return G", rasterized=True)
     ax.plot(x, values[order].numpy(), color="tab:red", linewidth=1.5, label="upper envelope V")

@@ -1,29 +1,47 @@
 """Figures a person would rather look at than read: learning curves (the envelope plot is in
-:mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename)."""
+:mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename).
+
+Figures are plain :class:`matplotlib.figure.Figure` objects rendered straight to files: importing this module
+neither imports matplotlib nor selects a backend, so a notebook or GUI using :mod:`torchrl_bail` keeps its own.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+from torchrl_bail.io import atomic_path
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+__all__ = ["new_figure", "save_figure", "plot_learning_curve"]
 
-from torchrl_bail.io import atomic_path  # noqa: E402
 
-__all__ = ["save_figure", "plot_learning_curve"]
+def new_figure(**kwargs):
+    """A matplotlib ``Figure`` outside pyplot (no backend, no global figure list); ``kwargs`` go to ``Figure``."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
 
 
 def save_figure(fig, path: Path, dpi: int = 120) -> Path:
-    """Saves ``fig`` to ``path`` atomically and closes it."""
+    """Saves ``fig`` to ``path`` atomically; a figure made through pyplot is closed afterwards."""
     try:
         with atomic_path(path, suffix=Path(path).suffix) as tmp:
             fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     finally:
-        plt.close(fig)
+        if getattr(fig.canvas, "manager", None) is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
     return Path(path)
+
+
+def __getattr__(name: str):
+    """``from torchrl_bail.plots import plt``: pyplot, imported on first use (its default backend)."""
+    if name == "plt":
+        import matplotlib.pyplot as plt
+
+        return plt
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def plot_learning_curve(
@@ -39,7 +57,8 @@ def plot_learning_curve(
 
     ``start_epoch`` shifts the x axis (the paper starts BAIL's curve at epoch 50, after the envelope).
     """
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig = new_figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
     ax.plot([start_epoch + e for e in epochs], returns, marker="o", markersize=3, label="evaluation return")
     if dataset_mean is not None:
         ax.axhline(dataset_mean, color="gray", linestyle="--", label="batch mean episode return")

@@ -88,7 +88,7 @@ def load_training_batch(cfg: DictConfig):
         data_dir = cfg.get("data_dir")
         return import_dataset(Path(absolute(cfg.dataset)), env_id=cfg.env.id,
                               data_dir=absolute(data_dir) if data_dir else None)
-    from torchrl_bail.data.collection import ensure_batch
+    from torchrl_bail.behaviour import ensure_batch
 
     return ensure_batch(cfg, progress=cfg.progress)
 

@@ -30,8 +30,8 @@ def _pbail(cfg, obs_dim, action_spec, device):
     return ProgressiveBAIL(obs_dim=obs_dim, action_spec=action_spec, hidden=tuple(cfg.policy.hidden),
                            lr=cfg.policy.lr, batch_size=cfg.batch_size, epochs=cfg.epochs,
                            envelope=dict(cfg.envelope), percentile=cfg.selection.percentile,
-                           best_envelope=cfg.best_envelope, v_projection=cfg.v_projection,
-                           validation=cfg.validation, device=device)
+                           best_envelope=cfg.best_envelope, selection_envelope=cfg.selection_envelope,
+                           v_projection=cfg.v_projection, validation=cfg.validation, device=device)
 
 
 def _marwil(cfg, obs_dim, action_spec, device):

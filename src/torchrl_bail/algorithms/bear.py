@@ -2,7 +2,7 @@
 multiplier steps (from the same samples), ``log alpha`` clamp, warm-start clock, targets.
 
 The actor is TorchRL's tanh-Gaussian :class:`~torchrl.modules.ProbabilisticActor` (the SAC actor of
-:func:`~torchrl_bail.data.sac.make_sac_actor`) with the authors' unclamped log-std; the multiplier
+:func:`~torchrl_bail.modules.make_sac_actor`) with the authors' unclamped log-std; the multiplier
 ``log alpha`` has its own Adam. The evaluation policy plays the best of ``num_samples`` (10) actor samples by
 the first critic. With batch 100, one epoch (10^6 samples) is 10^4 updates.
 
@@ -37,7 +37,7 @@ from torchrl_bail.algorithms.twin_critic_vae import (
     build_vae_and_critics,
     use_vmap,
 )
-from torchrl_bail.data.sac import make_sac_actor
+from torchrl_bail.modules import make_sac_actor
 from torchrl_bail.objectives.bear import BEARLoss
 
 __all__ = ["BEAR"]

@@ -8,10 +8,16 @@ selection envelope is.
 
 Switches where the authors' code and the paper differ (spec 11):
 
-* ``best_envelope="paper"`` (default): the selection envelope is a real copy of the lowest-validation
-  weights, and the training envelope reverts to it after ``patience`` consecutive increases.
-  ``"as_coded"``: the released code's aliasing: the selection envelope keeps its random init until the first
-  validation increase and then receives the *current* weights at every increase; no revert.
+* ``best_envelope="paper"`` (default): ``phi'`` is a real copy of the lowest-validation weights, and the training
+  envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule of
+  :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
+  ``"as_coded"``: the released code's aliasing: ``phi'`` is the live weights, no revert.
+* ``selection_envelope="best"`` (default): the separate selection network selects; it receives ``phi'`` whenever
+  ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
+  ``best_envelope="as_coded"``, the *current* weights at every non-improving validation, as the released code
+  does (so it keeps its random init until the first validation increase).
+  ``"training"``: Algorithm 2 of the supplementary material read literally: "select data point i if
+  ``G_i > x V_phi(s_i)``" with the *training* envelope ``V_phi``; ``phi'`` only serves the reverts.
 * ``v_projection=True`` (default, as coded; not in the paper): ``V < 1`` is mapped to ``exp(V - 1)`` before
   the ratio, which keeps early, near-zero envelopes from flipping the ranking.
 * ``validation="split"`` (default, the paper's 0.8/0.2 split) or ``"with_replacement"`` (the code's
@@ -23,7 +29,6 @@ epochs are 125k updates and an evaluation every 0.5 epoch is every 625 updates.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from typing import Any, Literal
 
@@ -33,6 +38,7 @@ from torchrl.data import TensorSpec
 
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning, make_bc_loss
+from torchrl_bail.envelope import EarlyStoppingTracker, validation_loss
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
 from torchrl_bail.transforms.best_action import best_action_mask
@@ -52,6 +58,8 @@ class ProgressiveBAIL(BehaviourCloning):
             ``val_fraction`` (0.2), ``validate_every`` (1250), ``patience`` (4).
         percentile (float): share of each mini-batch imitated. Defaults to ``0.25``.
         best_envelope (str): ``"paper"`` or ``"as_coded"``. Defaults to ``"paper"``.
+        selection_envelope (str): ``"best"`` (the selection network, fed from ``phi'``) or ``"training"``
+            (Alg. 2 literally: the training envelope selects). Defaults to ``"best"``.
         v_projection (bool): ``V < 1 -> exp(V - 1)`` before the ratio. Defaults to ``True``.
         validation (str): ``"split"`` or ``"with_replacement"``. Defaults to ``"split"``.
     """
@@ -70,6 +78,7 @@ class ProgressiveBAIL(BehaviourCloning):
         envelope: dict | None = None,
         percentile: float = 0.25,
         best_envelope: Literal["paper", "as_coded"] = "paper",
+        selection_envelope: Literal["best", "training"] = "best",
         v_projection: bool = True,
         validation: Literal["split", "with_replacement"] = "split",
         device="cpu",
@@ -78,6 +87,8 @@ class ProgressiveBAIL(BehaviourCloning):
                          batch_size=batch_size, epochs=epochs, device=device)
         if best_envelope not in ("paper", "as_coded"):
             raise ValueError(f"algo.best_envelope must be 'paper' or 'as_coded', got {best_envelope!r}")
+        if selection_envelope not in ("best", "training"):
+            raise ValueError(f"algo.selection_envelope must be 'best' or 'training', got {selection_envelope!r}")
         if validation not in ("split", "with_replacement"):
             raise ValueError(f"algo.validation must be 'split' or 'with_replacement', got {validation!r}")
         env = {"hidden": (128, 128), "head_scale": 0.1, "penalty": 1000.0, "lr": 3e-3, "weight_decay": 0.02,
@@ -89,6 +100,7 @@ class ProgressiveBAIL(BehaviourCloning):
         self.patience = int(env["patience"])
         self.percentile = float(percentile)
         self.best_envelope = best_envelope
+        self.selection_envelope = selection_envelope
         self.v_projection = bool(v_projection)
         self.validation = validation
         self.samples_per_update = (1.0 - self.val_fraction) * self.batch_size
@@ -101,13 +113,11 @@ class ProgressiveBAIL(BehaviourCloning):
         self.modules.update(envelope=self.value_network, selection_envelope=self.selection_network)
         self.optimizers["envelope"] = torch.optim.Adam(self.envelope_loss.parameters(), lr=env["lr"],
                                                        weight_decay=env["weight_decay"])
-        self._best_state = copy.deepcopy(self.value_network.state_dict())
-        self._best_val = float("inf")
-        self._increases = 0
+        as_coded = best_envelope == "as_coded"
+        self.early_stopping = EarlyStoppingTracker(self.value_network, patience=self.patience, revert=not as_coded,
+                                                   copy_best=not as_coded)
         self._iteration = 0
         self._validation_data: TensorDictBase | None = None
-        self._reverts = 0
-        self._last_selected = float("nan")
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
         n = len(data)
@@ -123,35 +133,18 @@ class ProgressiveBAIL(BehaviourCloning):
         keyed.set(VALIDATION_KEY, is_val)
         return keyed
 
-    @torch.no_grad()
-    def _validate(self) -> float:
-        val = self._validation_data
-        if val is None or len(val) == 0:
-            return float("nan")
-        losses = [self.envelope_loss(chunk)["loss_envelope"].mean() for chunk in val.split(65536)]
-        weights = [len(chunk) for chunk in val.split(65536)]
-        return float(sum(l * w for l, w in zip(losses, weights)) / sum(weights))
-
     def _track_validation(self) -> None:
-        val_loss = self._validate()
-        improved = val_loss < self._best_val
-        if self.best_envelope == "paper":
-            if improved:
-                self._best_val, self._increases = val_loss, 0
-                self._best_state = copy.deepcopy(self.value_network.state_dict())
-                self.selection_network.load_state_dict(self._best_state)
-            else:
-                self._increases += 1
-                if self._increases == self.patience:
-                    self.value_network.load_state_dict(self._best_state)
-                    self._reverts += 1
-        else:  # the released code: the "best" snapshot aliases the live weights
-            if improved:
-                self._best_val, self._increases = val_loss, 0
-            else:
-                self.selection_network.load_state_dict(self.value_network.state_dict())
-                self._increases += 1
-        self._last_val = val_loss
+        """One validation of the training envelope; the tracker may revert it, then the selection network follows
+        ``phi'`` (see the module docstring)."""
+        val = self._validation_data
+        if val is None or len(val) == 0:  # no validation set: no early stopping
+            return
+        event = self.early_stopping.observe(validation_loss(self.envelope_loss, val))
+        best = self.early_stopping.best
+        if self.best_envelope == "paper" and event == "improved":
+            best.load_into(self.selection_network)
+        elif self.best_envelope == "as_coded" and event == "worse":
+            best.load_into(self.selection_network)  # the aliased record: the current weights
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self._iteration % self.validate_every == 0:
@@ -167,7 +160,8 @@ class ProgressiveBAIL(BehaviourCloning):
         opt.step()
         # 2. selection inside the mini-batch under the selection envelope
         with torch.no_grad():
-            values = self.selection_network(batch.select("observation"))["state_value"].reshape(-1)
+            selector = self.value_network if self.selection_envelope == "training" else self.selection_network
+            values = selector(batch.select("observation"))["state_value"].reshape(-1)
             selected = best_action_mask(batch["return"].reshape(-1), values, self.percentile,
                                         nonpositive_value="project" if self.v_projection else "raw")
         # 3. imitation step, normalised by the whole mini-batch
@@ -181,5 +175,15 @@ class ProgressiveBAIL(BehaviourCloning):
                 "selected_fraction": selected.float().mean()}
 
     def summary(self) -> dict[str, Any]:
-        return {"envelope_best_val_loss": self._best_val, "envelope_reverts": self._reverts,
-                "percentile": self.percentile}
+        return {"envelope_best_val_loss": self.early_stopping.best_loss,
+                "envelope_reverts": len(self.early_stopping.reverts), "percentile": self.percentile}
+
+    # -- checkpoints: the early-stopping state and the iteration count travel with the weights ------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "early_stopping": self.early_stopping.state_dict(),
+                "iteration": self._iteration}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.early_stopping.load_state_dict(state["early_stopping"])
+        self._iteration = int(state["iteration"])

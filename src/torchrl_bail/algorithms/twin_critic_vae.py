@@ -13,8 +13,7 @@ from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
 from torchrl_bail.algorithms.base import Algorithm
-from torchrl_bail.modules import make_qvalue_network, make_vae
-from torchrl_bail.objectives._shared import fused_soft_update
+from torchrl_bail.modules import fused_soft_update, make_qvalue_network, make_vae
 from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss
 
 __all__ = ["CRITIC_DEFAULTS", "NET_DEFAULTS", "VAE_DEFAULTS", "TwinCriticVAEAlgorithm", "build_vae_and_critics",

@@ -1,16 +1,21 @@
-"""Offline batches: the on-disk format, Monte-Carlo returns, importers and behaviour-data generation."""
+"""The bottom layer: the offline batch format, Monte-Carlo returns, dataset importers and the on-disk cache.
+
+Nothing here imports the rest of :mod:`torchrl_bail` (only :mod:`torchrl_bail.io`, the atomic writes): the online
+behaviour agents that *produce* batches live in :mod:`torchrl_bail.behaviour`, the learners that consume them in
+:mod:`torchrl_bail.algorithms`.
+"""
 
 from torchrl_bail.data.batch import (
     BatchValidationError,
     OfflineBatch,
     batch_statistics,
-    default_data_dir,
     library_versions,
     load_batch,
     save_batch,
     validate_batch,
     write_json_atomic,
 )
+from torchrl_bail.data.cache import default_data_dir
 from torchrl_bail.data.returns import discounted_returns, monte_carlo_returns
 
 __all__ = [

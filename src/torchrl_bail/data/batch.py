@@ -58,7 +58,6 @@ __all__ = [
     "batch_statistics",
     "save_batch",
     "load_batch",
-    "default_data_dir",
     "library_versions",
     "write_json_atomic",
 ]
@@ -67,7 +66,6 @@ FORMAT_VERSION = 1
 FLOAT_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"))
 BOOL_KEYS = (("next", "done"), ("next", "terminated"), ("next", "truncated"))
 REQUIRED_KEYS = (*FLOAT_KEYS, *BOOL_KEYS, "episode")
-DATA_DIR_ENV = "TORCHRL_BAIL_DATA_DIR"
 
 
 class BatchValidationError(ValueError):
@@ -76,12 +74,6 @@ class BatchValidationError(ValueError):
 
 def _name(key) -> str:
     return key if isinstance(key, str) else "/".join(key)
-
-
-def default_data_dir() -> Path:
-    """``$TORCHRL_BAIL_DATA_DIR`` if set, else ``~/.cache/torchrl_bail``."""
-    env = os.environ.get(DATA_DIR_ENV)
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "torchrl_bail"
 
 
 def library_versions() -> dict[str, str]:

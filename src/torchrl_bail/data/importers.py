@@ -78,7 +78,6 @@ Examples:
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import logging
 import os
@@ -97,6 +96,7 @@ from torchrl_bail.data.batch import (
     load_batch,
     save_batch,
 )
+from torchrl_bail.data.cache import LOCKS, data_dir_of, file_lock, stable_hash
 
 __all__ = [
     "D4RL_KEYS",
@@ -285,14 +285,12 @@ def _source_name(fmt: str, location: Path) -> str:
 
 def import_cache_path(path: str | os.PathLike, data_dir: str | os.PathLike | None = None) -> Path | None:
     """Where :func:`import_dataset` caches the conversion of ``path``; ``None`` for a native batch directory."""
-    from torchrl_bail.data.collection import data_dir_of
-
     fmt, location = detect_format(Path(path).expanduser().resolve())
     if fmt == "native":
         return None
     identity = _source_identity(fmt, location)
-    digest = hashlib.sha256(json.dumps(identity, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:8]
-    return data_dir_of(None, data_dir) / f"{IMPORT_PREFIX}{_safe_name(_source_name(fmt, location))}-{digest}"
+    name = _safe_name(_source_name(fmt, location))
+    return data_dir_of(None, data_dir) / f"{IMPORT_PREFIX}{name}-{stable_hash(identity)}"
 
 
 def describe_import(metadata: Mapping[str, Any]) -> str | None:
@@ -716,8 +714,6 @@ def import_dataset(path: str | os.PathLike, *, env_id: str | None = None,
         FileNotFoundError: ``path`` does not exist.
         DatasetImportError: the data breaks the format; the message names the file, the key and the expectation.
     """
-    from torchrl_bail.data.collection import LOCKS, file_lock
-
     location = Path(path).expanduser().resolve()
     fmt, location = detect_format(location)
     if fmt == "d4rl" and _d4rl_is_minari(location):

@@ -1,7 +1,8 @@
 """What every loss of this package does the same way: reductions over ``[S, B]`` batches, lazily derived
-``in_keys``, reading a state value beside its Monte-Carlo return, and the fused target-network update.
+``in_keys`` and reading a state value beside its Monte-Carlo return.
 
-Not public API: the losses, the offline algorithms and the behaviour agents import it; users import the losses.
+Not public API: only the losses of this package import it; users import the losses. (The fused target-network
+updater the offline algorithms and the behaviour agents share is :class:`torchrl_bail.modules.FusedSoftUpdate`.)
 """
 
 from __future__ import annotations
@@ -9,10 +10,9 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule, SoftUpdate
+from torchrl.objectives import LossModule
 
-__all__ = ["check_reduction", "reduce_per_seed", "LazyInKeysLoss", "value_and_return", "FusedSoftUpdate",
-           "fused_soft_update"]
+__all__ = ["check_reduction", "reduce_per_seed", "LazyInKeysLoss", "value_and_return"]
 
 
 def check_reduction(reduction: str | None) -> str:
@@ -83,38 +83,3 @@ def value_and_return(loss_module: LossModule, tensordict: TensorDictBase) -> tup
             f"{tuple(batch_shape)} (optionally with a trailing 1)"
         )
     return value, target.to(value.dtype)
-
-
-class FusedSoftUpdate(SoftUpdate):
-    """A :class:`~torchrl.objectives.SoftUpdate` whose ``step`` is one fused kernel (same result).
-
-    TorchRL's ``SoftUpdate.step`` rebuilds ``.data`` views of every parameter TensorDict on each call (1-2 ms per
-    step on a 2-core CPU, as much as a small network's whole update). This subclass keeps the updater's
-    construction and initialisation (target = source at start, same ``eps``/``tau``) and replaces ``step`` by one
-    ``torch._foreach_lerp_`` over the cached leaf tensors: ``target <- target + (1 - eps) * (source - target)``.
-    Parameters are updated in place by the optimizers, so the cached views stay valid.
-    """
-
-    def _pairs(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        pairs = self.__dict__.get("_fused_pairs")
-        if pairs is None:
-            targets, sources = [], []
-            for key, param in self._sources.items(True, True):
-                key = key if isinstance(key, tuple) else (key,)
-                targets.append(self._targets.get(("target_" + key[0], *key[1:])).data)
-                sources.append(param.data)
-            pairs = self.__dict__["_fused_pairs"] = (targets, sources)
-        return pairs
-
-    def step(self) -> None:
-        if not self.initialized:
-            raise RuntimeError("the target updater must be initialized before step()")
-        targets, sources = self._pairs()
-        with torch.no_grad():
-            torch._foreach_lerp_(targets, sources, 1.0 - self.eps)
-
-
-def fused_soft_update(loss_module: LossModule, *, eps: float | None = None,
-                      tau: float | None = None) -> FusedSoftUpdate:
-    """A :class:`FusedSoftUpdate` of ``loss_module``'s target parameters (``eps = 1 - tau``)."""
-    return FusedSoftUpdate(loss_module, eps=eps, tau=tau)

@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, dispatch
 from torch import nn
 
-from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss, _expand_samples
+from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss, expand_samples
 
 __all__ = ["BCQLoss"]
 
@@ -148,7 +148,7 @@ class BCQLoss(TwinCriticVAELoss):
         """``xi(s, a_n)`` for ``num_samples`` VAE samples ``a_n`` per state: ``[*B, N, |A|]``."""
         with torch.no_grad():
             candidates, _ = self._vae_samples(observation, num_samples)
-        return self._actor(_expand_samples(observation, num_samples), candidates, params).get(self.tensor_keys.action)
+        return self._actor(expand_samples(observation, num_samples), candidates, params).get(self.tensor_keys.action)
 
     def _target_candidates(self, next_observation: torch.Tensor, num_samples: int) -> torch.Tensor:
         return self._perturbed_vae_samples(next_observation, num_samples, self.target_actor_network_params)

@@ -14,7 +14,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import TensorSpec
 
-from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss, _expand_samples
+from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss, expand_samples
 
 __all__ = ["BEARLoss", "laplacian_mmd"]
 
@@ -83,7 +83,7 @@ class BEARLoss(TwinCriticVAELoss):
         actor_network (TensorDictModule): the tanh-Gaussian actor: it reads ``tensor_keys.observation`` and
             writes ``tensor_keys.loc`` and ``tensor_keys.scale`` (through ``get_dist_params`` when it is a
             :class:`~torchrl.modules.ProbabilisticActor`, e.g. the SAC actor of
-            :func:`~torchrl_bail.data.sac.make_sac_actor` with an unclamped log-std). The loss samples from
+            :func:`~torchrl_bail.modules.make_sac_actor` with an unclamped log-std). The loss samples from
             ``(loc, scale)`` itself; a target copy is made.
         qvalue_network (TensorDictModule or a list of two): the critics, as in
             :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
@@ -134,7 +134,7 @@ class BEARLoss(TwinCriticVAELoss):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.objectives import SoftUpdate
-        >>> from torchrl_bail.data.sac import make_sac_actor
+        >>> from torchrl_bail.modules import make_sac_actor
         >>> from torchrl_bail.modules import action_spec_from_bounds, make_qvalue_network, make_vae
         >>> from torchrl_bail.objectives.bear import BEARLoss
         >>> _ = torch.manual_seed(0)
@@ -275,7 +275,7 @@ class BEARLoss(TwinCriticVAELoss):
             _, vae_raw = self._vae_samples(observation, n)
         actions, raw = self._actor_samples(observation, n, self.actor_network_params, self.noise_clip)
         mmd = laplacian_mmd(vae_raw, raw, self.kernel_sigma, self.mmd_stabiliser)
-        q = self._q_values(_expand_samples(observation, n), actions, self._cached_detach_qvalue_network_params)
+        q = self._q_values(expand_samples(observation, n), actions, self._cached_detach_qvalue_network_params)
         return {"mmd": mmd, "policy_q": q.mean(-1).amin(0)}
 
     def actor_loss(self, tensordict: TensorDictBase,

@@ -26,9 +26,9 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.utils import _cache_values, _vmap_func
 
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
-from torchrl_bail.objectives.vae import _vae_loss
+from torchrl_bail.objectives.vae import conditional_vae_loss
 
-__all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target"]
+__all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target", "expand_samples"]
 
 
 def soft_clipped_double_q_target(
@@ -78,7 +78,7 @@ def _next(key: NestedKey) -> NestedKey:
     return unravel_key(("next", key))
 
 
-def _expand_samples(tensor: torch.Tensor, num_samples: int) -> torch.Tensor:
+def expand_samples(tensor: torch.Tensor, num_samples: int) -> torch.Tensor:
     """``[*B, F] -> [*B, N, F]`` (a view)."""
     return tensor.unsqueeze(-2).expand(*tensor.shape[:-1], num_samples, tensor.shape[-1])
 
@@ -260,7 +260,7 @@ class TwinCriticVAELoss(LossModule):
     # -- shared losses -----------------------------------------------------------------------------
     def vae_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``(loss_vae, {"recon_loss", "kl_loss"})``: reconstruction MSE + ``kl_weight`` x KL; VAE only."""
-        loss, metadata = _vae_loss(self, tensordict)
+        loss, metadata = conditional_vae_loss(self, tensordict)
         self._clear_weakrefs(tensordict, "vae_network_params")
         return loss, metadata
 
@@ -272,7 +272,7 @@ class TwinCriticVAELoss(LossModule):
         with torch.no_grad():
             next_observation = tensordict.get(_next(k.observation))
             candidates = self._target_candidates(next_observation, self.num_samples)
-            next_values = self._q_values(_expand_samples(next_observation, self.num_samples), candidates,
+            next_values = self._q_values(expand_samples(next_observation, self.num_samples), candidates,
                                          self.target_qvalue_network_params)
             target = soft_clipped_double_q_target(
                 next_values, tensordict.get(_next(k.reward)), self._terminated(tensordict),
@@ -314,7 +314,7 @@ class BestOfNPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         observation = tensordict.get(self.in_keys[0])
         candidates = self.loss_module.candidate_actions(observation, self.num_samples)
-        q1 = self.loss_module.q1_value(_expand_samples(observation, self.num_samples), candidates)
+        q1 = self.loss_module.q1_value(expand_samples(observation, self.num_samples), candidates)
         best = q1.argmax(-1)
         index = best[..., None, None].expand(*best.shape, 1, candidates.shape[-1])
         tensordict.set(self.out_keys[0], candidates.gather(-2, index).squeeze(-2))

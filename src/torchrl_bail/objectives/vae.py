@@ -23,7 +23,7 @@ from torchrl.objectives import LossModule
 
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
 
-__all__ = ["VAELoss", "vae_loss_terms"]
+__all__ = ["VAELoss", "vae_loss_terms", "conditional_vae_loss"]
 
 
 def vae_loss_terms(
@@ -137,7 +137,7 @@ class VAELoss(LossModule):
 
     def vae_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``(loss_vae, {"recon_loss", "kl_loss"})`` on a ``[B]`` or ``[S, B]`` batch."""
-        return _vae_loss(self, tensordict)
+        return conditional_vae_loss(self, tensordict)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -146,7 +146,7 @@ class VAELoss(LossModule):
         return TensorDict({"loss_vae": loss, **metadata})
 
 
-def _vae_loss(module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def conditional_vae_loss(module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The VAE loss of any loss module holding ``vae_network`` (+ params), ``kl_weight`` and the two keys."""
     observation = tensordict.get(module.tensor_keys.observation)
     action = tensordict.get(module.tensor_keys.action)

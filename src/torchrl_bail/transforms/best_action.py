@@ -22,11 +22,23 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
-__all__ = ["NonPositiveValue", "best_action_mask", "BestActionFilter", "select_best_actions"]
+__all__ = ["NonPositiveValue", "project_values", "best_action_mask", "BestActionFilter", "select_best_actions"]
 
 #: How ``V <= 0`` enters the ratio ``G / V``: ``"raw"`` (the authors' plain ratio), ``"project"``
 #: (``V <- exp(V - 1)`` where ``V < 1``, Progressive BAIL's projection) or ``"error"``.
 NonPositiveValue = Literal["raw", "project", "error"]
+
+
+def project_values(values: torch.Tensor) -> torch.Tensor:
+    """Progressive BAIL's projection of the envelope before the ratio ``G / V`` (authors' code, not in the paper):
+    ``V <- exp(V - 1)`` where ``V < 1``, unchanged elsewhere. Continuous at 1, in ``(0, 1)`` below it, so ``V <= 0``
+    never flips the ranking. The one place this rule lives (``nonpositive_value="project"``).
+
+    Examples:
+        >>> project_values(torch.tensor([-1.0, 0.0, 1.0, 5.0]))
+        tensor([0.1353, 0.3679, 1.0000, 5.0000])
+    """
+    return torch.where(values < 1, torch.exp(values - 1), values)
 
 
 def _check_percentile(percentile: float) -> float:
@@ -117,7 +129,7 @@ def best_action_mask(
                 "'raw' (the authors' plain ratio)"
             )
     elif nonpositive_value == "project":
-        values = torch.where(values < 1, torch.exp(values - 1), values)
+        values = project_values(values)
     n = returns.shape[-1]
     if n == 0:
         mask = torch.zeros(returns.shape, dtype=torch.bool, device=returns.device)
@@ -284,7 +296,7 @@ class BestActionFilter(Transform):
         else:
             returns, values = _align(returns, values)
             if self.nonpositive_value == "project":
-                values = torch.where(values < 1, torch.exp(values - 1), values)
+                values = project_values(values)
             selected = returns / values >= self.border
         tensordict.set(self.selected_key, selected)
         return tensordict

@@ -1,9 +1,9 @@
-"""SAC training batches (spec 9.2), SAC execution batches (spec 9.3) and the shared SAC behaviour run.
+"""SAC training batches (spec 9.2) and the shared SAC behaviour run that execution batches (spec 9.3) reuse.
 
 **The SAC agent** ("sac_adapt", the authors' data generator) on TorchRL's :class:`~torchrl.objectives.SACLoss`
 (v2: no state-value net):
 
-* tanh-Gaussian policy ``obs -> 256 -> 256 -> (mu, log sigma)``, ``log sigma`` clamped to [-20, 2], action
+* tanh-Gaussian policy (:func:`~torchrl_bail.modules.make_sac_actor`) ``obs -> 256 -> 256 -> (mu, log sigma)``, ``log sigma`` clamped to [-20, 2], action
   ``max_action * tanh(mu + sigma * eps)`` (TorchRL :class:`~torchrl.modules.TanhNormal` on the action bounds);
 * twin critics ``(s, a) -> 256 -> 256 -> 1`` with target copies, squared TD error summed over the two critics,
   a TD(0) target with gamma 0.99 that bootstraps on ``terminated``, Polyak averaging 0.995
@@ -30,7 +30,7 @@ weights at every evaluation (``evals/step_<t>.pt``). From it:
 Whichever of the ``sac``/``med_*``/``opt_*`` batches is asked for first trains the run; the others reuse it. When an
 execution batch triggers the run, the ``sac`` training batch it produces as a by-product is saved too.
 
-**Execution batches** run the chosen policy for ``batch.steps`` steps (episodes limited as usual), deterministic
+**Execution batches** (:mod:`torchrl_bail.behaviour.execution`) run the chosen policy for ``batch.steps`` steps (episodes limited as usual), deterministic
 (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``); the
 metadata keeps the policy file, its evaluation step and its measured return (``behaviour_return``).
 """
@@ -49,39 +49,41 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
-from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, ValueEstimators
 
-from torchrl_bail.data.collection import (
-    LOCKS,
-    BehaviourBuffers,
+from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.loop import (
     BehaviourRun,
     ReturnTracker,
-    _container,
-    _get,
-    _hash,
-    batch_name,
-    behaviour_seed,
-    data_dir_of,
+    collect_timed,
     env_bounds,
-    episode_limit,
-    file_lock,
     make_collection_env,
-    oracle_settings,
-    scratch_directory,
     seed_all,
 )
-from torchrl_bail.modules import action_spec_from_bounds, make_qvalue_network, mlp
-from torchrl_bail.objectives._shared import fused_soft_update
+from torchrl_bail.data.batch import save_batch
+from torchrl_bail.data.cache import (
+    LOCKS,
+    batch_metadata,
+    batch_path,
+    behaviour_seed,
+    clean_stale,
+    config_value,
+    data_dir_of,
+    episode_limit,
+    file_lock,
+    oracle_settings,
+    plain,
+    scratch_directory,
+    stable_hash,
+)
+from torchrl_bail.evaluation import Evaluator
+from torchrl_bail.modules import action_spec_from_bounds, fused_soft_update, make_qvalue_network, make_sac_actor
 
 __all__ = [
-    "TanhGaussianParams",
-    "make_sac_actor",
     "SACAgent",
     "SACRun",
     "sac_run_identity",
@@ -90,47 +92,11 @@ __all__ = [
     "ensure_sac_run",
     "load_sac_run",
     "collect_sac",
-    "collect_sac_exec",
 ]
 
 log = logging.getLogger("torchrl_bail")
 
-EXEC_SEED_OFFSET = 10_000  # execution envs are seeded apart from the SAC run's own env
 EVAL_SEED_OFFSET = 20_000  # evaluation envs too
-
-
-class TanhGaussianParams(nn.Module):
-    """``obs -> hidden -> (loc, scale)`` with ``log scale`` clamped to ``[log_std_min, log_std_max]``."""
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (256, 256), *,
-                 log_std_min: float = -20.0, log_std_max: float = 2.0):
-        super().__init__()
-        self.net = mlp(obs_dim, 2 * act_dim, hidden)
-        self.log_std_min = float(log_std_min)
-        self.log_std_max = float(log_std_max)
-
-    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc, log_std = self.net(observation).chunk(2, dim=-1)
-        return loc, log_std.clamp(self.log_std_min, self.log_std_max).exp()
-
-
-def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256), *, log_std_min: float = -20.0,
-                   log_std_max: float = 2.0) -> ProbabilisticActor:
-    """The SAC tanh-Gaussian policy as a TorchRL :class:`~torchrl.modules.ProbabilisticActor`.
-
-    Under ``ExplorationType.DETERMINISTIC`` it outputs ``max_action * tanh(mu)``; under ``RANDOM`` a sample.
-    """
-    act_dim = action_spec.shape[-1]
-    params = TensorDictModule(
-        TanhGaussianParams(obs_dim, act_dim, hidden, log_std_min=log_std_min, log_std_max=log_std_max),
-        in_keys=["observation"], out_keys=["loc", "scale"],
-    )
-    low, high = action_spec.space.low, action_spec.space.high
-    return ProbabilisticActor(
-        params, in_keys=["loc", "scale"], spec=action_spec, distribution_class=TanhNormal,
-        distribution_kwargs={"low": low, "high": high, "tanh_loc": False}, return_log_prob=False,
-        default_interaction_type=ExplorationType.RANDOM,
-    )
 
 
 def _sac_kwargs(sac: dict) -> dict[str, Any]:
@@ -220,7 +186,7 @@ class SACAgent:
 
 
 def _sac_block(cfg) -> dict:
-    return dict(_container(_get(cfg, "batch.sac")))
+    return dict(plain(config_value(cfg, "batch.sac")))
 
 
 def sac_run_identity(cfg) -> dict:
@@ -229,18 +195,18 @@ def sac_run_identity(cfg) -> dict:
     A ``sac`` batch in oracle mode trains its own run on 2000-step episodes; execution batches always use the run
     on the env's normal time limit (oracle mode only changes how they are executed).
     """
-    if _get(cfg, "batch.recipe") == "sac":
+    if config_value(cfg, "batch.recipe") == "sac":
         limit = episode_limit(cfg)
     else:
-        limit = _get(cfg, "env.max_episode_steps")
+        limit = config_value(cfg, "env.max_episode_steps")
         limit = 1000 if limit is None else int(limit)
-    return {"env_id": _get(cfg, "env.id"), "max_episode_steps": limit, "seed": behaviour_seed(cfg),
+    return {"env_id": config_value(cfg, "env.id"), "max_episode_steps": limit, "seed": behaviour_seed(cfg),
             "sac": _sac_block(cfg)}
 
 
 def sac_run_dir(cfg, data_dir=None) -> Path:
     identity = sac_run_identity(cfg)
-    name = f"{_get(cfg, 'env.name')}_sac_b{int(_get(cfg, 'batch.index'))}-{_hash(identity)}"
+    name = f"{config_value(cfg, 'env.name')}_sac_b{int(config_value(cfg, 'batch.index'))}-{stable_hash(identity)}"
     return data_dir_of(cfg, data_dir) / "policies" / name
 
 
@@ -296,19 +262,17 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
         ``(data, record, snapshots)``: the memmapped transitions of the run ([train_steps], oracle-cut in oracle
         mode), the run record (identity, evaluations, speed) and ``{file name: actor state_dict}``.
     """
-    from torchrl_bail.evaluation import Evaluator
-
     sac = _sac_block(cfg)
     identity = sac_run_identity(cfg)
     seed = identity["seed"]
     train_steps = int(sac["train_steps"])
     start_steps = int(sac["start_steps"])
     eval_every = int(sac["eval_every"])
-    oracle = oracle_settings(cfg) if _get(cfg, "batch.recipe") == "sac" else None
+    oracle = oracle_settings(cfg) if config_value(cfg, "batch.recipe") == "sac" else None
     seed_all(seed)
-    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=identity["max_episode_steps"], seed=seed)
-    eval_limit = _get(cfg, "env.max_episode_steps")
-    evaluator = Evaluator(_get(cfg, "env.id"), episodes=int(sac["eval_episodes"]), seed=seed + EVAL_SEED_OFFSET,
+    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=identity["max_episode_steps"], seed=seed)
+    eval_limit = config_value(cfg, "env.max_episode_steps")
+    evaluator = Evaluator(config_value(cfg, "env.id"), episodes=int(sac["eval_episodes"]), seed=seed + EVAL_SEED_OFFSET,
                           max_steps=int(eval_limit or 1000), max_episode_steps=eval_limit)
     try:
         low, high = env_bounds(env)
@@ -321,7 +285,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
         span = high - low
         evaluations: list[dict] = []
         snapshots: dict[str, dict[str, torch.Tensor]] = {}
-        tracker = ReturnTracker(train_steps, desc=f"SAC {_get(cfg, 'env.name')} b{_get(cfg, 'batch.index')}",
+        tracker = ReturnTracker(train_steps, desc=f"SAC {config_value(cfg, 'env.name')} b{config_value(cfg, 'batch.index')}",
                                 progress=progress)
         timers = {"train": 0.0, "eval": 0.0}
 
@@ -345,22 +309,19 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
                                 "gradient_steps": agent.updates, "file": fname})
             timers["eval"] += time.perf_counter() - t0
             tracker.note(eval=f"{result.mean_return:.0f}")
-            log.info("SAC %s step %d: eval return %.1f +- %.1f", _get(cfg, "env.id"), t, result.mean_return,
+            log.info("SAC %s step %d: eval return %.1f +- %.1f", config_value(cfg, "env.id"), t, result.mean_return,
                      result.std_return)
 
         def on_step(t: int) -> None:
             if t % eval_every == 0:
                 evaluate(t)
 
-        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
+        def evaluate_final() -> None:  # the final policy is always evaluated and saved
             if not evaluations or evaluations[-1]["step"] != runner.t:
-                evaluate(runner.t)  # the final policy is always evaluated and saved
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
+                evaluate(runner.t)
+
+        runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
+        data, wall = collect_timed(buffers, runner, after=evaluate_final)
     finally:
         env.close()
         evaluator.close()
@@ -409,11 +370,9 @@ def _run_cfg(cfg):
     """``cfg`` with ``batch`` replaced by the ``sac`` training batch this run produces (steps = train_steps)."""
     run_cfg = copy.deepcopy(cfg)
     sac = _sac_block(cfg)
-    batch = {"kind": "sac", "recipe": "sac", "index": int(_get(cfg, "batch.index")),
-             "seed": _get(cfg, "batch.seed"), "steps": int(sac["train_steps"]), "sac": sac}
+    batch = {"kind": "sac", "recipe": "sac", "index": int(config_value(cfg, "batch.index")),
+             "seed": config_value(cfg, "batch.seed"), "steps": int(sac["train_steps"]), "sac": sac}
     if OmegaConf.is_config(run_cfg):
-        from omegaconf import open_dict
-
         with open_dict(run_cfg):
             run_cfg.batch = OmegaConf.create(batch)
     else:
@@ -427,8 +386,6 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
     When it has to be trained, the ``sac`` training batch it produces (its first ``train_steps`` transitions) is
     saved as well, under the name and hash a ``batch=sac`` config with ``batch.steps = sac.train_steps`` gives.
     """
-    from torchrl_bail.data.collection import batch_metadata, batch_path, clean_stale
-
     path = sac_run_dir(cfg, data_dir)
     run = load_sac_run(path)
     if run is not None:
@@ -449,8 +406,6 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
             run = _save_run(path, record, snapshots)
             by_product = batch_path(run_cfg, root)
             if not by_product.exists():
-                from torchrl_bail.data.batch import save_batch
-
                 extra = _sac_batch_extra(run, data.shape[0])
                 meta = batch_metadata(run_cfg, extra, wall_time_s=time.perf_counter() - start)
                 try:
@@ -462,6 +417,7 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
 
 
 def _sac_batch_extra(run: SACRun, steps: int) -> dict[str, Any]:
+    """The metadata extras of a ``sac`` training batch (its first ``steps`` transitions) cut from ``run``."""
     rec = run.record
     final = run.optimal()
     return {
@@ -482,7 +438,7 @@ def _sac_batch_extra(run: SACRun, steps: int) -> dict[str, Any]:
 def collect_sac(cfg, *, scratch: Path, progress: bool = True,
                 data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
     """The ``sac`` recipe: trains the SAC run (saving its policies) and returns its first ``batch.steps`` rows."""
-    steps = int(_get(cfg, "batch.steps"))
+    steps = int(config_value(cfg, "batch.steps"))
     root = data_dir_of(cfg, data_dir)
     path = sac_run_dir(cfg, root)
     with file_lock(root / LOCKS / f"policies-{path.name}.lock"):
@@ -497,66 +453,3 @@ def collect_sac(cfg, *, scratch: Path, progress: bool = True,
     if steps < data.shape[0]:
         data = data[:steps]
     return data, _sac_batch_extra(SACRun(run.path, record), steps)
-
-
-def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
-                     data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
-    """An execution batch: ``batch.steps`` transitions of the mediocre/optimal SAC policy (sigma = 0 or sigma(s))."""
-    steps = int(_get(cfg, "batch.steps"))
-    stochastic = bool(_get(cfg, "batch.stochastic"))
-    which = _get(cfg, "batch.policy")
-    root = data_dir_of(cfg, data_dir)
-    run = ensure_sac_run(cfg, progress=progress, data_dir=root)
-    if which == "optimal":
-        evaluation, reached = run.optimal(), True
-    else:
-        threshold = float(_get(cfg, "env.mediocre_threshold"))
-        evaluation, reached = run.mediocre(threshold)
-        if not reached:
-            log.warning("no evaluation of SAC run %s reached the mediocre threshold %.0f; using the best one "
-                        "(step %d, return %.1f)", run.path.name, threshold, evaluation["step"],
-                        evaluation["return_mean"])
-    actor = run.load_actor(evaluation)
-    seed = behaviour_seed(cfg) + EXEC_SEED_OFFSET
-    seed_all(seed)
-    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
-    mode = ExplorationType.RANDOM if stochastic else ExplorationType.DETERMINISTIC
-    try:
-        low, high = env_bounds(env)
-
-        @torch.no_grad()
-        def act(observation: torch.Tensor, t: int) -> torch.Tensor:
-            with set_exploration_type(mode):
-                return actor(TensorDict({"observation": observation}, batch_size=[]))["action"]
-
-        buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg), replay_batch_size=None)
-        tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
-        runner = BehaviourRun(env, act, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
-    finally:
-        env.close()
-    extra = {
-        "action_low": low.tolist(),
-        "action_high": high.tolist(),
-        "behaviour": "sac_exec",
-        "behaviour_policy": {
-            "which": which,
-            "stochastic": stochastic,
-            "run": str(run.path),
-            "file": str(run.path / evaluation["file"]),
-            "eval_step": evaluation["step"],
-            "eval_return_mean": evaluation["return_mean"],
-            "eval_return_std": evaluation["return_std"],
-            "mediocre_threshold": None if which == "optimal" else float(_get(cfg, "env.mediocre_threshold")),
-            "threshold_reached": reached,
-        },
-        "behaviour_return": evaluation["return_mean"],
-        "env_steps": runner.t,
-        "env_steps_per_s": runner.t / max(wall, 1e-9),
-    }
-    return data, extra

@@ -41,21 +41,22 @@ from torch import nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, ValueEstimators
 
-from torchrl_bail.data.collection import (
-    BehaviourBuffers,
+from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.loop import (
     BehaviourRun,
     ReturnTracker,
-    _get,
-    batch_name,
-    behaviour_seed,
+    collect_timed,
     env_bounds,
-    episode_limit,
     make_collection_env,
-    oracle_settings,
     seed_all,
 )
-from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor, make_qvalue_network
-from torchrl_bail.objectives._shared import fused_soft_update
+from torchrl_bail.data.cache import batch_name, behaviour_seed, config_value, episode_limit, oracle_settings
+from torchrl_bail.modules import (
+    action_spec_from_bounds,
+    fused_soft_update,
+    make_deterministic_actor,
+    make_qvalue_network,
+)
 
 __all__ = ["LateActionCritic", "make_ddpg_critic", "DDPGAgent", "collect_ddpg"]
 
@@ -136,7 +137,7 @@ class DDPGAgent:
 
 
 def _agent_kwargs(cfg) -> dict[str, Any]:
-    a = _get(cfg, "batch.agent")
+    a = config_value(cfg, "batch.agent")
     return {
         "actor_hidden": list(a["actor_hidden"]),
         "critic_hidden": list(a["critic_hidden"]),
@@ -160,12 +161,12 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
         progress: show a tqdm bar (env steps/s, mean return of the last 10 episodes).
         agent_hook: called with the :class:`DDPGAgent` once built (tests use it to watch the updates).
     """
-    steps = int(_get(cfg, "batch.steps"))
-    sigma = float(_get(cfg, "batch.sigma"))
-    start_steps = int(_get(cfg, "batch.start_steps"))
+    steps = int(config_value(cfg, "batch.steps"))
+    sigma = float(config_value(cfg, "batch.sigma"))
+    start_steps = int(config_value(cfg, "batch.start_steps"))
     seed = behaviour_seed(cfg)
     seed_all(seed)
-    env = make_collection_env(_get(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
     try:
         low, high = env_bounds(env)
         obs_dim = env.observation_spec["observation"].shape[-1]
@@ -194,12 +195,7 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
 
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, tracker=tracker)
-        start = time.perf_counter()
-        try:
-            data = buffers.collect(runner)
-        finally:
-            tracker.close()
-        wall = time.perf_counter() - start
+        data, wall = collect_timed(buffers, runner)
     finally:
         env.close()
     returns = tracker.all_returns

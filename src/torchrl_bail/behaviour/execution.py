@@ -1,0 +1,100 @@
+"""SAC execution batches (spec 9.3): ``batch.steps`` transitions of a frozen SAC policy, mediocre or optimal,
+deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``).
+
+The policy comes from the shared SAC run (:func:`~torchrl_bail.behaviour.sac.ensure_sac_run`: trained once, reused
+by every execution batch of the same env, seed and ``batch.sac`` block). The metadata keeps the policy file, its
+evaluation step and its measured return (``behaviour_return``).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
+from torchrl_bail.behaviour.sac import ensure_sac_run
+from torchrl_bail.data.cache import (
+    batch_name,
+    behaviour_seed,
+    config_value,
+    data_dir_of,
+    episode_limit,
+    oracle_settings,
+)
+
+__all__ = ["EXEC_SEED_OFFSET", "collect_sac_exec"]
+
+log = logging.getLogger("torchrl_bail")
+
+EXEC_SEED_OFFSET = 10_000  # execution envs are seeded apart from the SAC run's own env
+
+
+def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
+                     data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """An execution batch: ``batch.steps`` transitions of the mediocre/optimal SAC policy (sigma = 0 or sigma(s))."""
+    steps = int(config_value(cfg, "batch.steps"))
+    stochastic = bool(config_value(cfg, "batch.stochastic"))
+    which = config_value(cfg, "batch.policy")
+    root = data_dir_of(cfg, data_dir)
+    run = ensure_sac_run(cfg, progress=progress, data_dir=root)
+    if which == "optimal":
+        evaluation, reached = run.optimal(), True
+    else:
+        threshold = float(config_value(cfg, "env.mediocre_threshold"))
+        evaluation, reached = run.mediocre(threshold)
+        if not reached:
+            log.warning("no evaluation of SAC run %s reached the mediocre threshold %.0f; using the best one "
+                        "(step %d, return %.1f)", run.path.name, threshold, evaluation["step"],
+                        evaluation["return_mean"])
+    actor = run.load_actor(evaluation)
+    seed = behaviour_seed(cfg) + EXEC_SEED_OFFSET
+    seed_all(seed)
+    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    mode = ExplorationType.RANDOM if stochastic else ExplorationType.DETERMINISTIC
+    try:
+        low, high = env_bounds(env)
+
+        @torch.no_grad()
+        def act(observation: torch.Tensor, t: int) -> torch.Tensor:
+            with set_exploration_type(mode):
+                return actor(TensorDict({"observation": observation}, batch_size=[]))["action"]
+
+        buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg), replay_batch_size=None)
+        tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
+        runner = BehaviourRun(env, act, tracker=tracker)
+        data, wall = collect_timed(buffers, runner)
+    finally:
+        env.close()
+    extra = {
+        "action_low": low.tolist(),
+        "action_high": high.tolist(),
+        "behaviour": "sac_exec",
+        "behaviour_policy": {
+            "which": which,
+            "stochastic": stochastic,
+            "run": str(run.path),
+            "file": str(run.path / evaluation["file"]),
+            "eval_step": evaluation["step"],
+            "eval_return_mean": evaluation["return_mean"],
+            "eval_return_std": evaluation["return_std"],
+            "mediocre_threshold": None if which == "optimal" else float(config_value(cfg, "env.mediocre_threshold")),
+            "threshold_reached": reached,
+        },
+        "behaviour_return": evaluation["return_mean"],
+        "env_steps": runner.t,
+        "env_steps_per_s": runner.t / max(wall, 1e-9),
+    }
+    return data, extra

@@ -1,0 +1,211 @@
+"""The step loop every behaviour recipe shares: seed, make the env, act, step, record, call hooks at episode ends.
+
+Examples:
+    >>> import torch
+    >>> env = make_collection_env("Pendulum-v1", max_episode_steps=5, seed=0)
+    >>> low, high = env_bounds(env)
+    >>> seen = []
+    >>> run = BehaviourRun(env, lambda obs, t: torch.zeros_like(low),
+    ...                    on_episode_end=lambda length, ret, t: seen.append(length))
+    >>> class Rows(list):
+    ...     def extend(self, episode): self.append(episode.shape[0])
+    >>> rows = Rows()
+    >>> run.run([rows], until=lambda open_rows: sum(rows) + open_rows >= 12)
+    >>> list(rows), seen, run.t
+    ([5, 5, 2], [5, 5], 12)
+    >>> env.close()
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+from tqdm.auto import tqdm
+
+from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
+
+__all__ = ["TRANSITION_KEYS", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker", "BehaviourRun",
+           "collect_timed"]
+
+#: the keys one stored transition carries (TED layout); ``episode`` (and ``oracle_return``) are added per episode
+TRANSITION_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+)
+
+
+def seed_all(seed: int) -> None:
+    """Seeds Python, NumPy and torch from the behaviour seed."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def make_collection_env(env_id: str, *, max_episode_steps: int | None, seed: int):
+    """One gymnasium env (``GymEnv`` + ``DoubleToFloat``), seeded; never ``num_envs`` (zero terminal obs).
+
+    ``GymEnv.set_seed`` resets the env with ``seed``; the first episode starts from the reset after that.
+    """
+    kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
+    env = TransformedEnv(GymEnv(env_id, **kwargs), DoubleToFloat())
+    env.set_seed(int(seed))
+    return env
+
+
+
+def env_bounds(env) -> tuple[torch.Tensor, torch.Tensor]:
+    """The env's action bounds ``(low, high)`` as float32 CPU copies."""
+    spec = env.action_spec
+    space = getattr(spec, "space", None)
+    low = space.low if space is not None else spec.low
+    high = space.high if space is not None else spec.high
+    return low.detach().clone().float(), high.detach().clone().float()
+
+
+class ReturnTracker:
+    """tqdm progress (env steps/s, mean return of the last 10 episodes) and per-episode bookkeeping."""
+
+    def __init__(self, total: int, *, desc: str, progress: bool, window: int = 10):
+        self.returns: deque[float] = deque(maxlen=window)
+        self.all_returns: list[float] = []
+        self.lengths: list[int] = []
+        self.bar = None
+        self.postfix: dict[str, Any] = {}
+        if progress:
+            self.bar = tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, mininterval=0.5, smoothing=0.05)
+        self._pending = 0
+
+    def step(self, n: int = 1) -> None:
+        if self.bar is not None:
+            self._pending += n
+            if self._pending >= 100:
+                self.bar.update(self._pending)
+                self._pending = 0
+
+    def episode(self, ret: float, length: int) -> None:
+        self.returns.append(ret)
+        self.all_returns.append(ret)
+        self.lengths.append(length)
+        if self.bar is not None:
+            self.postfix["ret10"] = f"{self.mean_recent:.1f}"
+            self.postfix["ep"] = len(self.all_returns)
+            self.bar.set_postfix(self.postfix, refresh=False)
+
+    def note(self, **kv: Any) -> None:
+        if self.bar is not None:
+            self.postfix.update(kv)
+            self.bar.set_postfix(self.postfix, refresh=False)
+
+    @property
+    def mean_recent(self) -> float:
+        return float(np.mean(self.returns)) if self.returns else float("nan")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.update(self._pending)
+            self._pending = 0
+            self.bar.close()
+
+
+class BehaviourRun:
+    """The step loop every recipe shares: act, step one env, record, and call hooks at episode ends.
+
+    Args:
+        env: a seeded TorchRL env from :func:`make_collection_env`.
+        act: ``act(observation [obs_dim], t) -> action [act_dim]`` (``t`` = env steps taken so far).
+
+    Keyword Args:
+        on_episode_end: ``f(length, episode_return, t)`` after an episode ends (DDPG/SAC train here).
+        on_step: ``f(t)`` after every env step (SAC evaluates here).
+        tracker: a :class:`ReturnTracker` (progress bar, recent returns).
+    """
+
+    def __init__(self, env, act: Callable[[torch.Tensor, int], torch.Tensor], *,
+                 on_episode_end: Callable[[int, float, int], None] | None = None,
+                 on_step: Callable[[int], None] | None = None,
+                 tracker: ReturnTracker | None = None):
+        self.env = env
+        self.act = act
+        self.on_episode_end = on_episode_end
+        self.on_step = on_step
+        self.tracker = tracker
+        self.t = 0
+        self.episodes = 0
+
+    def run(self, sinks: list, *, until: Callable[[int], bool], finish_open_episode: bool = False) -> None:
+        """Steps until ``until(rows_in_open_episode)`` holds.
+
+        When it holds mid-episode the open episode is handed to the sinks unfinished, or, with
+        ``finish_open_episode`` (oracle continuation), first run to its end with no more hooks called.
+        """
+        env = self.env
+        td = env.reset()
+        rows: list[TensorDictBase] = []
+        ep_ret = 0.0
+        finishing = False
+        while True:
+            if not finishing and until(len(rows)):
+                if rows and finish_open_episode:
+                    finishing = True
+                else:
+                    break
+            td.set("action", self.act(td["observation"], self.t))
+            step_td, td = env.step_and_maybe_reset(td)
+            rows.append(step_td.select(*TRANSITION_KEYS))
+            ep_ret += float(step_td["next", "reward"])
+            self.t += 1
+            if self.tracker is not None:
+                self.tracker.step()
+            if bool(step_td["next", "done"]):
+                length = len(rows)
+                self._flush(rows, sinks)
+                rows = []
+                self.episodes += 1
+                if self.tracker is not None:
+                    self.tracker.episode(ep_ret, length)
+                if finishing:
+                    break
+                if self.on_episode_end is not None and not until(0):  # no learning once the batch is full
+                    self.on_episode_end(length, ep_ret, self.t)
+                ep_ret = 0.0
+            if not finishing and self.on_step is not None:
+                self.on_step(self.t)
+        if rows:
+            self._flush(rows, sinks)
+
+    @staticmethod
+    def _flush(rows: list[TensorDictBase], sinks) -> None:
+        episode = torch.stack(rows)
+        for sink in sinks:
+            if isinstance(sink, BatchSink):
+                sink.add_episode(episode)
+            else:
+                sink.extend(episode)
+
+
+def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
+                  after: Callable[[], None] | None = None) -> tuple[TensorDictBase, float]:
+    """``buffers.collect(runner)``, then ``after()`` (e.g. a final evaluation), closing the runner's progress bar
+    in every case; returns ``(batch, wall seconds)``."""
+    start = time.perf_counter()
+    try:
+        data = buffers.collect(runner)
+        if after is not None:
+            after()
+    finally:
+        if runner.tracker is not None:
+            runner.tracker.close()
+    return data, time.perf_counter() - start

@@ -1,0 +1,166 @@
+"""The package's layering, read from its source with ``ast`` (no import is executed).
+
+Data flows one way: entry points (``train``, ``collect``, ``report``) -> ``trainer`` -> ``algorithms`` ->
+``envelope`` / ``objectives`` / ``transforms`` / ``modules`` -> ``data`` (+ ``io``); the online side ``behaviour``
+-> ``data``, ``modules``, ``evaluation``; only the entry points reach ``behaviour``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import torchrl_bail
+
+PACKAGE = Path(torchrl_bail.__file__).resolve().parent
+ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report"}
+BOTTOM = {"torchrl_bail.io"}  # the atomic writes: part of the bottom layer, imports nothing from the package
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _resolve(module: str, node: ast.ImportFrom, is_package: bool) -> str:
+    if not node.level:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+class Import:
+    def __init__(self, source: str, target: str, names: list[str], line: int, in_function: bool):
+        self.source, self.target, self.names, self.line, self.in_function = source, target, names, line, in_function
+
+    def __repr__(self) -> str:
+        where = "inside a function" if self.in_function else "at module level"
+        return f"{self.source}:{self.line} imports {self.target} {self.names or ''} {where}"
+
+
+def _imports() -> tuple[set[str], list[Import]]:
+    modules, found = set(), []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        module = _module_name(path)
+        modules.add(module)
+        tree = ast.parse(path.read_text(), filename=str(path))
+        functions = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                     for n in ast.walk(f)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.startswith("torchrl_bail"):
+                        found.append(Import(module, alias.name, [], node.lineno, id(node) in functions))
+            elif isinstance(node, ast.ImportFrom):
+                target = _resolve(module, node, path.name == "__init__.py")
+                if target.startswith("torchrl_bail"):
+                    found.append(Import(module, target, [a.name for a in node.names], node.lineno,
+                                        id(node) in functions))
+    return modules, found
+
+
+MODULES, IMPORTS = _imports()
+
+
+def _target_module(imp: Import, name: str) -> str:
+    """``from pkg import sub`` imports the module ``pkg.sub``; anything else imports from ``imp.target``."""
+    candidate = f"{imp.target}.{name}"
+    return candidate if candidate in MODULES else imp.target
+
+
+def _edges() -> dict[str, set[str]]:
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
+    for imp in IMPORTS:
+        targets = {_target_module(imp, n) for n in imp.names} if imp.names else {imp.target}
+        graph[imp.source] |= {t for t in targets if t in MODULES and t != imp.source}
+    return graph
+
+
+def _in(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def test_the_scan_sees_the_package():
+    assert {"torchrl_bail.data.batch", "torchrl_bail.behaviour.catalogue", "torchrl_bail.envelope"} <= MODULES
+    assert any(i.source == "torchrl_bail.algorithms.bail" and i.target == "torchrl_bail.envelope" for i in IMPORTS)
+
+
+def test_no_import_cycle():
+    graph = _edges()
+    # a package imports its submodules from __init__: that is containment, not a dependency between layers
+    for module, targets in graph.items():
+        graph[module] = {t for t in targets if not _in(module, t) or module == t}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt):] + [nxt]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module)
+
+
+def test_data_is_the_bottom_layer():
+    bad = [i for i in IMPORTS if _in(i.source, "torchrl_bail.data")
+           and not (_in(i.target, "torchrl_bail.data") or i.target in BOTTOM)]
+    assert not bad, f"torchrl_bail.data may import only itself and {sorted(BOTTOM)}: {bad}"
+    bad = [i for i in IMPORTS if i.source in BOTTOM]
+    assert not bad, f"{sorted(BOTTOM)} must import nothing from the package: {bad}"
+
+
+def test_only_entry_points_reach_the_behaviour_package():
+    bad = [i for i in IMPORTS if _in(i.target, "torchrl_bail.behaviour")
+           and not _in(i.source, "torchrl_bail.behaviour") and i.source not in ENTRY_POINTS]
+    assert not bad, f"only {sorted(ENTRY_POINTS)} may import torchrl_bail.behaviour: {bad}"
+
+
+@pytest.mark.parametrize("lower, upper", [
+    ("torchrl_bail.data", "torchrl_bail.algorithms"),
+    ("torchrl_bail.modules", "torchrl_bail.algorithms"),
+    ("torchrl_bail.objectives", "torchrl_bail.algorithms"),
+    ("torchrl_bail.transforms", "torchrl_bail.algorithms"),
+    ("torchrl_bail.envelope", "torchrl_bail.algorithms"),
+    ("torchrl_bail.algorithms", "torchrl_bail.trainer"),
+    ("torchrl_bail.behaviour", "torchrl_bail.algorithms"),
+    ("torchrl_bail.behaviour", "torchrl_bail.objectives"),
+    ("torchrl_bail.behaviour", "torchrl_bail.trainer"),
+])
+def test_no_upward_import(lower, upper):
+    bad = [i for i in IMPORTS if _in(i.source, lower) and _in(i.target, upper)]
+    assert not bad, f"{lower} sits below {upper} and must not import it: {bad}"
+
+
+def test_no_function_level_package_imports_outside_entry_points():
+    bad = [i for i in IMPORTS if i.in_function and i.source not in ENTRY_POINTS]
+    assert not bad, f"package imports hidden inside functions (move them to the top of the module): {bad}"
+
+
+def test_no_private_name_crosses_a_module():
+    bad = []
+    for imp in IMPORTS:
+        for name in imp.names:
+            target = _target_module(imp, name)
+            if target == imp.source:
+                continue
+            if name.startswith("_"):
+                bad.append(f"{imp} (private name {name})")
+            private_module = next((p for p in target.split(".") if p.startswith("_") and p != "__init__"), None)
+            owner = target.rsplit(".", 1)[0]
+            if private_module and not _in(imp.source, owner):
+                bad.append(f"{imp} (private module {target} outside {owner})")
+    assert not bad, "\n".join(bad)
