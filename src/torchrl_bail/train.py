@@ -8,6 +8,7 @@ The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``)
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import random
 import sys
@@ -77,8 +78,41 @@ def seed_everything(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
+@contextlib.contextmanager
+def preserved_rng_state():
+    """Runs the body without touching the global torch / NumPy / ``random`` generators.
+
+    Collecting a batch re-seeds them with the behaviour seed; wrapped in this, the training seed's streams
+    (network init, mini-batch sampling, BCQ/BEAR action sampling) are the same whether the batch was collected
+    in this run or loaded from the cache.
+
+    Examples:
+        >>> _ = torch.manual_seed(0); expected = torch.rand(1)
+        >>> _ = torch.manual_seed(0)
+        >>> with preserved_rng_state():
+        ...     _ = torch.manual_seed(123); _ = np.random.seed(5); random.seed(7)
+        >>> bool(torch.rand(1) == expected)
+        True
+    """
+    np_state, py_state = np.random.get_state(), random.getstate()
+    with torch.random.fork_rng(devices=range(torch.cuda.device_count())):
+        try:
+            yield
+        finally:
+            np.random.set_state(np_state)
+            random.setstate(py_state)
+
+
 def load_training_batch(cfg: DictConfig):
-    """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch."""
+    """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch.
+
+    The global random generators are left as they were (see :func:`preserved_rng_state`).
+    """
+    with preserved_rng_state():
+        return _load_training_batch(cfg)
+
+
+def _load_training_batch(cfg: DictConfig):
     if cfg.get("dataset"):
         from torchrl_bail.data.importers import import_dataset
 
