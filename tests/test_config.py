@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.train import ConfigError, validate_config
+from torchrl_bail.config import ConfigError, validate_config
 
 ALGOS = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
 

@@ -39,7 +39,7 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-__all__ = ["ConfigError", "validate_config", "register_schemas", "run_cli", "describe_error", "DDPG_ENVS",
+__all__ = ["ConfigError", "CommandLineError", "validate_config", "register_schemas", "run_cli", "describe_error", "DDPG_ENVS",
            "ALGO_SCHEMAS", "BATCH_SCHEMAS"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
@@ -56,6 +56,10 @@ class ConfigError(ValueError):
     def under(self, prefix: str) -> ConfigError:
         """The same error with the key ``<prefix>.<key>``."""
         return ConfigError(f"{prefix}.{self.key}" if prefix else self.key, self.value, self.expected)
+
+
+class CommandLineError(ValueError):
+    """The command line itself cannot be composed into a config."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -523,12 +527,15 @@ def validate_config(cfg: DictConfig) -> None:
 
 def describe_error(err: BaseException) -> str:
     """One line for a configuration error from Hydra, OmegaConf or :func:`validate_config`."""
-    from hydra.errors import MissingConfigException
+    from hydra.errors import MissingConfigException, OverrideParseException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
     def one_line(text: str) -> str:
         return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
 
+    if isinstance(err, OverrideParseException):
+        detail = one_line(err.message).split(" See https://")[0]
+        return f"override {err.override!r} is not valid Hydra override syntax ({detail}); expected key=value"
     if isinstance(err, MissingConfigException) and err.options is not None and err.missing_cfg_file:
         group, _, option = err.missing_cfg_file.rpartition("/")
         choices = sorted(o for o in err.options if not (o.startswith("base_") or o.startswith("_")))
@@ -548,7 +555,7 @@ def _config_errors() -> tuple[type[BaseException], ...]:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    errors: list[type[BaseException]] = [ConfigError, HydraException, OmegaConfBaseException]
+    errors: list[type[BaseException]] = [ConfigError, CommandLineError, HydraException, OmegaConfBaseException]
     if "torchrl_bail.data" in sys.modules:  # batch/dataset errors, only possible once the data code is loaded
         from torchrl_bail.data import BatchValidationError
         from torchrl_bail.data.collection import CollectionConfigError
@@ -569,7 +576,13 @@ def _precompose(argv: list[str], extra: list[str]) -> None:
     from torchrl_bail import config_dir
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[*argv, *extra])
+        try:
+            cfg = compose("config", overrides=[*argv, *extra])
+        except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
+            if isinstance(err, ConfigError):
+                raise
+            raise CommandLineError(f"the overrides {' '.join(argv)!r} do not compose: {err}; expected key=value "
+                                   "items (see --help)") from None
     validate_config(cfg)
 
 
