@@ -26,7 +26,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import run_cli, validate_config
+from torchrl_bail.config import exit_on_config_error, run_cli, validate_config
 
 __all__ = ["main", "collect", "format_listing", "import_main"]
 
@@ -79,8 +79,10 @@ def _print_summary(s: dict) -> None:
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    validate_config(cfg)  # in a multirun, each job's first look at its config
-    _print_summary(collect(cfg))
+    with exit_on_config_error():
+        validate_config(cfg)
+        summary = collect(cfg)
+    _print_summary(summary)
 
 
 def format_listing(rows: list[dict]) -> str:

@@ -28,18 +28,19 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-__all__ = ["ConfigError", "CommandLineError", "validate_config", "register_schemas", "run_cli", "describe_error", "DDPG_ENVS",
+__all__ = ["ConfigError", "CommandLineError", "validate_config", "register_schemas", "run_cli", "describe_error", "exit_on_config_error", "DDPG_ENVS",
            "ALGO_SCHEMAS", "BATCH_SCHEMAS"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
@@ -564,38 +565,61 @@ def _config_errors() -> tuple[type[BaseException], ...]:
     return tuple(errors)
 
 
-_NON_OVERRIDE_FLAGS = ("-", "--")
+def _job_overrides(argv: list[str]) -> list[list[str]]:
+    """The override list of every job the command line launches: one for a run, one per sweep point for ``-m``
+    (the basic sweeper's expansion); none when a flag (``--help``, ``--cfg`` ...) or another sweeper is in play."""
+    flags = [a for a in argv if a.startswith("-")]
+    overrides = [a for a in argv if not a.startswith("-")]
+    if not flags:
+        return [overrides]
+    if set(flags) > {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
+        return []
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
 
 
-def _precompose(argv: list[str], extra: list[str]) -> None:
-    """Composes and validates the config of a single run before Hydra creates its run directory."""
-    if any(a.startswith(_NON_OVERRIDE_FLAGS) for a in argv):
-        return  # --help, --cfg, -m (sweeps: each job validates itself), --config-name ...
+def _precompose(argv: list[str]) -> None:
+    """Composes and validates the config of every job before Hydra creates a run directory or launches a job."""
+    jobs = _job_overrides(argv)
+    if not jobs:
+        return
     from hydra import compose, initialize_config_dir
 
     from torchrl_bail import config_dir
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        try:
-            cfg = compose("config", overrides=[*argv, *extra])
-        except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
-            if isinstance(err, ConfigError):
-                raise
-            raise CommandLineError(f"the overrides {' '.join(argv)!r} do not compose: {err}; expected key=value "
-                                   "items (see --help)") from None
-    validate_config(cfg)
+        for overrides in jobs:
+            try:
+                cfg = compose("config", overrides=overrides)
+            except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
+                raise CommandLineError(f"the overrides {' '.join(overrides)!r} do not compose: {err}; expected "
+                                       "key=value items (see --help)") from None
+            validate_config(cfg)
 
 
-def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
-    """Runs a ``@hydra.main`` function; a configuration error ends the process with ONE line on stderr and exit
-    code 2 (no traceback, no run directory for a single run). Other errors keep their traceback."""
-    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
-    argv = sys.argv[1:]
-    extra = list(extra_overrides or [])
+@contextlib.contextmanager
+def exit_on_config_error() -> Iterator[None]:
+    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+
+    Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
+    the first bad job without Hydra's multi-line report. Other errors keep their traceback.
+    """
     try:
-        _precompose(argv, extra)
-        sys.argv = [sys.argv[0], *argv, *extra]
-        hydra_main()
+        yield
     except _config_errors() as err:
         print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
         sys.exit(2)
+
+
+def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
+    """Runs a ``@hydra.main`` function after composing and validating every job's config, so that a bad command
+    line ends with one line on stderr and exit code 2 before anything is written or imported."""
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
+    argv = [*sys.argv[1:], *(extra_overrides or [])]
+    with exit_on_config_error():
+        _precompose(argv)
+        sys.argv = [sys.argv[0], *argv]
+        hydra_main()

@@ -19,7 +19,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import ConfigError, run_cli, validate_config
+from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.config.run_cli) in about a second, before they load.
@@ -252,7 +252,8 @@ def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = N
 def _hydra_main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
-    return run(cfg, Path(HydraConfig.get().runtime.output_dir))["final_return"]
+    with exit_on_config_error():
+        return run(cfg, Path(HydraConfig.get().runtime.output_dir))["final_return"]
 
 
 def main() -> None:
