@@ -126,6 +126,10 @@ class _Checked:
     def check(self) -> None:
         """Cross-field rules; raise :class:`ConfigError` with the (relative) key."""
 
+    def _ordered(self, low: str, high: str) -> None:
+        if not getattr(self, low) < getattr(self, high):
+            raise ConfigError(low, getattr(self, low), f"less than {high} = {getattr(self, high)}")
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # env and batch (conf/env, conf/batch)
@@ -211,8 +215,7 @@ class SACAgentConfig(_Checked):
     eval_episodes: int = at_least(1)
 
     def check(self) -> None:
-        if not self.log_std_min < self.log_std_max:
-            raise ConfigError("log_std_min", self.log_std_min, f"less than log_std_max = {self.log_std_max}")
+        self._ordered("log_std_min", "log_std_max")
 
 
 @dataclass
@@ -344,8 +347,7 @@ class VAEConfig(NetConfig):
     log_std_max: float = MISSING
 
     def check(self) -> None:
-        if not self.log_std_min < self.log_std_max:
-            raise ConfigError("log_std_min", self.log_std_min, f"less than log_std_max = {self.log_std_max}")
+        self._ordered("log_std_min", "log_std_max")
 
 
 @dataclass
@@ -397,8 +399,7 @@ class BEARConfig(TwinCriticVAEConfig):
 
     def check(self) -> None:
         super().check()
-        if not self.log_alpha_min < self.log_alpha_max:
-            raise ConfigError("log_alpha_min", self.log_alpha_min, f"less than log_alpha_max = {self.log_alpha_max}")
+        self._ordered("log_alpha_min", "log_alpha_max")
 
 
 # ---------------------------------------------------------------------------------------------------------------
