@@ -2,7 +2,7 @@
 no traceback, and nothing written: no run directory, no batch collection started.
 
 Each case is a real ``python -m torchrl_bail.train`` (or ``.collect``) subprocess; the config is checked before
-torch is imported, so a case costs about a second.
+torch is imported, so a case costs about a second of CPU (the training cases run a few at a time).
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -92,9 +93,18 @@ def _assert_one_clear_line(proc: subprocess.CompletedProcess, fragments: list[st
     return line
 
 
-@pytest.mark.parametrize("overrides,fragments", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
-def test_bad_training_command_line_is_one_line_and_writes_nothing(tmp_path, overrides, fragments):
-    proc = _run("torchrl_bail.train", overrides, tmp_path)
+@pytest.fixture(scope="module")
+def training_runs(tmp_path_factory) -> dict[str, tuple[subprocess.CompletedProcess, Path]]:
+    """Every case's subprocess, run a few at a time (each is mostly interpreter start-up and imports)."""
+    dirs = {name: tmp_path_factory.mktemp(name) for name, _, _ in CASES}
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
+        procs = {name: pool.submit(_run, "torchrl_bail.train", overrides, dirs[name]) for name, overrides, _ in CASES}
+        return {name: (proc.result(), dirs[name]) for name, proc in procs.items()}
+
+
+@pytest.mark.parametrize("name,fragments", [(c[0], c[2]) for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_training_command_line_is_one_line_and_writes_nothing(training_runs, name, fragments):
+    proc, tmp_path = training_runs[name]
     _assert_one_clear_line(proc, fragments)
     assert not (tmp_path / "run").exists()  # no run directory, no config/summary/checkpoint
     assert not (tmp_path / "data").exists()  # collection never started
