@@ -471,6 +471,11 @@ class Config(_Checked):
                                   "continuations)")
         if self.data_dir is not None and Path(self.data_dir).expanduser().is_file():
             raise ConfigError("data_dir", self.data_dir, "a directory (or null), not a file")
+        if self.device.startswith("cuda"):
+            import torch  # only for this question
+
+            if not torch.cuda.is_available():
+                raise ConfigError("device", self.device, "a CUDA device, but torch sees none (use device=cpu or auto)")
         if self.resume.lower() not in ("auto", "false") and not Path(self.resume).expanduser().is_dir():
             raise ConfigError("resume", self.resume, "auto | false | an existing run directory")
 
@@ -573,7 +578,7 @@ def _job_overrides(argv: list[str]) -> list[list[str]]:
     overrides = [a for a in argv if not a.startswith("-")]
     if not flags:
         return [overrides]
-    if set(flags) > {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
+    if not set(flags) <= {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
         return []
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
