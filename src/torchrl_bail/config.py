@@ -40,8 +40,8 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-__all__ = ["ConfigError", "CommandLineError", "validate_config", "register_schemas", "run_cli", "describe_error", "exit_on_config_error", "DDPG_ENVS",
-           "ALGO_SCHEMAS", "BATCH_SCHEMAS"]
+__all__ = ["ALGO_SCHEMAS", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
+           "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -547,7 +547,8 @@ def describe_error(err: BaseException) -> str:
         group, _, option = err.missing_cfg_file.rpartition("/")
         choices = sorted(o for o in err.options if not (o.startswith("base_") or o.startswith("_")))
         return f"{group}={option}: no such option in conf/{group}/; expected one of {', '.join(choices)}"
-    if isinstance(err, ConfigKeyError | ConfigAttributeError) and dataclasses.is_dataclass(err.object_type) and getattr(err, "full_key", None):
+    unknown_key = isinstance(err, ConfigKeyError | ConfigAttributeError)
+    if unknown_key and dataclasses.is_dataclass(err.object_type) and getattr(err, "full_key", None):
         known = ", ".join(f.name for f in dataclasses.fields(err.object_type))
         return f"config key {err.full_key}: no such key; expected one of {known}"
     if isinstance(err, OmegaConfBaseException) and getattr(err, "full_key", None):
