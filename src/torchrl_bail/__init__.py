@@ -33,8 +33,12 @@ def config_dir() -> Path:
     """Directory holding the Hydra configs.
 
     An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
-    them at the repository's top-level ``conf/``.
+    them at the repository's top-level ``conf/``. The typed schemas the yaml files name
+    (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way.
     """
+    from torchrl_bail.config import register_schemas
+
+    register_schemas()
     packaged = Path(__file__).resolve().parent / "conf"
     if packaged.is_dir():
         return packaged
