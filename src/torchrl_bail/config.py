@@ -40,7 +40,7 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-__all__ = ["ALGO_SCHEMAS", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
+__all__ = ["ALGO_SCHEMAS", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
            "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
@@ -312,6 +312,7 @@ class PBAILConfig(AlgoConfig):
     envelope: PBAILEnvelopeConfig = MISSING
     selection: SelectionConfig = MISSING
     best_envelope: str = one_of("paper", "as_coded")
+    selection_envelope: str = one_of("best", "training")
     v_projection: bool = MISSING
     validation: str = one_of("split", "with_replacement")
     policy: NetConfig = MISSING
@@ -566,9 +567,12 @@ def _config_errors() -> tuple[type[BaseException], ...]:
     errors: list[type[BaseException]] = [ConfigError, CommandLineError, HydraException, OmegaConfBaseException]
     if "torchrl_bail.data" in sys.modules:  # batch/dataset errors, only possible once the data code is loaded
         from torchrl_bail.data import BatchValidationError
-        from torchrl_bail.data.collection import CollectionConfigError
 
-        errors += [BatchValidationError, CollectionConfigError, FileNotFoundError]
+        errors += [BatchValidationError, FileNotFoundError]
+    if "torchrl_bail.behaviour" in sys.modules:  # recipe errors, only possible once the behaviour code is loaded
+        from torchrl_bail.behaviour import CollectionConfigError
+
+        errors.append(CollectionConfigError)
     return tuple(errors)
 
 
@@ -594,8 +598,6 @@ def _precompose(argv: list[str]) -> None:
     if not jobs:
         return
     from hydra import compose, initialize_config_dir
-
-    from torchrl_bail import config_dir
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         for overrides in jobs:
@@ -630,3 +632,22 @@ def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = N
         _precompose(argv)
         sys.argv = [sys.argv[0], *argv]
         hydra_main()
+
+
+def config_dir() -> Path:
+    """Directory holding the Hydra configs.
+
+    An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
+    them at the repository's top-level ``conf/``. The typed schemas the yaml files name
+    (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way.
+    """
+    register_schemas()
+    packaged = Path(__file__).resolve().parent / "conf"
+    if packaged.is_dir():
+        return packaged
+    repo = Path(__file__).resolve().parents[2] / "conf"
+    if repo.is_dir():
+        return repo
+    raise FileNotFoundError(
+        f"torchrl_bail configs not found: looked in {packaged} and {repo}. Reinstall the package."
+    )
