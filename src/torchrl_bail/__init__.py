@@ -31,8 +31,10 @@ def config_dir() -> Path:
     """Directory holding the Hydra configs.
 
     An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
-    them at the repository's top-level ``conf/``.
+    them at the repository's top-level ``conf/``. Importing it registers the resolvers the configs use.
     """
+    import torchrl_bail.resume  # noqa: F401  (the run_dir_suffix resolver of hydra.run.dir)
+
     packaged = Path(__file__).resolve().parent / "conf"
     if packaged.is_dir():
         return packaged
