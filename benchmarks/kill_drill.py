@@ -18,7 +18,7 @@ checkpoint), or after the end (the restart reports the run complete). ``--target
   resume needs no change here beyond, at most, :meth:`CollectionTarget.outputs` (what must match).
 
 Extra Hydra overrides follow ``--`` (e.g. ``-- algo.epochs=0.5``). A target is a class with ``command``,
-``setup`` and ``outputs``; registering another one in :data:`TARGETS` is all the drill needs.
+``setup``, ``outputs`` and a ``progress_file``; registering another one in :data:`TARGETS` is all the drill needs.
 """
 
 from __future__ import annotations
@@ -73,6 +73,8 @@ class TrainingTarget:
     """``python -m torchrl_bail.train`` into ``run_dir``; outputs: summary, scalar logs, final weights."""
 
     name = "training"
+    #: a file whose appearance marks the first point a restart can resume from
+    progress_file = "checkpoint.pt"
 
     def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
         self.algo = algo
@@ -107,6 +109,7 @@ class CollectionTarget:
     """``python -m torchrl_bail.collect`` into a per-run data directory; outputs: every file of the batch."""
 
     name = "collection"
+    progress_file = "data"
     #: metadata entries that legitimately differ between runs
     VOLATILE_METADATA = ("created_at", "collection_wall_time_s")
 
@@ -139,20 +142,27 @@ class CollectionTarget:
 TARGETS = {"training": TrainingTarget, "collection": CollectionTarget}
 
 
-def _run(cmd: list[str], log: Path, kill_after: float | None) -> tuple[bool, float]:
-    """Runs ``cmd`` (output to ``log``); SIGKILLs it after ``kill_after`` s. Returns ``(killed, seconds)``."""
+def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None = None) -> tuple[bool, float, float]:
+    """Runs ``cmd`` (output to ``log``); SIGKILLs it after ``kill_after`` s.
+
+    Returns ``(killed, seconds, seconds until `watch` appeared or nan)``.
+    """
     start = time.perf_counter()
+    appeared = float("nan")
     with open(log, "a") as f:
         proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=_env(), cwd=ROOT)
-        try:
-            proc.wait(timeout=kill_after)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGKILL)
-            proc.wait()
-            return True, time.perf_counter() - start
+        while proc.poll() is None:
+            elapsed = time.perf_counter() - start
+            if kill_after is not None and elapsed >= kill_after:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                return True, elapsed, appeared
+            if watch is not None and appeared != appeared and watch.exists():
+                appeared = elapsed
+            time.sleep(0.05)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[:4])} ... exited with {proc.returncode}; see {log}")
-    return False, time.perf_counter() - start
+    return False, time.perf_counter() - start, appeared
 
 
 def _differences(a: dict, b: dict) -> list[str]:
@@ -173,9 +183,11 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
     """Reference run + ``trials`` killed-and-resumed runs; returns ``(matches, per-trial records)``."""
     target.setup()
     ref_dir = workdir / "reference"
-    _, ref_seconds = _run(target.command(ref_dir), workdir / "reference.log", None)
+    _, ref_seconds, first = _run(target.command(ref_dir), workdir / "reference.log", None,
+                                 watch=ref_dir / target.progress_file)
     reference = target.outputs(ref_dir)
-    report(f"reference {target.name} run: {ref_seconds:.1f} s -> {ref_dir}")
+    first = ref_seconds / 2 if first != first else first
+    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) -> {ref_dir}")
     rng = random.Random(seed)
     records, matches = [], 0
     for trial in range(1, trials + 1):
@@ -183,8 +195,9 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
         log = workdir / f"trial{trial:02d}.log"
         kills = []
         for _ in range(rng.randint(1, max_kills)):
-            delay = rng.uniform(0.15, 1.0) * ref_seconds
-            killed, seconds = _run(target.command(run_dir), log, delay)
+            # most kills land after the first checkpoint (training, evaluation, writing), some before it
+            delay = rng.uniform(0.7 * first, ref_seconds)
+            killed, seconds, _ = _run(target.command(run_dir), log, delay)
             kills.append(f"{seconds:.1f}s" if killed else "finished first")
         _run(target.command(run_dir), log, None)
         diffs = _differences(reference, target.outputs(run_dir))

@@ -184,11 +184,16 @@ def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir
     total = json.loads((tmp_path / "reference" / "summary.json").read_text())["iterations"]
     build = train_module.build_algorithm
     rng = random.Random(algo)
-    kills = [rng.randint(2, total - 1), rng.randint(2, total - 1)]  # two kills in one trial, then a clean finish
-    if algo == "bail":  # and one during the envelope fit, before the first checkpoint
+    first = rng.randint(2, total // 2)
+    kills = [first, rng.randint(first + 1, total - 1)]  # killed at these iterations, then a clean finish
+    if algo == "bail":  # and once during the envelope fit, before the first checkpoint
         kills.insert(0, 0)
     run_dir = tmp_path / "killed"
-    for at in kills:
+    for kill in kills:
+        checkpoint = run_dir / "checkpoint.pt"
+        done = torch.load(checkpoint, weights_only=False)["iteration"] if checkpoint.exists() else 0
+        at = kill - done  # the update of this process that dies
+
         def dying_build(*args, at=at, **kwargs):
             algorithm = build(*args, **kwargs)
             if at == 0:

@@ -110,6 +110,7 @@ class _EvaluatorState:
 
     def __init__(self, evaluator) -> None:
         self.evaluator = evaluator
+        self._warned = False
 
     def __call__(self, policy):
         return self.evaluator(policy)
@@ -130,6 +131,9 @@ class _EvaluatorState:
     def state_dict(self) -> dict | None:
         envs = self._gym_envs()
         if envs is None:
+            if self._warned:
+                return None
+            self._warned = True
             log.warning("the evaluation env's random stream cannot be checkpointed (envs not in this process): "
                         "a resumed run's evaluations will differ from an uninterrupted run's")
             return None
@@ -234,9 +238,11 @@ class Resumption:
                 from hydra.utils import to_absolute_path
 
                 source = Path(to_absolute_path(str(source)))
-            if not (source / CHECKPOINT).is_file():
+            if source.resolve() == self.run_dir.resolve():
+                source = self.run_dir
+            elif not (source / CHECKPOINT).is_file():
                 raise ResumeError(f"resume={mode}: no {CHECKPOINT} in {source} to continue from")
-            if source.resolve() != self.run_dir.resolve() and (self.run_dir / CHECKPOINT).exists():
+            elif (self.run_dir / CHECKPOINT).exists():
                 raise ResumeError(f"resume={mode}: {self.run_dir} already holds a checkpoint of its own; continue it "
                                   "with resume=auto or pick another hydra.run.dir")
         ckpt_path = source / CHECKPOINT
