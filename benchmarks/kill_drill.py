@@ -198,13 +198,13 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
             # most kills land after the first checkpoint (training, evaluation, writing), some before it
             delay = rng.uniform(0.7 * first, ref_seconds)
             killed, seconds, _ = _run(target.command(run_dir), log, delay)
-            kills.append(f"{seconds:.1f}s" if killed else "finished first")
+            kills.append(f"{seconds:.1f}s" if killed else "(finished first)")
         _run(target.command(run_dir), log, None)
         diffs = _differences(reference, target.outputs(run_dir))
         matches += not diffs
         record = {"trial": trial, "kills": kills, "resumed_from": target.resumed_from(run_dir), "diffs": diffs}
         records.append(record)
-        report(f"trial {trial:2d}: killed at {', '.join(kills):<24} resumed from iterations "
+        report(f"trial {trial:2d}: SIGKILL at {', '.join(kills):<26} resumed from iterations "
                f"{record['resumed_from'] or '-'} -> {'match' if not diffs else 'MISMATCH ' + ', '.join(diffs)}")
     return matches, records
 
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
-    kills = sum(len([k for k in r["kills"] if k != "finished first"]) for r in records)
+    kills = sum(len([k for k in r["kills"] if k != "(finished first)"]) for r in records)
     resumed = sum(bool(r["resumed_from"]) for r in records)
     label = args.algo if args.target == "training" else "collection"
     print(f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIGKILLs; "

@@ -144,10 +144,10 @@ def test_training_loop_resumed_from_its_checkpoint_equals_the_uninterrupted_loop
 
 # -- whole runs, in process, on a tiny generated batch --------------------------------------------------------------
 TINY = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1000", "batch.start_steps=200",
-        "batch.agent.actor_hidden=[32,32]", "batch.agent.critic_hidden=[32,32]", "env.max_episode_steps=100",
-        "eval.episodes=2", "eval.max_steps=100", "returns.horizon=100", "progress=false"]
+        "batch.agent.actor_hidden=[32,32]", "batch.agent.critic_hidden=[32,32]", "env.max_episode_steps=50",
+        "eval.episodes=2", "eval.max_steps=50", "returns.horizon=50", "progress=false"]
 RUN = {
-    "bail": ["algo.epochs=0.02", "eval.every_epochs=0.005", "algo.envelope.epochs=3", "algo.envelope.batch_size=100",
+    "bail": ["algo.epochs=0.012", "eval.every_epochs=0.004", "algo.envelope.epochs=3", "algo.envelope.batch_size=100",
              "algo.batch_size=100"],
     "bcq": ["algo=bcq", "algo.epochs=0.004", "eval.every_epochs=0.001", "algo.vae.hidden=[16,16]",
             "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]", "algo.batch_size=50"],
