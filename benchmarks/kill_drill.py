@@ -187,7 +187,8 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
                                  watch=ref_dir / target.progress_file)
     reference = target.outputs(ref_dir)
     first = ref_seconds / 2 if first != first else first
-    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) -> {ref_dir}")
+    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) "
+           f"-> {ref_dir}")
     rng = random.Random(seed)
     records, matches = [], 0
     for trial in range(1, trials + 1):

@@ -3,7 +3,8 @@
 Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
-``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``.
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``. Re-running the same command
+continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
 """
 
 from __future__ import annotations
@@ -218,7 +219,7 @@ def _hydra_main(cfg: DictConfig) -> float:
 
     try:
         summary = run(cfg, Path(HydraConfig.get().runtime.output_dir))
-    except (ConfigError, BatchValidationError, FileNotFoundError, ResumeError) as err:  # a clear message, not a traceback
+    except (ConfigError, BatchValidationError, FileNotFoundError, ResumeError) as err:  # one line, no traceback
         print(f"torchrl_bail: {type(err).__name__}: {err}", file=sys.stderr)
         sys.exit(2)
     return summary["final_return"]
