@@ -40,6 +40,8 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_bail.resume import ResumeError, register_resolvers
+
 __all__ = ["ALGO_SCHEMAS", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
            "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
 
@@ -434,6 +436,8 @@ class LoggerConfig(_Checked):
 @dataclass
 class CheckpointConfig(_Checked):
     enabled: bool = MISSING
+    every_minutes: Optional[float] = _rule(lambda v: v is None or v > 0,  # noqa: UP045 -- read by OmegaConf
+                                           "null or a positive number of minutes")
 
 
 def _device_name(v: str) -> bool:
@@ -450,7 +454,7 @@ class Config(_Checked):
     data_dir: Optional[str] = MISSING
     dataset: Optional[str] = MISSING
     progress: bool = MISSING
-    resume: str = MISSING      # auto | false | <run_dir> (see torchrl_bail.trainer)
+    resume: str = MISSING      # auto | true | false | <run_dir> (see torchrl_bail.resume)
     returns: ReturnsConfig = MISSING
     samples_per_epoch: int = at_least(1, "a positive integer")
     eval: EvalConfig = MISSING
@@ -477,8 +481,8 @@ class Config(_Checked):
 
             if not torch.cuda.is_available():
                 raise ConfigError("device", self.device, "a CUDA device, but torch sees none (use device=cpu or auto)")
-        if self.resume.lower() not in ("auto", "false") and not Path(self.resume).expanduser().is_dir():
-            raise ConfigError("resume", self.resume, "auto | false | an existing run directory")
+        if self.resume.lower() not in ("auto", "true", "false") and not Path(self.resume).expanduser().is_dir():
+            raise ConfigError("resume", self.resume, "auto | true | false | an existing run directory")
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
@@ -564,7 +568,8 @@ def _config_errors() -> tuple[type[BaseException], ...]:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    errors: list[type[BaseException]] = [ConfigError, CommandLineError, HydraException, OmegaConfBaseException]
+    errors: list[type[BaseException]] = [ConfigError, CommandLineError, ResumeError, HydraException,
+                                         OmegaConfBaseException]
     if "torchrl_bail.data" in sys.modules:  # batch/dataset errors, only possible once the data code is loaded
         from torchrl_bail.data import BatchValidationError
 
@@ -642,6 +647,7 @@ def config_dir() -> Path:
     (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way.
     """
     register_schemas()
+    register_resolvers()
     packaged = Path(__file__).resolve().parent / "conf"
     if packaged.is_dir():
         return packaged

@@ -3,7 +3,8 @@
 Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
-``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``.
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``. Re-running the same command
+continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail import config_dir
 from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
+from torchrl_bail.resume import Resumption
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.config.run_cli) in about a second, before they load.
@@ -152,8 +154,20 @@ def make_logger(cfg: DictConfig, run_dir: Path):
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary."""
+    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary.
+
+    With ``resume=auto`` (default) a checkpoint in ``run_dir`` is continued and a finished run is reported, not
+    trained again (:mod:`torchrl_bail.resume`).
+    """
     validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
+    # -- resume: lock the run directory, then continue, report complete, or start fresh --------------------------
+    with Resumption(cfg, Path(run_dir)) as resumption:
+        if resumption.complete is not None:
+            return resumption.complete
+        return _run(cfg, Path(run_dir), resumption)
+
+
+def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, Any]:
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
     from torchrl_bail.data import monte_carlo_returns
     from torchrl_bail.evaluation import Evaluator
@@ -162,13 +176,12 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     from torchrl_bail.trainer import save_checkpoint, train
 
     start = time.perf_counter()
-    device = _device(cfg.device)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
-    generator = seed_everything(int(cfg.seed))
-
+    device = _device(cfg.device)
     batch = load_training_batch(cfg)
+    # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later run,
+    # resumed ones included) must leave the training streams the same
+    generator = seed_everything(int(cfg.seed))
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
                           max_episode_steps=cfg.env.get("max_episode_steps"), device="cpu")
     try:
@@ -186,13 +199,22 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
         logger = make_logger(cfg, run_dir)
         algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
-        ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
-        train_data = algorithm.prepare(data, ctx)
+        # -- resume: a checkpoint restores what prepare fitted; nothing is refitted, logged or plotted twice --------
+        resumption.check_data(data)
+        checkpoint = resumption.checkpoint
+        if checkpoint is not None:
+            algorithm.load_state_dict(checkpoint["algorithm"])
+            train_data = algorithm.restore_prepared(data, PrepareContext(generator=generator))
+        else:
+            ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
+            train_data = algorithm.prepare(data, ctx)
+        every_minutes = cfg.checkpoint.get("every_minutes")
         history = train(
             algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
             eval_every_epochs=cfg.eval.every_epochs, logger=logger,
             checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
-            progress=cfg.progress,
+            checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
+            checkpoint_extra=resumption.checkpoint_extra, resume_from=checkpoint, progress=cfg.progress,
         )
     finally:
         evaluator.close()
@@ -218,17 +240,18 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "eval_failures": sum(e.failures for e in history.evaluations),
         "returns_augment": cfg.returns.augment,
         **algorithm.summary(),
-        "wall_time_s": time.perf_counter() - start,
+        **resumption.summary_fields(),
+        "wall_time_s": time.perf_counter() - start + (checkpoint or {}).get("wall_time_s", 0.0),
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
     }
     _add_normalized_scores(summary, cfg.env.id, batch.metadata)
-    write_json_atomic(run_dir / "summary.json", summary)
     plot_learning_curve(
         [e.epoch for e in history.evaluations], [e.mean_return for e in history.evaluations],
         run_dir / "learning_curve.png", dataset_mean=summary["dataset_mean_episode_return"],
         title=f"{cfg.algo.name} on {summary['batch']} (seed {cfg.seed})",
     )
+    write_json_atomic(run_dir / "summary.json", summary)  # last: a summary marks the run complete (resume)
     log.info("final_return %.1f (best %.1f, batch mean %.1f) -> %s", summary["final_return"],
              summary["best_return"], summary["dataset_mean_episode_return"], run_dir / "summary.json")
     return summary
