@@ -1,6 +1,7 @@
 """torchrl_bail: BAIL, Progressive BAIL and the batch-RL baselines (BC, BCQ, BEAR, MARWIL) on TorchRL.
 
-Heavy submodules are imported lazily so that ``python -m torchrl_bail.train --help`` starts fast.
+Heavy submodules are imported lazily so that ``python -m torchrl_bail.train --help`` starts fast;
+``torchrl_bail.load_policy`` (:func:`torchrl_bail.policy.load_policy`) loads on first use.
 """
 
 from __future__ import annotations
@@ -42,3 +43,12 @@ def config_dir() -> Path:
     raise FileNotFoundError(
         f"torchrl_bail configs not found: looked in {packaged} and {repo}. Reinstall the package."
     )
+
+
+def __getattr__(name: str):
+    """``torchrl_bail.load_policy`` without importing torch and TorchRL when the package is imported."""
+    if name == "load_policy":
+        from torchrl_bail.policy import load_policy
+
+        return load_policy
+    raise AttributeError(f"module 'torchrl_bail' has no attribute {name!r}")

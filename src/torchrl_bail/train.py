@@ -3,7 +3,8 @@
 Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
-``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``.
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` (the final policy), ``policy_best.pt`` (the
+best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either) and ``summary.json``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ from torchrl_bail.data import monte_carlo_returns
 from torchrl_bail.evaluation import Evaluator
 from torchrl_bail.io import write_json_atomic
 from torchrl_bail.plots import plot_learning_curve
-from torchrl_bail.trainer import save_checkpoint, train
+from torchrl_bail.policy import save_policy
+from torchrl_bail.trainer import train
 
 __all__ = ["run", "main", "ConfigError"]
 
@@ -130,17 +132,29 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
         ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
         train_data = algorithm.prepare(data, ctx)
+        best_policy: dict[str, Any] = {}
+
+        def keep_best(point, index: int) -> None:
+            taken = {"iteration": point.iteration, "epoch": point.epoch, "evaluation": index,
+                     "mean_return": point.mean_return}
+            save_policy(run_dir / "policy_best.pt", algorithm, cfg, obs_dim=obs_dim,
+                        action_spec=evaluator.action_spec, **taken)
+            best_policy.update(path="policy_best.pt", **taken)
+
         history = train(
             algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
             eval_every_epochs=cfg.eval.every_epochs, logger=logger,
             checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
-            progress=cfg.progress,
+            progress=cfg.progress, on_new_best=keep_best,
         )
+        last = history.evaluations[-1] if history.evaluations else None
+        save_policy(run_dir / "policy.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,
+                    iteration=history.iterations, epoch=algorithm.epochs,
+                    **({} if last is None else {"evaluation": len(history.evaluations) - 1,
+                                                "mean_return": last.mean_return}))
     finally:
         evaluator.close()
 
-    save_checkpoint(run_dir / "policy.pt", {"policy": algorithm.policy.state_dict(), "algo": cfg.algo.name,
-                                            "env_id": cfg.env.id})
     episode_returns = batch.episode_returns()
     summary = {
         "algo": cfg.algo.name,
@@ -151,6 +165,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "seed": int(cfg.seed),
         "final_return": history.final_return(cfg.eval.final_window),
         "best_return": history.best_return(),
+        "best_policy": best_policy or None,
         "dataset_mean_episode_return": float(episode_returns.mean()),
         "dataset_max_episode_return": float(episode_returns.max()),
         "num_transitions": int(batch.num_transitions),
