@@ -136,6 +136,16 @@ def test_bcq_best_of_n_loads_and_exports_to_pt2_only_where_it_can(tmp_path, caps
     assert "bcq" in err and "pt2" in err and len(err.strip().splitlines()) == 1
 
 
+def test_bcq_onnx_export_samples_in_onnxruntime(tmp_path):
+    pytest.importorskip("onnxscript")
+    pytest.importorskip("onnxruntime")
+    _, path = _tiny_bcq(tmp_path)
+    export_policy(path, tmp_path / "bcq.onnx", "onnx")
+    obs = torch.randn(6, 11)
+    actions = _plain_torch_actions("onnx", tmp_path / "bcq.onnx", obs)
+    assert actions.shape == (6, 3) and bool((actions.abs() <= 1).all())  # its own random stream: no equality
+
+
 def test_clear_errors(tmp_path, bc_run, capsys, monkeypatch):
     assert evaluate_main([str(tmp_path)]) == 2
     assert "policy.pt" in capsys.readouterr().err

@@ -10,6 +10,7 @@ best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either) and ``summ
 from __future__ import annotations
 
 import logging
+import os
 import random
 import sys
 import time
@@ -203,12 +204,29 @@ def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = N
     summary["normalized_score_reference"] = {"random": reference[0], "expert": reference[1], "source": reference[2]}
 
 
+def job_threads(cfg: DictConfig, launcher=None) -> int | None:
+    """Torch threads for this job: the ``threads`` config key when set, else ``cores // n_jobs`` under the joblib
+    launcher (so that side-by-side jobs do not oversubscribe the cores), else ``None`` (torch's default)."""
+    threads = cfg.get("threads")
+    if threads:
+        return int(threads)
+    if launcher is None or "joblib" not in str(launcher.get("_target_", "")):
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n_jobs = int(launcher.get("n_jobs") or 1)
+    return max(1, cores // (cores if n_jobs < 0 else n_jobs))
+
+
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     from torchrl_bail.data import BatchValidationError
 
+    threads = job_threads(cfg, HydraConfig.get().get("launcher"))
+    if threads is not None:
+        torch.set_num_threads(threads)
+        log.info("torch threads: %d", threads)
     try:
         summary = run(cfg, Path(HydraConfig.get().runtime.output_dir))
     except (ConfigError, BatchValidationError, FileNotFoundError) as err:  # a clear message, not a traceback
