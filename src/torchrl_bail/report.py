@@ -390,7 +390,11 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     groups = group_runs(runs)
     separating = separating_keys(runs)
-    rows = summarise(groups, reps=args.reps, seed=args.bootstrap_seed)
+    try:
+        rows = summarise(groups, reps=args.reps, seed=args.bootstrap_seed)
+    except ImportError as err:
+        print(f"torchrl_bail.report: {err}", file=sys.stderr)
+        return 2
     table = format_markdown(rows, separating)
     print(table)
     if args.out:
