@@ -155,3 +155,10 @@ def test_clear_errors(tmp_path, bc_run, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "moviepy", None)
     assert evaluate_main([str(bc_run), "--episodes", "1", "--video", str(tmp_path / "video")]) == 2
     assert "moviepy" in capsys.readouterr().err
+
+
+def test_video_of_a_trained_policy(bc_run, tmp_path):
+    pytest.importorskip("moviepy")
+    assert evaluate_main([str(bc_run), "--episodes", "1", "--video", str(tmp_path / "video")]) == 0
+    (video,) = (tmp_path / "video").glob("*.mp4")
+    assert video.stat().st_size > 1000
