@@ -17,7 +17,8 @@ import torchrl_bail
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
 # ``config`` is the command-line front of train/collect: it composes and validates a config with Hydra alone and
 # loads the package lazily, so that a bad command line ends in about a second, before torch is imported.
-ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.config"}
+ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate",
+                "torchrl_bail.config"}
 BOTTOM = {"torchrl_bail.io"}  # the atomic writes: part of the bottom layer, imports nothing from the package
 
 
@@ -148,7 +149,8 @@ def test_no_upward_import(lower, upper):
 
 
 def test_no_function_level_package_imports_outside_entry_points():
-    bad = [i for i in IMPORTS if i.in_function and i.source not in ENTRY_POINTS]
+    # the package root may re-export lazily (module ``__getattr__``) so that ``import torchrl_bail`` stays light
+    bad = [i for i in IMPORTS if i.in_function and i.source not in ENTRY_POINTS | {"torchrl_bail"}]
     assert not bad, f"package imports hidden inside functions (move them to the top of the module): {bad}"
 
 

@@ -1,6 +1,7 @@
 """torchrl_bail: BAIL, Progressive BAIL and the batch-RL baselines (BC, BCQ, BEAR, MARWIL) on TorchRL.
 
-Heavy submodules are imported lazily so that ``python -m torchrl_bail.train --help`` starts fast.
+Heavy submodules are imported lazily so that ``python -m torchrl_bail.train --help`` starts fast;
+``torchrl_bail.load_policy`` (:func:`torchrl_bail.policy.load_policy`) loads on first use.
 """
 
 from __future__ import annotations
@@ -28,3 +29,12 @@ def fast_tensordict_outputs() -> None:
     """
     if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
         sys.modules["pandas"] = None  # type: ignore[assignment]
+
+
+def __getattr__(name: str):
+    """``torchrl_bail.load_policy`` without importing torch and TorchRL when the package is imported."""
+    if name == "load_policy":
+        from torchrl_bail.policy import load_policy
+
+        return load_policy
+    raise AttributeError(f"module 'torchrl_bail' has no attribute {name!r}")

@@ -455,6 +455,7 @@ class Config(_Checked):
     dataset: Optional[str] = MISSING
     progress: bool = MISSING
     resume: str = MISSING      # auto | true | false | <run_dir> (see torchrl_bail.resume)
+    threads: Optional[int] = _rule(lambda v: v is None or v >= 1, "null or a number of threads >= 1")  # noqa: UP045
     returns: ReturnsConfig = MISSING
     samples_per_epoch: int = at_least(1, "a positive integer")
     eval: EvalConfig = MISSING

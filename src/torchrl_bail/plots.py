@@ -1,5 +1,5 @@
-"""Figures a person would rather look at than read: learning curves (the envelope plot is in
-:mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename).
+"""Figures a person would rather look at than read: a run's learning curve and the helpers of the report's
+figures (:mod:`torchrl_bail.report`; the envelope plot is in :mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename).
 
 Figures are plain :class:`matplotlib.figure.Figure` objects rendered straight to files: importing this module
 neither imports matplotlib nor selects a backend, so a notebook or GUI using :mod:`torchrl_bail` keeps its own.
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from torchrl_bail.io import atomic_path
 
-__all__ = ["new_figure", "save_figure", "plot_learning_curve"]
+__all__ = ["new_figure", "save_figure", "plot_learning_curve", "read_eval_curve", "mean_curve"]
 
 
 def new_figure(**kwargs):
@@ -69,3 +69,44 @@ def plot_learning_curve(
     ax.grid(alpha=0.3)
     ax.legend(loc="best")
     return save_figure(fig, path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# evaluation curves of finished runs (the report's figures)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _read_scalar_csv(path: Path) -> dict[int, float]:
+    """A TorchRL ``CSVLogger`` scalar file: one ``step,value`` line per logged value."""
+    out = {}
+    for line in Path(path).read_text().splitlines():
+        step, value = line.split(",")
+        out[int(float(step))] = float(value)
+    return out
+
+
+def read_eval_curve(run_dir: Path):
+    """``(epochs, returns)`` of a run's evaluations, from ``logs/scalars/eval/{epoch,return}.csv``.
+
+    The trainer logs ``eval/return`` (mean deterministic return) and ``eval/epoch`` at the same iteration;
+    ``None`` when the run has no CSV logs (another logger backend).
+    """
+    import numpy as np
+
+    scalars = Path(run_dir) / "logs" / "scalars" / "eval"
+    if not (scalars / "return.csv").is_file() or not (scalars / "epoch.csv").is_file():
+        return None
+    returns, epochs = _read_scalar_csv(scalars / "return.csv"), _read_scalar_csv(scalars / "epoch.csv")
+    steps = sorted(set(returns) & set(epochs))
+    return np.array([epochs[s] for s in steps]), np.array([returns[s] for s in steps])
+
+
+def mean_curve(curves):
+    """Mean over seeds and a 95 % normal band (1.96 standard errors) on the shortest run's epoch grid."""
+    import numpy as np
+
+    grid = min((c[0] for c in curves), key=lambda e: e[-1])
+    ys = np.stack([np.interp(grid, e, r) for e, r in curves])
+    mean = ys.mean(0)
+    half = 1.96 * ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else np.zeros_like(mean)
+    return grid, mean, half

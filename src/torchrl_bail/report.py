@@ -1,113 +1,507 @@
-"""Results table from run directories: ``python -m torchrl_bail.report multirun/ outputs/``.
+"""Results a researcher can publish: ``python -m torchrl_bail.report multirun/ outputs/ --out results --plot``.
 
-Finds every ``summary.json`` below the given directories, groups runs by (batch, algorithm) and prints a
-Markdown table of ``final_return`` mean ± std over seeds (the paper's convention), with the batch's mean
-episode return beside it. ``--out results.md`` also writes it (atomically); ``--plot results.png`` draws a
-bar chart per batch.
+Finds every ``summary.json`` below the given directories and groups the runs by
+
+* the **batch recipe**: its name and recipe hash (``metadata.json`` of the batch, or the ``-<hash>`` suffix of
+  ``batch_path``), so two batches with one name but different recipes are never averaged together;
+* the **algorithm**;
+* every **override that separates runs**: the run's resolved ``config.yaml`` files are compared key by key and
+  any key whose value differs between runs of one (batch, algorithm) cell is a separating key (an ablation such
+  as ``algo.selection.by=return``), except seeds and keys that only change how a run is executed
+  (:data:`RUN_ONLY_KEYS`: ``progress``, ``logger.*``, ``device``, ``data_dir``, ``hydra.*``, ``resume``...) and
+  ``env.*``/``batch.*``/``dataset`` (the batch identity already covers them).
+
+Per group it reports the number of distinct seeds, the mean and sample standard deviation (``ddof=1``) of
+``final_return`` and ``best_return``, the interquartile mean (IQM) of ``final_return`` with a 95 % stratified
+bootstrap confidence interval (rliable, Agarwal et al. 2021; numpy's stream seeded with ``--bootstrap-seed`` afresh
+for each group, so a group's interval does not depend on the others; see :func:`numpy_seed`) and the mean normalised score where ``summary.json`` has
+one (``final_return_normalized``).
+
+``--out PREFIX`` writes ``PREFIX.md`` (batches as rows, a variant's non-default values in the row name,
+algorithms as columns, the best mean per row in bold), ``PREFIX.csv`` and ``PREFIX.json`` (every group, with
+its runs and the separating keys). ``--plot`` also draws learning curves averaged over seeds with 95 % bands
+(``PREFIX_curves.png``) and rliable's aggregate-metrics and performance-profile figures (``PREFIX_aggregate.png``,
+``PREFIX_profiles.png``). An unreadable or incomplete ``summary.json`` stops the report with one line naming the
+file (exit 2).
+
+The rliable package is an optional extra (``pip install "torchrl_bail[report]"``): it pulls pandas, arch,
+statsmodels and seaborn, and arch 7 needs pandas < 3.
 
 Examples:
-    >>> rows = aggregate([{"batch": "hopper_ddpg05_b1", "algo": "bail", "seed": s, "final_return": r,
-    ...                    "dataset_mean_episode_return": 100.0} for s, r in [(1, 300.0), (2, 500.0)]])
-    >>> rows[0]["mean"], rows[0]["std"], rows[0]["seeds"]
-    (400.0, 100.0, 2)
+    >>> runs = [Run(Path(f"r{s}"), {"algo": "bc", "seed": s, "final_return": r, "best_return": r + 10.0},
+    ...             {}, ("hopper_ddpg05_b1", "abcd1234")) for s, r in [(1, 300.0), (2, 500.0), (3, 400.0)]]
+    >>> (g,) = group_runs(runs)
+    >>> g.label, g.seeds, stats(g.scores("final_return"))
+    ('bc', 3, (400.0, 100.0))
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import json
 import math
+import statistics
 import sys
-from collections import defaultdict
+from collections import Counter, defaultdict
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from torchrl_bail.io import write_text_atomic
+from torchrl_bail.io import write_json_atomic, write_text_atomic
+from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
 
-__all__ = ["find_summaries", "aggregate", "format_table", "main"]
+__all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
+           "summarise", "format_markdown", "numpy_seed", "main", "RUN_ONLY_KEYS"]
 
 ALGO_ORDER = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
+#: keys every summary.json must have to enter the report
+REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
+#: config keys (prefixes end in ".") that never separate groups: the seed and what only changes how a run executes
+RUN_ONLY_KEYS = ("seed", "progress", "logger.", "device", "data_dir", "hydra.", "resume", "checkpoint.", "threads",
+                 "dataset", "env.", "batch.")
 
 
-def find_summaries(paths: list[Path]) -> list[dict]:
-    summaries = []
-    for root in paths:
-        root = Path(root)
+class ReportError(ValueError):
+    """A summary.json (or a directory given) cannot enter the report; the message names the file."""
+
+
+@dataclass
+class Run:
+    """One finished run: its directory, ``summary.json``, flattened resolved config and batch identity."""
+
+    run_dir: Path
+    summary: dict
+    config: dict
+    batch: tuple[str, str | None]  # (name, recipe hash)
+
+    @property
+    def algo(self) -> str:
+        return str(self.summary["algo"])
+
+
+@dataclass
+class Group:
+    batch: tuple[str, str | None]
+    algo: str
+    variant: tuple[tuple[str, Any], ...]  # (key, value) of the separating keys, sorted
+    label: str  # the algorithm, plus the variant's non-default values
+    variant_label: str  # the non-default values alone ("" for the default configuration)
+    runs: list[Run] = field(default_factory=list)
+
+    @property
+    def seeds(self) -> int:
+        return len({r.summary["seed"] for r in self.runs})
+
+    def scores(self, key: str) -> list[float]:
+        return [float(r.summary[key]) for r in self.runs if r.summary.get(key) is not None]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# reading runs
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(obj, dict):
+        out: dict[str, Any] = {}
+        for k, v in obj.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    if isinstance(obj, list):
+        obj = json.dumps(obj)  # hashable, and prints like the override that set it
+    return {prefix[:-1]: obj}
+
+
+def _read_config(run_dir: Path) -> dict[str, Any]:
+    path = run_dir / "config.yaml"
+    if not path.is_file():
+        return {}
+    from omegaconf import OmegaConf
+
+    try:
+        return _flatten(OmegaConf.to_container(OmegaConf.load(path), resolve=False))
+    except Exception as err:  # noqa: BLE001 - any parse error is reported with the file
+        raise ReportError(f"{path}: unreadable config ({err})") from None
+
+
+def _batch_identity(summary: dict) -> tuple[str, str | None]:
+    """(batch name, recipe hash): from ``batch_recipe_hash``, the batch's ``metadata.json`` or its directory."""
+    name = str(summary.get("batch"))
+    recipe = summary.get("batch_recipe_hash")
+    path = summary.get("batch_path")
+    if recipe is None and path:
+        meta = Path(path) / "metadata.json"
+        try:
+            recipe = json.loads(meta.read_text()).get("recipe_hash")
+        except (OSError, ValueError):
+            stem = Path(path).name
+            if "-" in stem and len(stem.rsplit("-", 1)[1]) == 8:
+                recipe = stem.rsplit("-", 1)[1]
+    return name, recipe
+
+
+def _read_summary(path: Path) -> dict:
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ReportError(f"{path}: unreadable summary.json ({err})") from None
+    if not isinstance(summary, dict):
+        raise ReportError(f"{path}: summary.json is not a JSON object")
+    missing = [k for k in REQUIRED_KEYS if k not in summary]
+    if missing:
+        raise ReportError(f"{path}: incomplete summary.json, missing {', '.join(missing)}")
+    for key in ("final_return", "best_return"):
+        if not isinstance(summary[key], (int, float)):
+            raise ReportError(f"{path}: incomplete summary.json, {key} = {summary[key]!r} is not a number")
+    return summary
+
+
+def find_runs(paths: list[Path]) -> list[Run]:
+    """Every run below ``paths`` (directories searched recursively, or ``summary.json`` files)."""
+    runs = []
+    for root in map(Path, paths):
         if not root.exists():
-            raise FileNotFoundError(f"{root}: no such directory")
-        files = [root] if root.name == "summary.json" else sorted(root.rglob("summary.json"))
+            raise ReportError(f"{root}: no such file or directory")
+        files = [root] if root.is_file() else sorted(root.rglob("summary.json"))
         for f in files:
-            try:
-                summaries.append(json.loads(f.read_text()))
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{f}: not a valid summary.json ({err})") from None
-    return summaries
+            summary = _read_summary(f)
+            runs.append(Run(f.parent, summary, _read_config(f.parent), _batch_identity(summary)))
+    return runs
 
 
-def aggregate(summaries: list[dict]) -> list[dict]:
-    """One row per (batch, algo): mean and population std of ``final_return`` over seeds."""
-    groups: dict[tuple, list[dict]] = defaultdict(list)
-    for s in summaries:
-        groups[(s.get("batch"), s["algo"])].append(s)
-    rows = []
-    for (batch, algo), runs in groups.items():
-        scores = [r["final_return"] for r in runs]
-        mean = sum(scores) / len(scores)
-        std = math.sqrt(sum((x - mean) ** 2 for x in scores) / len(scores))
-        rows.append({"batch": batch, "algo": algo, "mean": mean, "std": std, "seeds": len(scores),
-                     "dataset_mean": runs[0].get("dataset_mean_episode_return"),
-                     "wall_time_s": sum(r.get("wall_time_s", 0.0) for r in runs) / len(runs)})
+# ---------------------------------------------------------------------------------------------------------------
+# grouping
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _run_only(key: str) -> bool:
+    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RUN_ONLY_KEYS)
+
+
+def separating_keys(runs: list[Run]) -> dict[str, list[str]]:
+    """Per algorithm, the config keys whose values differ between runs of one (batch, algorithm) cell."""
+    cells: dict[tuple, list[Run]] = defaultdict(list)
+    for r in runs:
+        cells[(r.batch, r.algo)].append(r)
+    keys: dict[str, set[str]] = defaultdict(set)
+    for (_, algo), cell in cells.items():
+        keys[algo]  # every algorithm appears, with or without keys
+        for key in set().union(*(r.config for r in cell)):
+            if not _run_only(key) and len({repr(r.config.get(key)) for r in cell}) > 1:
+                keys[algo].add(key)
+    return {algo: sorted(k) for algo, k in keys.items()}
+
+
+def _fmt_value(v: Any) -> str:
+    return "null" if v is None else str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def group_runs(runs: list[Run]) -> list[Group]:
+    """Groups by (batch recipe, algorithm, values of the separating keys), in the paper's order."""
+    sep = separating_keys(runs)
+    # the default of a separating key: its most common value among the algorithm's runs (ties: first in order)
+    defaults = {}
+    for algo, keys in sep.items():
+        algo_runs = [r for r in runs if r.algo == algo]
+        for key in keys:
+            counts = Counter(repr(r.config.get(key)) for r in algo_runs)
+            defaults[(algo, key)] = max(sorted(counts), key=lambda v: counts[v])
+    groups: dict[tuple, Group] = {}
+    for r in runs:
+        variant = tuple((k, r.config.get(k)) for k in sep[r.algo])
+        key = (r.batch, r.algo, tuple((k, repr(v)) for k, v in variant))
+        if key not in groups:
+            changed = [f"{k}={_fmt_value(v)}" for k, v in variant if repr(v) != defaults[(r.algo, k)]]
+            variant_label = ", ".join(changed)
+            label = f"{r.algo} [{variant_label}]" if changed else r.algo
+            groups[key] = Group(r.batch, r.algo, variant, label, variant_label)
+        groups[key].runs.append(r)
     order = {a: i for i, a in enumerate(ALGO_ORDER)}
-    rows.sort(key=lambda r: (str(r["batch"]), order.get(r["algo"], len(order)), r["algo"]))
+    return sorted(groups.values(), key=lambda g: (g.batch[0], str(g.batch[1]), g.variant_label,
+                                                  order.get(g.algo, len(order)), g.algo))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# statistics
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def stats(scores: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (``ddof=1``; NaN with a single score)."""
+    if not scores:
+        return math.nan, math.nan
+    return float(statistics.fmean(scores)), float(statistics.stdev(scores)) if len(scores) > 1 else math.nan
+
+
+def _rliable():
+    try:
+        from rliable import library, metrics
+    except ImportError as err:
+        raise ImportError(f"the report's IQM and bootstrap intervals need rliable ({err}); "
+                          f"pip install \"torchrl_bail[report]\"") from None
+    return library, metrics
+
+
+@contextmanager
+def numpy_seed(seed: int):
+    """Seeds numpy's global random stream for the block and restores the previous state afterwards.
+
+    rliable 1.2.0's ``StratifiedBootstrap`` resamples with ``np.random.choice`` (the global stream): its
+    ``random_state`` argument reaches arch but not the resampling, so seeding that stream is what makes an
+    interval reproducible.
+    """
+    import numpy as np
+
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
+
+
+def iqm_interval(scores: list[float], *, reps: int = 2_000, seed: int = 0) -> tuple[float, float, float]:
+    """IQM of one group's per-seed scores and its 95 % stratified-bootstrap interval ``(iqm, low, high)``.
+
+    The scores form rliable's ``(runs x 1 task)`` matrix; the bootstrap runs under :func:`numpy_seed` ``(seed)``.
+    """
+    import numpy as np
+
+    library, metrics = _rliable()
+    matrix = np.asarray(scores, dtype=float).reshape(-1, 1)
+    with numpy_seed(seed):
+        point, interval = library.get_interval_estimates(
+            {"g": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=reps)
+    return float(point["g"][0]), float(interval["g"][0, 0]), float(interval["g"][1, 0])
+
+
+def summarise(groups: list[Group], *, reps: int = 2_000, seed: int = 0) -> list[dict]:
+    """One row per group: seeds, mean/std of final and best return, IQM with its CI, normalised score."""
+    rows = []
+    for g in groups:
+        final, best = g.scores("final_return"), g.scores("best_return")
+        iqm, low, high = iqm_interval(final, reps=reps, seed=seed)
+        normalized = g.scores("final_return_normalized")
+        dataset = g.scores("dataset_mean_episode_return")
+        rows.append({
+            "batch": g.batch[0], "recipe_hash": g.batch[1], "algo": g.algo, "label": g.label,
+            "variant": g.variant_label, "overrides": {k: v for k, v in g.variant},
+            "seeds": g.seeds, "runs": len(g.runs),
+            "final_return_mean": stats(final)[0], "final_return_std": stats(final)[1],
+            "best_return_mean": stats(best)[0], "best_return_std": stats(best)[1],
+            "final_return_iqm": iqm, "final_return_iqm_ci_low": low, "final_return_iqm_ci_high": high,
+            "final_return_normalized_mean": stats(normalized)[0] if normalized else None,
+            "final_return_normalized_std": stats(normalized)[1] if normalized else None,
+            "dataset_mean_episode_return": stats(dataset)[0] if dataset else None,
+            "run_dirs": [str(r.run_dir) for r in g.runs],
+        })
     return rows
 
 
-def format_table(rows: list[dict]) -> str:
-    lines = ["| batch | algo | final_return (mean ± std) | seeds | batch mean return | wall time / run |",
-             "|---|---|---|---|---|---|"]
+# ---------------------------------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _batch_name(row: dict, names: dict[str, set]) -> str:
+    """The batch's name, with its recipe hash when two recipes share that name."""
+    return f"{row['batch']} ({row['recipe_hash']})" if len(names[row["batch"]]) > 1 else row["batch"]
+
+
+def _cell(row: dict) -> str:
+    std = "" if math.isnan(row["final_return_std"]) else f" ± {row['final_return_std']:.1f}"
+    return f"{row['final_return_mean']:.1f}{std}"
+
+
+def format_markdown(rows: list[dict], separating: dict[str, list[str]] | None = None) -> str:
+    """Batches (and variants) as rows, algorithms as columns, ``final_return`` mean ± std, best mean in bold."""
+    order = {a: i for i, a in enumerate(ALGO_ORDER)}
+    algos = sorted({r["algo"] for r in rows}, key=lambda a: (order.get(a, len(order)), a))
+    names: dict[str, set] = defaultdict(set)
     for r in rows:
-        ds = "" if r["dataset_mean"] is None else f"{r['dataset_mean']:.1f}"
-        lines.append(f"| {r['batch']} | {r['algo']} | {r['mean']:.1f} ± {r['std']:.1f} | {r['seeds']} | {ds} | "
-                     f"{r['wall_time_s']:.0f} s |")
+        names[r["batch"]].add(r["recipe_hash"])
+    table: dict[str, dict[str, dict]] = defaultdict(dict)
+    for r in rows:
+        name = _batch_name(r, names) + (f" [{r['variant']}]" if r["variant"] else "")
+        table[name][r["algo"]] = r
+    lines = ["| batch | " + " | ".join(algos) + " |", "|---|" + "---|" * len(algos)]
+    for name, cells in table.items():
+        best = max(c["final_return_mean"] for c in cells.values())
+        out = []
+        for a in algos:
+            c = cells.get(a)
+            text = "" if c is None else _cell(c)
+            out.append(f"**{text}**" if c is not None and c["final_return_mean"] == best else text)
+        lines.append(f"| {name} | " + " | ".join(out) + " |")
+    seeds = sorted({r["seeds"] for r in rows})
+    lines += ["", f"final_return: mean ± sample std (ddof=1) over {'/'.join(map(str, seeds))} seeds; "
+                  f"best mean per row in bold."]
+    used = {a: k for a, k in (separating or {}).items() if k}
+    if used:
+        lines.append("Groups separated by overrides: " + "; ".join(f"{a}: {', '.join(k)}" for a, k in used.items()))
     return "\n".join(lines)
 
 
-def plot_rows(rows: list[dict], path: Path) -> Path:
-    from torchrl_bail.plots import plt, save_figure
+CSV_FIELDS = ["batch", "recipe_hash", "algo", "label", "variant", "seeds", "runs", "final_return_mean",
+              "final_return_std", "best_return_mean", "best_return_std", "final_return_iqm",
+              "final_return_iqm_ci_low", "final_return_iqm_ci_high", "final_return_normalized_mean",
+              "final_return_normalized_std", "dataset_mean_episode_return"]
 
-    batches = sorted({str(r["batch"]) for r in rows})
-    fig, axes = plt.subplots(1, len(batches), figsize=(4.5 * len(batches), 3.6), squeeze=False)
-    for ax, batch in zip(axes[0], batches):
-        sub = [r for r in rows if str(r["batch"]) == batch]
-        ax.bar([r["algo"] for r in sub], [r["mean"] for r in sub], yerr=[r["std"] for r in sub], capsize=4)
-        if sub[0]["dataset_mean"] is not None:
-            ax.axhline(sub[0]["dataset_mean"], color="gray", linestyle="--", label="batch mean")
-            ax.legend(loc="best")
-        ax.set_title(batch)
-        ax.set_ylabel("final return")
+
+def format_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# figures (--plot)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _plot_curves(groups, path: Path) -> Path | None:
+    batches = sorted({g.batch for g in groups}, key=str)
+    panels = []
+    for batch in batches:
+        lines = []
+        for g in (g for g in groups if g.batch == batch):
+            curves = [c for c in (read_eval_curve(r.run_dir) for r in g.runs) if c is not None and len(c[0])]
+            if curves:
+                lines.append((g.label, len(curves), *mean_curve(curves)))
+        if lines:
+            panels.append((batch, lines))
+    if not panels:
+        return None
+    fig = new_figure(figsize=(5.0 * len(panels), 3.8))
+    axes = fig.subplots(1, len(panels), squeeze=False)
+    for ax, (batch, lines) in zip(axes[0], panels):
+        for label, n, x, mean, half in lines:
+            ax.plot(x, mean, label=f"{label} ({n} seeds)")
+            ax.fill_between(x, mean - half, mean + half, alpha=0.2)
+        ax.set_title(batch[0])
+        ax.set_xlabel("epoch (10^6 samples)")
+        ax.set_ylabel("evaluation return (mean over seeds)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize="small")
     return save_figure(fig, path)
+
+
+def _normalised_scores(groups):
+    """``label -> (runs x batches)`` matrix and the score's name.
+
+    The D4RL/Minari normalised score when every run has one, otherwise ``final_return`` divided by the batch's
+    mean episode return (1.0 = as good as the data on average). Each batch contributes its first ``n`` seeds,
+    ``n`` the fewest seeds any of the label's batches has (rliable needs a full matrix).
+    """
+    import numpy as np
+
+    runs = [r for g in groups for r in g.runs]
+    if all(r.summary.get("final_return_normalized") is not None for r in runs):
+        name, score = "normalised score", lambda s: float(s["final_return_normalized"])
+    else:
+        name = "final return / batch mean episode return"
+        score = lambda s: float(s["final_return"]) / float(s["dataset_mean_episode_return"])  # noqa: E731
+    by_label: dict[str, list] = {}
+    for g in groups:
+        if any(not r.summary.get("dataset_mean_episode_return") for r in g.runs) and name != "normalised score":
+            continue
+        by_label.setdefault(g.label, []).append(sorted(score(r.summary) for r in g.runs))
+    matrices = {}
+    for label, columns in by_label.items():
+        n = min(len(c) for c in columns)
+        matrices[label] = np.array([c[:n] for c in columns]).T
+    return matrices, name
+
+
+def plot_report(groups, prefix: str, *, reps: int = 2_000, seed: int = 0) -> list[Path]:
+    """The report's figures: ``PREFIX_curves.png``, ``PREFIX_aggregate.png``, ``PREFIX_profiles.png``."""
+    import numpy as np
+
+    written = []
+    curves = _plot_curves(groups, Path(f"{prefix}_curves.png"))
+    if curves is not None:
+        written.append(curves)
+    matrices, name = _normalised_scores(groups)
+    if not matrices:
+        return written
+    library, metrics = _rliable()
+    from rliable import plot_utils
+
+    def aggregates(x):
+        return np.array([metrics.aggregate_median(x), metrics.aggregate_iqm(x), metrics.aggregate_mean(x),
+                         metrics.aggregate_optimality_gap(x, 1.0)])
+
+    with numpy_seed(seed):
+        point, interval = library.get_interval_estimates(matrices, aggregates, reps=reps)
+    fig, _ = plot_utils.plot_interval_estimates(point, interval, ["Median", "IQM", "Mean", "Optimality gap"],
+                                                algorithms=list(matrices), xlabel=name,
+                                                xlabel_y_coordinate=-0.35)
+    written.append(save_figure(fig, Path(f"{prefix}_aggregate.png")))
+    all_scores = np.concatenate([m.ravel() for m in matrices.values()])
+    taus = np.linspace(min(0.0, all_scores.min()), max(1.0, all_scores.max()), 81)
+    with numpy_seed(seed):
+        profiles, profile_cis = library.create_performance_profile(matrices, taus, reps=min(reps, 2000))
+    fig = new_figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
+    plot_utils.plot_performance_profiles(profiles, taus, performance_profile_cis=profile_cis, ax=ax,
+                                         xlabel=f"{name} (tau)")
+    ax.legend(loc="best", fontsize="small")
+    written.append(save_figure(fig, Path(f"{prefix}_profiles.png")))
+    return written
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m torchrl_bail.report", description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="+", type=Path, help="run or sweep directories (searched recursively)")
-    parser.add_argument("--out", type=Path, help="also write the Markdown table here")
-    parser.add_argument("--plot", type=Path, help="also draw a bar chart here (PNG)")
+    parser.add_argument("--out", type=Path, help="write PREFIX.md, PREFIX.csv and PREFIX.json")
+    parser.add_argument("--plot", action="store_true",
+                        help="also draw PREFIX_curves.png, PREFIX_aggregate.png and PREFIX_profiles.png")
+    parser.add_argument("--reps", type=int, default=2_000,
+                        help="bootstrap replications (default 2000; rliable suggests 50000 for final figures: minutes)")
+    parser.add_argument("--bootstrap-seed", type=int, default=0, help="seed of every group's bootstrap")
     args = parser.parse_args(argv)
+    if args.plot and args.out is None:
+        parser.error("--plot needs --out PREFIX (the figures are written beside the tables)")
     try:
-        summaries = find_summaries(args.paths)
-    except (FileNotFoundError, ValueError) as err:
+        runs = find_runs(args.paths)
+    except ReportError as err:
         print(f"torchrl_bail.report: {err}", file=sys.stderr)
         return 2
-    if not summaries:
+    if not runs:
         print(f"torchrl_bail.report: no summary.json under {', '.join(map(str, args.paths))}", file=sys.stderr)
         return 1
-    rows = aggregate(summaries)
-    table = format_table(rows)
+    groups = group_runs(runs)
+    separating = separating_keys(runs)
+    try:
+        rows = summarise(groups, reps=args.reps, seed=args.bootstrap_seed)
+    except ImportError as err:
+        print(f"torchrl_bail.report: {err}", file=sys.stderr)
+        return 2
+    table = format_markdown(rows, separating)
     print(table)
     if args.out:
-        write_text_atomic(args.out, table + "\n")
-    if args.plot:
-        plot_rows(rows, args.plot)
+        prefix = str(args.out)
+        write_text_atomic(prefix + ".md", table + "\n")
+        write_text_atomic(prefix + ".csv", format_csv(rows))
+        write_json_atomic(prefix + ".json", _json_safe({"separating_keys": separating, "groups": rows}))
+        if args.plot:
+            for path in plot_report(groups, prefix, reps=args.reps, seed=args.bootstrap_seed):
+                print(f"wrote {path}", file=sys.stderr)
     return 0
 
 

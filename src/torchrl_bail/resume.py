@@ -43,7 +43,7 @@ log = logging.getLogger("torchrl_bail")
 
 #: top-level config keys that may differ between a checkpoint and the command resuming it: they change how a
 #: run reports or where it finds its files, never its numbers (``device`` changes numbers only across devices)
-RUN_ONLY_KEYS = ("progress", "logger", "resume", "device", "data_dir", "checkpoint")
+RUN_ONLY_KEYS = ("progress", "logger", "resume", "device", "data_dir", "checkpoint", "threads")
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
 LOGS = "logs"

@@ -3,7 +3,8 @@
 Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
-``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``. Re-running the same command
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` (the final policy), ``policy_best.pt`` (the
+best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either) and ``summary.json``. Re-running the same command
 continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -173,7 +175,8 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.io import write_json_atomic
     from torchrl_bail.plots import plot_learning_curve
-    from torchrl_bail.trainer import save_checkpoint, train
+    from torchrl_bail.policy import save_policy
+    from torchrl_bail.trainer import train
 
     start = time.perf_counter()
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
@@ -208,6 +211,11 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
         else:
             ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
             train_data = algorithm.prepare(data, ctx)
+
+        def keep_best(point, index: int) -> None:  # policy_best.pt: the best-evaluated policy so far
+            save_policy(run_dir / "policy_best.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,
+                        iteration=point.iteration, epoch=point.epoch, evaluation=index, mean_return=point.mean_return)
+
         every_minutes = cfg.checkpoint.get("every_minutes")
         history = train(
             algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
@@ -215,12 +223,16 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
             checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
             checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
             checkpoint_extra=resumption.checkpoint_extra, resume_from=checkpoint, progress=cfg.progress,
+            on_new_best=keep_best,
         )
+        last = history.evaluations[-1] if history.evaluations else None
+        save_policy(run_dir / "policy.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,
+                    iteration=history.iterations, epoch=algorithm.epochs,
+                    **({} if last is None else {"evaluation": len(history.evaluations) - 1,
+                                                "mean_return": last.mean_return}))
     finally:
         evaluator.close()
 
-    save_checkpoint(run_dir / "policy.pt", {"policy": algorithm.policy.state_dict(), "algo": cfg.algo.name,
-                                            "env_id": cfg.env.id})
     episode_returns = batch.episode_returns()
     summary = {
         "algo": cfg.algo.name,
@@ -231,6 +243,7 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
         "seed": int(cfg.seed),
         "final_return": history.final_return(cfg.eval.final_window),
         "best_return": history.best_return(),
+        "best_policy": _best_policy(history),
         "dataset_mean_episode_return": float(episode_returns.mean()),
         "dataset_max_episode_return": float(episode_returns.max()),
         "num_transitions": int(batch.num_transitions),
@@ -257,6 +270,30 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     return summary
 
 
+def _best_policy(history) -> dict[str, Any] | None:
+    """Where ``policy_best.pt`` came from: the first evaluation with the highest mean return (read from the
+    history, so that a resumed run names the same one as an uninterrupted run)."""
+    if not history.evaluations:
+        return None
+    index = max(range(len(history.evaluations)), key=lambda i: (history.evaluations[i].mean_return, -i))
+    point = history.evaluations[index]
+    return {"path": "policy_best.pt", "iteration": point.iteration, "epoch": point.epoch, "evaluation": index,
+            "mean_return": point.mean_return}
+
+
+def job_threads(cfg: DictConfig, launcher=None) -> int | None:
+    """Torch threads for this job: the ``threads`` config key when set, else ``cores // n_jobs`` under the joblib
+    launcher (so that side-by-side jobs do not oversubscribe the cores), else ``None`` (torch's default)."""
+    threads = cfg.get("threads")
+    if threads:
+        return int(threads)
+    if launcher is None or "joblib" not in str(launcher.get("_target_", "")):
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n_jobs = int(launcher.get("n_jobs") or 1)
+    return max(1, cores // (cores if n_jobs < 0 else n_jobs))
+
+
 def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = None) -> None:
     """``<key>_normalized`` (D4RL normalised score, or the dataset's own Minari reference) where one exists."""
     from torchrl_bail.data.importers import normalized_score, score_reference
@@ -273,6 +310,12 @@ def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = N
 def _hydra_main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
+    threads = job_threads(cfg, HydraConfig.get().get("launcher"))
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+        log.info("torch threads: %d", threads)
     with exit_on_config_error():
         return run(cfg, Path(HydraConfig.get().runtime.output_dir))["final_return"]
 

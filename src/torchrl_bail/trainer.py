@@ -111,6 +111,7 @@ def train(
     resume_from: dict | None = None,
     progress: bool = True,
     log_every: int = 100,
+    on_new_best: Callable[[EvalPoint, int], None] | None = None,
 ) -> TrainHistory:
     """Runs ``algorithm`` for ``algorithm.epochs`` epochs on ``data``.
 
@@ -134,6 +135,8 @@ def train(
             :meth:`~torchrl_bail.algorithms.base.Algorithm.load_state_dict` must already have run.
         progress (bool): tqdm progress bar. Defaults to ``True``.
         log_every (int): training scalars are averaged and logged every ``log_every`` updates.
+        on_new_best: ``(point, index)`` called when an evaluation beats every earlier one (e.g. to save the
+            best policy); ``index`` is the evaluation's position in ``history.evaluations``.
     """
     if len(data) == 0:
         raise ValueError("the training data is empty: nothing to sample mini-batches from")
@@ -184,7 +187,10 @@ def train(
         evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
         if evaluated:
             point = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
+            is_best = all(point.mean_return > e.mean_return for e in history.evaluations)
             history.evaluations.append(point)
+            if on_new_best is not None and is_best:
+                on_new_best(point, len(history.evaluations) - 1)
             if logger is not None:
                 logger.log_scalar("eval/return", point.mean_return, step=it)
                 logger.log_scalar("eval/epoch", point.epoch, step=it)

@@ -1,0 +1,135 @@
+"""Run a trained policy: ``python -m torchrl_bail.evaluate RUN_DIR --episodes 10 [--seed S] [--video DIR]``.
+
+Loads the run's ``policy.pt`` (``--best``: ``policy_best.pt``) with :func:`torchrl_bail.policy.load_policy` and
+plays ``--episodes`` deterministic episodes with the training run's :class:`~torchrl_bail.evaluation.Evaluator`
+(same env id, time limit and step budget as the run), printing ``mean ± std`` of the returns.
+
+``--reproduce`` replays the evaluation that scored the saved policy: the run's seed, episode count and step
+budget, and the Evaluator called as often as the run called it (the ``k``-th evaluation of a seed gets its own
+episode seeds), so a deterministic policy (BAIL, Progressive BAIL, BC, MARWIL) scores exactly the return the run
+logged. BCQ and BEAR sample their candidates from torch's random stream, which training also drew from, so their
+replayed return is a fresh draw, not the logged one.
+
+``--video DIR`` records one more episode per ``--episodes`` with gymnasium's ``RecordVideo`` (needs moviepy:
+``pip install "torchrl_bail[video]"``; headless machines render through EGL, ``MUJOCO_GL=egl``).
+``--export pt2|onnx|torchscript [--out FILE]`` writes a standalone policy file instead (see
+:mod:`torchrl_bail.policy` for which format supports which algorithm).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["evaluate_policy", "record_video", "main"]
+
+
+def _run_settings(policy) -> dict:
+    cfg = policy.record["config"]
+    return {"env_id": policy.record["env_id"], "seed": int(cfg.get("seed", 0)),
+            "episodes": int(cfg.get("eval", {}).get("episodes", 10)),
+            "max_steps": int(cfg.get("eval", {}).get("max_steps", 1000)),
+            "max_episode_steps": cfg.get("env", {}).get("max_episode_steps")}
+
+
+def evaluate_policy(policy, *, episodes: int, seed: int, max_steps: int, max_episode_steps=None, env_id: str,
+                    evaluation: int = 0):
+    """The ``evaluation``-th evaluation (0-based) of ``policy`` by a fresh :class:`Evaluator` seeded ``seed``.
+
+    The earlier calls only advance the Evaluator's episode seeding, as the training run's earlier evaluations did.
+    """
+    from torchrl_bail.evaluation import Evaluator
+
+    evaluator = Evaluator(env_id, episodes=episodes, seed=seed, max_steps=max_steps,
+                          max_episode_steps=max_episode_steps, device="cpu")
+    try:
+        for _ in range(evaluation):
+            evaluator(policy)
+        return evaluator(policy)
+    finally:
+        evaluator.close()
+
+
+def record_video(policy, directory: Path, *, episodes: int, seed: int, env_id: str, max_episode_steps=None) -> Path:
+    """Plays ``episodes`` episodes (reset seeds ``seed``, ``seed + 1``...) into ``directory`` as MP4 files."""
+    try:
+        import moviepy  # noqa: F401  (gymnasium's RecordVideo writes through it)
+    except ImportError:
+        raise ImportError("--video needs the 'moviepy' package (gymnasium's RecordVideo writes through it): "
+                          "pip install \"torchrl_bail[video]\"") from None
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import gymnasium as gym
+    import torch
+    from gymnasium.wrappers import RecordVideo
+
+    from torchrl_bail.policy import policy_actions
+
+    kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
+    env = RecordVideo(gym.make(env_id, render_mode="rgb_array", **kwargs), str(directory),
+                      episode_trigger=lambda _: True, name_prefix=env_id, disable_logger=True)
+    try:
+        for i in range(episodes):
+            obs, _ = env.reset(seed=seed + i)
+            done = False
+            while not done:
+                action = policy_actions(policy, torch.as_tensor(obs, dtype=torch.float32)[None])[0]
+                obs, _, terminated, truncated, _ = env.step(action.numpy())
+                done = terminated or truncated
+    finally:
+        env.close()
+    return Path(directory)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m torchrl_bail.evaluate", description=__doc__.split("\n\n")[0])
+    parser.add_argument("source", type=Path, help="a run directory or a policy file")
+    parser.add_argument("--episodes", type=int, help="test episodes (default: the run's eval.episodes)")
+    parser.add_argument("--seed", type=int, help="evaluation seed (default: the run's seed)")
+    parser.add_argument("--best", action="store_true", help="the best-evaluated policy (policy_best.pt)")
+    parser.add_argument("--reproduce", action="store_true",
+                        help="replay the evaluation that scored the saved policy (the run's seed and settings)")
+    parser.add_argument("--video", type=Path, metavar="DIR", help="also record the episodes as MP4 files in DIR")
+    parser.add_argument("--export", choices=["pt2", "onnx", "torchscript"],
+                        help="write a standalone policy file instead of evaluating")
+    parser.add_argument("--out", type=Path, help="the exported file (default: beside the policy file)")
+    args = parser.parse_args(argv)
+
+    from torchrl_bail.policy import EXPORT_FORMATS, PolicyFileError, export_policy, load_policy
+
+    try:
+        policy = load_policy(args.source, best=args.best)
+        if args.export:
+            out = args.out or Path(policy.record["path"]).with_suffix(EXPORT_FORMATS[args.export])
+            print(f"wrote {export_policy(policy, out, args.export)}")
+            return 0
+        settings = _run_settings(policy)
+        if args.episodes is not None:
+            if args.episodes < 1:
+                parser.error(f"--episodes {args.episodes}: expected a positive number of episodes")
+            settings["episodes"] = args.episodes
+        if args.seed is not None:
+            settings["seed"] = args.seed
+        info = policy.record["info"]
+        evaluation = int(info.get("evaluation", 0)) if args.reproduce else 0
+        result = evaluate_policy(policy, evaluation=evaluation, **settings)
+        std = math.sqrt(sum((r - result.mean_return) ** 2 for r in result.returns) / max(1, len(result.returns) - 1))
+        print(f"{policy.record['algo']} on {settings['env_id']}: return {result.mean_return:.2f} ± {std:.2f} "
+              f"(sample std) over {len(result.returns)} episodes (seed {settings['seed']})")
+        if args.reproduce and "mean_return" in info:
+            print(f"logged by the run at evaluation {evaluation} (iteration {info.get('iteration')}): "
+                  f"{info['mean_return']:.2f}")
+        if args.video:
+            folder = record_video(policy, args.video, episodes=settings["episodes"], seed=settings["seed"],
+                                  env_id=settings["env_id"], max_episode_steps=settings["max_episode_steps"])
+            print(f"videos in {folder}")
+    except (PolicyFileError, ImportError, ValueError) as err:
+        print(f"torchrl_bail.evaluate: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""Launcher configs compose, and side-by-side joblib jobs split the cores instead of oversubscribing them."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from torchrl_bail import config_dir
+from torchrl_bail.train import job_threads
+
+
+def _compose(*overrides):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=["+exp=hopper_ddpg05", *overrides], return_hydra_config=True)
+
+
+def test_joblib_jobs_share_the_cores():
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    cfg = _compose("hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+    launcher = cfg.hydra.launcher
+    assert "JoblibLauncher" in launcher._target_
+    cores = len(os.sched_getaffinity(0))
+    assert job_threads(cfg, launcher) == max(1, cores // 2)
+    assert job_threads(cfg, OmegaConf.merge(launcher, {"n_jobs": 4 * cores})) == 1  # never 0
+    assert job_threads(cfg, OmegaConf.merge(launcher, {"n_jobs": -1})) == 1  # one job per core
+    assert job_threads(OmegaConf.create({"threads": 3}), launcher) == 3  # an explicit key wins
+    assert job_threads(cfg, _compose().hydra.launcher) is None  # the basic launcher: torch's default
+
+
+def test_slurm_gpu_launcher_asks_for_one_gpu():
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    launcher = _compose("hydra/launcher=slurm_gpu").hydra.launcher
+    assert launcher.gpus_per_node == 1 and "SlurmLauncher" in launcher._target_
+    assert launcher.timeout_min == _compose("hydra/launcher=slurm").hydra.launcher.timeout_min  # the rest as slurm

@@ -1,0 +1,164 @@
+"""Trained policies a user can run: policy files, load_policy, evaluate (reproducing the run) and exports."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from test_cli import ALGO_TINY, _summary, _train
+from torchrl_bail import load_policy
+from torchrl_bail.evaluate import main as evaluate_main
+from torchrl_bail.policy import export_policy, policy_actions, save_policy
+
+ENV = {**os.environ, "RL_WARNINGS": "0"}
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("batches")
+
+
+@pytest.fixture(scope="module")
+def bc_run(tmp_path_factory, data_dir):
+    """A tiny BC run whose one evaluation (at the end) scored the saved policy."""
+    run_dir = tmp_path_factory.mktemp("bc") / "run"
+    _train(run_dir, data_dir, "algo=bc", "seed=4", *ALGO_TINY["bc"], "eval.every_epochs=0.01")
+    return run_dir
+
+
+def _evaluate_cli(*args) -> str:
+    proc = subprocess.run([sys.executable, "-m", "torchrl_bail.evaluate", *map(str, args)], capture_output=True,
+                          text=True, env=ENV, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+def test_evaluate_reproduces_the_runs_last_evaluation(bc_run):
+    summary = _summary(bc_run)
+    out = _evaluate_cli(bc_run, "--reproduce")
+    replayed = float(out.split("return ")[1].split(" ±")[0])
+    assert replayed == pytest.approx(summary["final_return"], abs=0.01), out
+    assert "over 2 episodes (seed 4)" in out
+    # another seed gives other start states
+    assert f"{summary['final_return']:.2f}" not in _evaluate_cli(bc_run, "--episodes", 3, "--seed", 11)
+
+
+def test_policy_file_records_how_to_rebuild_the_actor(bc_run):
+    record = torch.load(bc_run / "policy.pt", weights_only=True)
+    assert (record["algo"], record["env_id"], record["obs_dim"], record["act_dim"]) == ("bc", "Hopper-v5", 11, 3)
+    assert record["action_low"] == [-1.0] * 3 and record["action_high"] == [1.0] * 3
+    assert record["hidden"]["policy"] == list(record["config"]["algo"]["policy"]["hidden"])
+    assert record["config"]["seed"] == 4 and record["info"]["evaluation"] == 0
+    policy = load_policy(bc_run)
+    obs = TensorDict({"observation": torch.randn(5, 11)}, [5])
+    action = policy(obs)["action"]
+    assert action.shape == (5, 3) and bool((action.abs() <= 1).all())
+
+
+def test_best_policy_is_kept_and_named_in_the_summary(tmp_path, data_dir):
+    run_dir = tmp_path / "run"
+    _train(run_dir, data_dir, "algo=bc", "seed=2", *ALGO_TINY["bc"])  # 5 evaluations
+    summary = _summary(run_dir)
+    logged = [float(line.split(",")[1]) for line in
+              (run_dir / "logs" / "scalars" / "eval" / "return.csv").read_text().splitlines()]
+    best = summary["best_policy"]
+    assert len(logged) == 5 and best["path"] == "policy_best.pt"
+    assert best["evaluation"] == logged.index(max(logged)) and best["mean_return"] == summary["best_return"]
+    assert best["epoch"] == pytest.approx(0.002 * (best["evaluation"] + 1))
+    policy = load_policy(run_dir, best=True)
+    assert policy.record["info"]["iteration"] == best["iteration"]
+
+
+def _plain_torch_actions(fmt: str, path, obs) -> torch.Tensor:
+    """Runs the exported file in a fresh interpreter where torchrl_bail, tensordict and torchrl cannot import."""
+    torch.save(obs, path.parent / "obs.pt")
+    load = {"pt2": f"torch.export.load({str(path)!r}).module()", "torchscript": f"torch.jit.load({str(path)!r})"}
+    if fmt == "onnx":
+        code = (f"import numpy, onnxruntime, torch; s = onnxruntime.InferenceSession({str(path)!r}); "
+                f"a = s.run(None, {{'observation': torch.load({str(path.parent / 'obs.pt')!r}).numpy()}})[0]; "
+                f"torch.save(torch.from_numpy(a), {str(path.parent / 'act.pt')!r})")
+    else:
+        code = (f"import torch; torch.manual_seed(0); m = {load[fmt]}; "
+                f"torch.save(m(torch.load({str(path.parent / 'obs.pt')!r})), {str(path.parent / 'act.pt')!r})")
+    block = "import sys; sys.modules.update(torchrl_bail=None, tensordict=None, torchrl=None); "
+    proc = subprocess.run([sys.executable, "-c", block + code], capture_output=True, text=True, timeout=300,
+                          cwd=path.parent)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return torch.load(path.parent / "act.pt")
+
+
+@pytest.mark.parametrize("fmt", ["pt2", "torchscript", "onnx"])
+def test_export_runs_without_this_package(bc_run, tmp_path, fmt):
+    if fmt == "onnx":
+        pytest.importorskip("onnxscript")
+        pytest.importorskip("onnxruntime")
+    path = tmp_path / f"policy.{fmt}"
+    assert evaluate_main([str(bc_run), "--export", fmt, "--out", str(path)]) == 0
+    obs = torch.randn(7, 11)
+    expected = policy_actions(load_policy(bc_run), obs)
+    assert torch.allclose(_plain_torch_actions(fmt, path, obs), expected, atol=1e-5)
+
+
+def _tiny_bcq(tmp_path):
+    from torchrl_bail.algorithms.bcq import BCQ
+    from torchrl_bail.modules import action_spec_from_bounds
+
+    spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)
+    nets = {"vae": {"hidden": [16, 16]}, "actor": {"hidden": [16, 16]}, "critic": {"hidden": [16, 16]}}
+    algo = BCQ(obs_dim=11, action_spec=spec, **nets, num_samples=10, batch_size=4, epochs=1e-5)
+    cfg = {"seed": 0, "env": {"id": "Hopper-v5"}, "algo": {"name": "bcq", "num_samples": 10, "phi": 0.05,
+                                                           "lmbda": 0.75, "kl_weight": 0.5, "latent_clip": 0.5,
+                                                           "gamma": 0.99, "tau": 0.005, "batch_size": 4,
+                                                           "epochs": 1e-5, **nets}}
+    return algo, save_policy(tmp_path / "policy.pt", algo, cfg, obs_dim=11, action_spec=spec)
+
+
+def test_bcq_best_of_n_loads_and_exports_to_pt2_only_where_it_can(tmp_path, capsys):
+    algo, path = _tiny_bcq(tmp_path)
+    policy = load_policy(path)
+    obs = torch.randn(6, 11)
+    torch.manual_seed(0)
+    expected = policy_actions(algo.policy, obs)
+    torch.manual_seed(0)
+    assert torch.equal(policy_actions(policy, obs), expected)  # same weights, same candidates
+    export_policy(policy, tmp_path / "bcq.pt2", "pt2")
+    torch.manual_seed(0)
+    assert torch.equal(policy_actions(policy, obs), expected)  # exporting left the policy untouched
+    assert torch.allclose(_plain_torch_actions("pt2", tmp_path / "bcq.pt2", obs), expected, atol=1e-5)
+    assert evaluate_main([str(path), "--export", "torchscript"]) == 2
+    err = capsys.readouterr().err
+    assert "bcq" in err and "pt2" in err and len(err.strip().splitlines()) == 1
+
+
+def test_bcq_onnx_export_samples_in_onnxruntime(tmp_path):
+    pytest.importorskip("onnxscript")
+    pytest.importorskip("onnxruntime")
+    _, path = _tiny_bcq(tmp_path)
+    export_policy(path, tmp_path / "bcq.onnx", "onnx")
+    obs = torch.randn(6, 11)
+    actions = _plain_torch_actions("onnx", tmp_path / "bcq.onnx", obs)
+    assert actions.shape == (6, 3) and bool((actions.abs() <= 1).all())  # its own random stream: no equality
+
+
+def test_clear_errors(tmp_path, bc_run, capsys, monkeypatch):
+    assert evaluate_main([str(tmp_path)]) == 2
+    assert "policy.pt" in capsys.readouterr().err
+    torch.save({"policy": {}}, tmp_path / "old.pt")  # the format before policy files carried their config
+    assert evaluate_main([str(tmp_path / "old.pt")]) == 2
+    assert "old.pt" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "moviepy", None)
+    assert evaluate_main([str(bc_run), "--episodes", "1", "--video", str(tmp_path / "video")]) == 2
+    assert "moviepy" in capsys.readouterr().err
+
+
+def test_video_of_a_trained_policy(bc_run, tmp_path):
+    pytest.importorskip("moviepy")
+    assert evaluate_main([str(bc_run), "--episodes", "1", "--video", str(tmp_path / "video")]) == 0
+    (video,) = (tmp_path / "video").glob("*.mp4")
+    assert video.stat().st_size > 1000

@@ -1,0 +1,109 @@
+"""The report groups runs by batch recipe x algorithm x separating override and computes rliable's IQM."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from torchrl_bail.io import write_json_atomic
+from torchrl_bail.report import main
+
+rliable = pytest.importorskip("rliable", reason="the report needs the 'report' extra")
+from rliable import library, metrics  # noqa: E402
+
+BATCHES = {"hopper_ddpg05_b1": "aaaa1111", "hopper_sac_b1": "bbbb2222", "walker_ddpg05_b1": "cccc3333"}
+ALGOS = {"bail": 1000.0, "bc": 800.0, "bcq": 900.0}
+SEEDS = [1, 2, 3, 4, 5]
+
+
+def _score(batch_i: int, algo: str, seed: int, ablation: bool) -> float:
+    return ALGOS[algo] + 100.0 * batch_i + 37.0 * seed ** 1.5 - (400.0 if ablation else 0.0)
+
+
+def _write_run(root, batch, algo, seed, score, by="envelope"):
+    run = root / f"{batch}_{algo}_{by}_s{seed}"
+    config = {"seed": seed, "progress": False, "device": "cpu", "data_dir": f"/tmp/data{seed}",
+              "logger": {"backend": "csv"}, "env": {"id": "Hopper-v5"}, "batch": {"kind": batch.split("_")[1]},
+              "eval": {"episodes": 5}, "algo": {"name": algo, "epochs": 0.01,
+                                                **({"selection": {"by": by}} if algo == "bail" else {})}}
+    (run / "logs" / "scalars" / "eval").mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    steps = [10, 20, 30]
+    (run / "logs" / "scalars" / "eval" / "return.csv").write_text(
+        "".join(f"{s},{score * s / 30}\n" for s in steps))
+    (run / "logs" / "scalars" / "eval" / "epoch.csv").write_text("".join(f"{s},{s / 1000}\n" for s in steps))
+    write_json_atomic(run / "summary.json", {
+        "algo": algo, "batch": batch, "seed": seed, "final_return": score, "best_return": score + 50.0,
+        "dataset_mean_episode_return": 500.0, "batch_path": f"/data/{batch}-{BATCHES[batch]}"})
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    for i, batch in enumerate(BATCHES):
+        for algo in ALGOS:
+            for seed in SEEDS:
+                _write_run(root, batch, algo, seed, _score(i, algo, seed, False))
+    for seed in SEEDS:  # the ablation: BAIL selecting by return, on the first batch only
+        _write_run(root, "hopper_ddpg05_b1", "bail", seed, _score(0, "bail", seed, True), by="return")
+    return root
+
+
+def test_report_writes_three_files_with_rliable_iqm(tree, tmp_path, capsys):
+    prefix = tmp_path / "results"
+    assert main([str(tree), "--out", str(prefix), "--reps", "500", "--bootstrap-seed", "7"]) == 0
+    groups = json.loads((tmp_path / "results.json").read_text())["groups"]
+    assert len(groups) == 3 * 3 + 1
+    with open(tmp_path / "results.csv") as f:
+        assert len(list(csv.DictReader(f))) == 10
+    for g in groups:
+        batch_i = list(BATCHES).index(g["batch"])
+        ablation = g["variant"] == "algo.selection.by=return"
+        scores = [_score(batch_i, g["algo"], s, ablation) for s in SEEDS]
+        assert g["recipe_hash"] == BATCHES[g["batch"]] and g["seeds"] == 5
+        assert g["final_return_mean"] == pytest.approx(np.mean(scores))
+        assert g["final_return_std"] == pytest.approx(np.std(scores, ddof=1))
+        assert g["best_return_mean"] == pytest.approx(np.mean(scores) + 50.0)
+        np.random.seed(7)  # rliable 1.2.0 resamples from numpy's global stream
+        point, interval = library.get_interval_estimates(
+            {"x": np.array(scores)[:, None]}, lambda x: np.array([metrics.aggregate_iqm(x)]), reps=500)
+        assert g["final_return_iqm"] == pytest.approx(point["x"][0])
+        assert [g["final_return_iqm_ci_low"], g["final_return_iqm_ci_high"]] == pytest.approx(interval["x"][:, 0])
+        assert g["final_return_iqm_ci_low"] < g["final_return_iqm"] < g["final_return_iqm_ci_high"]
+    md = (tmp_path / "results.md").read_text()
+    # batches as rows, algorithms as columns, the ablation in its own row, best per row in bold
+    assert md.splitlines()[0] == "| batch | bail | bc | bcq |"
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in md.splitlines()[2:] if line.startswith("| ")}
+    assert set(rows) == {*BATCHES, "hopper_ddpg05_b1 [algo.selection.by=return]"}
+    assert rows["hopper_sac_b1"].split(" | ")[1].startswith("**")  # BAIL best on the default rows
+    assert "algo.selection.by" in md and "seed" not in json.loads((tmp_path / "results.json").read_text())[
+        "separating_keys"]["bail"]
+    assert json.loads((tmp_path / "results.json").read_text())["separating_keys"] == {
+        "bail": ["algo.selection.by"], "bc": [], "bcq": []}
+
+
+def test_report_figures(tree, tmp_path):
+    prefix = tmp_path / "fig"
+    assert main([str(tree), "--out", str(prefix), "--plot", "--reps", "200"]) == 0
+    for name in ("fig_curves.png", "fig_aggregate.png", "fig_profiles.png"):
+        assert (tmp_path / name).stat().st_size > 1000, name
+
+
+@pytest.mark.parametrize("content, expected", [("{not json", "unreadable"), ('{"algo": "bc", "seed": 1}',
+                                                                             "missing final_return, best_return")])
+def test_bad_summary_is_one_line_naming_the_file(tmp_path, capsys, content, expected):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "summary.json").write_text(content)
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(tmp_path / "run" / "summary.json") in err and expected in err
+
+
+def test_missing_directory_and_empty_tree(tmp_path, capsys):
+    assert main([str(tmp_path / "missing")]) == 2
+    assert main([str(tmp_path)]) == 1
+    assert "no summary.json" in capsys.readouterr().err
