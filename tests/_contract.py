@@ -102,7 +102,7 @@ LOSS_CASES = [
     LossCase("bear", lambda reduction="mean": bear_loss(reduction=reduction, warm_start_updates=0),
              {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
               "loss_actor": _groups("actor_network_params"), "loss_alpha": _groups("log_alpha")},
-             stochastic=True),
+             rename={"reward": "r", "terminated": "true_end"}, stochastic=True),
 ]
 
 
