@@ -22,8 +22,8 @@ from torchrl_bail.transforms.best_action import best_action_mask
 SPEC = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
 N, GOOD = 400, 0.3
 NETS = {"hidden": (32, 32), "batch_size": 64, "lr": 3e-3}
-UPDATES = 500
-ENVELOPE = {"hidden": (32, 32), "epochs": 40, "batch_size": 50, "lr": 1e-2}
+UPDATES = 300
+ENVELOPE = {"hidden": (32, 32), "epochs": 25, "batch_size": 50, "lr": 1e-2}
 
 
 def best_action(observation: torch.Tensor) -> torch.Tensor:
