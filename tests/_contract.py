@@ -15,9 +15,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from _batch_rl_testing import HIDDEN, OBS, SPEC, batch, bcq_loss, bear_loss, vae
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule
 
 from torchrl_bail.algorithms import BAIL, BCQ, BEAR, MARWIL, BehaviourCloning, ProgressiveBAIL
@@ -177,8 +178,14 @@ def row_noise_like(tensor: torch.Tensor, **kwargs) -> torch.Tensor:
 
 
 def equal_trees(a, b, path: str = "state") -> None:
-    """Asserts that two (nested) state dicts hold the same values, tensors bit for bit."""
-    if isinstance(a, dict):
+    """Asserts that two (nested) state dicts hold the same values, tensors and arrays bit for bit (whatever an
+    algorithm's ``state_dict`` grows to hold: dicts, lists, tensordicts, generator states, plain values)."""
+    if isinstance(a, TensorDictBase):
+        assert isinstance(b, TensorDictBase), path
+        equal_trees(a.to_dict(), b.to_dict(), path)
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), path
+    elif isinstance(a, dict):
         assert isinstance(b, dict) and a.keys() == b.keys(), f"{path}: keys {sorted(a)} != {sorted(b)}"
         for key in a:
             equal_trees(a[key], b[key], f"{path}[{key!r}]")
