@@ -78,6 +78,11 @@ def _groups(*names: str) -> frozenset[str]:
     return frozenset(names)
 
 
+_TWIN_CRITIC_TERMS = {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
+                      "loss_actor": _groups("actor_network_params")}
+#: the critics read the loss' observation/action keys, so BCQ and BEAR rename what they read under "next"
+_BOOTSTRAP_RENAME = {"reward": "r", "terminated": "true_end"}
+
 LOSS_CASES = [
     LossCase("upper_envelope", lambda reduction="mean": UpperEnvelopeLoss(_value(), reduction=reduction),
              {"loss_envelope": _groups("value_network_params")}, rename={"value_target": "mc_return"},
@@ -92,18 +97,13 @@ LOSS_CASES = [
              rename={"observation": "state", "action": "behaviour_action"}, stochastic=True),
     LossCase("bc", lambda reduction="mean": make_bc_loss(_actor(), reduction=reduction),
              {"loss_bc": _groups("actor_network_params")}, torchrl_own=True),
-    LossCase("bcq", lambda reduction="mean": bcq_loss(reduction=reduction),
-             {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
-              "loss_actor": _groups("actor_network_params")},
-             rename={"reward": "r", "terminated": "true_end"}, stochastic=True),
+    LossCase("bcq", lambda reduction="mean": bcq_loss(reduction=reduction), _TWIN_CRITIC_TERMS,
+             rename=_BOOTSTRAP_RENAME, stochastic=True),
+    # BEAR's actor objective switches after the warm start: both objectives must keep to the actor
     LossCase("bear_warm_start", lambda reduction="mean": bear_loss(reduction=reduction),
-             {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
-              "loss_actor": _groups("actor_network_params"), "loss_alpha": _groups("log_alpha")},
-             rename={"reward": "r", "terminated": "true_end"}, stochastic=True),
+             {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
     LossCase("bear", lambda reduction="mean": bear_loss(reduction=reduction, warm_start_updates=0),
-             {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
-              "loss_actor": _groups("actor_network_params"), "loss_alpha": _groups("log_alpha")},
-             rename={"reward": "r", "terminated": "true_end"}, stochastic=True),
+             {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
 ]
 
 
@@ -134,7 +134,7 @@ _TINY = {"obs_dim": OBS, "action_spec": SPEC, "batch_size": ALGO_BATCH, "epochs"
 _NETS = {"vae": {"hidden": HIDDEN}, "actor": {"hidden": HIDDEN}, "critic": {"hidden": HIDDEN}}
 _ENVELOPE = {"hidden": HIDDEN}
 _SMALL_POLICY = "algo.policy.hidden=[16,16]"
-_DEEP_NETS = ("algo.vae.hidden=[16,16]", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")
+_TWIN_CRITIC_NETS = ("algo.vae.hidden=[16,16]", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")
 
 ALGO_CASES = {case.name: case for case in [
     AlgoCase("bc", lambda: BehaviourCloning(hidden=HIDDEN, **_TINY), ("algo.epochs=0.005", _SMALL_POLICY)),
@@ -146,9 +146,9 @@ ALGO_CASES = {case.name: case for case in [
              not_updated=frozenset({"selection_envelope"})),
     AlgoCase("marwil", lambda: MARWIL(hidden=HIDDEN, value_hidden=HIDDEN, c2_rate=0.01, **_TINY),
              ("algo.epochs=0.005", _SMALL_POLICY)),
-    AlgoCase("bcq", lambda: BCQ(**_NETS, **_TINY), ("algo.epochs=0.0005", *_DEEP_NETS)),
+    AlgoCase("bcq", lambda: BCQ(**_NETS, **_TINY), ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
     AlgoCase("bear", lambda: BEAR(**_NETS, warm_start_updates=2, **_TINY),
-             ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_DEEP_NETS)),
+             ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
 ]}
 
 #: the run every tiny end-to-end run shares: a batch of 1200 Hopper transitions, one short evaluation
