@@ -151,12 +151,14 @@ ALGO_CASES = {case.name: case for case in [
              ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
 ]}
 
-#: the run every tiny end-to-end run shares: a batch of 1200 Hopper transitions, one short evaluation
+#: transitions in the tiny batch every tiny end-to-end run shares
+TINY_STEPS = 600
+#: the tiny run: a batch of a tiny DDPG's 600 Hopper transitions (its updates dominate the cost), one evaluation
 TINY_RUN = (
     "+exp=hopper_ddpg05", "preset=quick", "progress=false", "samples_per_epoch=1000000",
-    "batch.steps=1200", "batch.start_steps=300", "batch.agent.actor_hidden=[16,16]",
-    "batch.agent.critic_hidden=[16,16]", "env.max_episode_steps=100", "returns.horizon=100",
-    "eval.episodes=1", "eval.max_steps=100", "eval.every_epochs=0.002",
+    f"batch.steps={TINY_STEPS}", "batch.start_steps=300", "batch.agent.actor_hidden=[8,8]",
+    "batch.agent.critic_hidden=[8,8]", "batch.agent.batch_size=16", "env.max_episode_steps=100",
+    "returns.horizon=100", "eval.episodes=1", "eval.max_steps=100", "eval.every_epochs=0.002",
 )
 
 
