@@ -1,4 +1,4 @@
-"""Test helpers shared by test_bcq.py and test_bear.py: tiny specs, batches, hand-made critics, gradient probes."""
+"""Test helpers shared by the contract suite and the BCQ/BEAR tests: tiny specs, batches, hand-made critics."""
 
 from __future__ import annotations
 
@@ -48,6 +48,19 @@ class LinearQ(nn.Module):
         return self.k * action[..., :1] + self.b + 0 * observation[..., :1]
 
 
+class ObservationSlice(nn.Module):
+    """``w * s[..., start:stop]`` with a trainable ``w = 1``: a network whose output the test writes into the
+    observation (``ObservationSlice(0, 1)``: a value ``V(s) = s_0``; ``ObservationSlice(1)``: an action ``s_1:``)."""
+
+    def __init__(self, start: int, stop: int | None = None) -> None:
+        super().__init__()
+        self.start, self.stop = start, stop
+        self.w = nn.Parameter(torch.ones(()))
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.w * observation[..., self.start:self.stop]
+
+
 def linear_critics(k=(1.0, 2.0), b=(0.0, 0.0)) -> list[TensorDictModule]:
     return [TensorDictModule(LinearQ(ki, bi), in_keys=["observation", "action"], out_keys=["state_action_value"])
             for ki, bi in zip(k, b)]
@@ -72,23 +85,6 @@ def bear_actor():
 
 def bear_loss(qvalue=None, **kwargs) -> BEARLoss:
     return BEARLoss(bear_actor(), critics() if qvalue is None else qvalue, vae(), **kwargs)
-
-
-def zero_grads(loss) -> None:
-    for p in loss.parameters():
-        p.grad = None
-
-
-def groups_with_grad(loss, groups=("vae_network_params", "qvalue_network_params", "actor_network_params")) -> set:
-    """Names of the parameter groups (and ``log_alpha``) in which some gradient is nonzero."""
-    hit = set()
-    for group in groups:
-        if any(p.grad is not None and p.grad.abs().sum() > 0 for p in getattr(loss, group).parameters()):
-            hit.add(group)
-    log_alpha = getattr(loss, "log_alpha", None)
-    if log_alpha is not None and log_alpha.grad is not None and log_alpha.grad.abs() > 0:
-        hit.add("log_alpha")
-    return hit
 
 
 def target_tensors(loss) -> dict:

@@ -1,5 +1,6 @@
-"""BEARLoss and the BEAR algorithm: gradient isolation (log alpha included), the Laplacian MMD by hand, the
-multiplier's loss and clamp, the warm start, targets, the policy, state_dict, seeds, [S, B] batches, update order."""
+"""What only BEAR does: the Laplacian MMD and the policy terms by hand, the multiplier's loss and clamp, the warm
+start, the target actor's candidates, the action bounds and the update order (the contract suite in
+test_contract.py covers gradients, keys, reductions, [S, B] batches, checkpoints and seeds)."""
 
 from __future__ import annotations
 
@@ -7,59 +8,18 @@ import math
 
 import pytest
 import torch
-from _batch_rl_testing import (
-    ACT,
-    HIDDEN,
-    OBS,
-    SPEC,
-    batch,
-    bear_loss,
-    groups_with_grad,
-    linear_critics,
-    one_thread,  # noqa: F401 (autouse fixture)
-    target_tensors,
-    zero_grads,
-)
-from tensordict import TensorDict
+from _batch_rl_testing import ACT, HIDDEN, OBS, SPEC, batch, bear_loss, linear_critics
+from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bear import BEAR
 from torchrl_bail.objectives.bear import laplacian_mmd
-
-LOSS_KEYS = ("loss_vae", "loss_qvalue", "loss_actor", "loss_alpha")
-
 
 def _algo(**kwargs) -> BEAR:
     small = {"hidden": HIDDEN}
     return BEAR(obs_dim=OBS, action_spec=SPEC, vae=small, actor=dict(small), critic=small, batch_size=6, epochs=1,
                 **kwargs)
 
-
-
-def test_outputs_are_scalars_and_diagnostics_carry_no_graph():
-    torch.manual_seed(0)
-    out = bear_loss()(batch())
-    assert set(out.keys()) == {*LOSS_KEYS, "recon_loss", "kl_loss", "q_mean", "target_value_mean", "mmd",
-                               "actor_q_mean", "alpha", "warm_start"}
-    for key, value in out.items():
-        assert value.shape == ()
-        assert value.requires_grad == key.startswith("loss"), key
-
-
-@pytest.mark.parametrize("warm", [True, False])
-@pytest.mark.parametrize("term,group", [("loss_vae", "vae_network_params"), ("loss_qvalue", "qvalue_network_params"),
-                                        ("loss_actor", "actor_network_params"), ("loss_alpha", "log_alpha")])
-def test_each_loss_reaches_only_its_parameters(term, group, warm):
-    torch.manual_seed(0)
-    loss = bear_loss(warm_start_updates=1 if warm else 0)
-    SoftUpdate(loss, tau=0.005)
-    zero_grads(loss)
-    out = loss(batch())
-    assert out["warm_start"].item() == float(warm)
-    out[term].backward()
-    assert groups_with_grad(loss) == {group}
-    for name, target in target_tensors(loss).items():
-        assert not target.requires_grad and target.grad is None, name
 
 
 def test_laplacian_mmd_by_hand():
@@ -148,15 +108,6 @@ def test_warm_start_switches_the_actor_objective_after_n_updates():
     assert flags == [1.0, 0.0, 0.0] and algo.loss.update_count.item() == 3
 
 
-def test_target_bootstraps_a_truncation_but_not_a_termination():
-    loss = bear_loss(qvalue=linear_critics(k=(0.0, 0.0), b=(1.0, 3.0)), gamma=0.9, reduction="none")
-    td = batch((3,), terminated=torch.tensor([False, False, True]), truncated=torch.tensor([False, True, False]),
-               reward=torch.tensor([0.5, 0.5, 0.5]))
-    y = torch.tensor([0.5 + 0.9 * 1.5, 0.5 + 0.9 * 1.5, 0.5])
-    loss_qvalue, _ = loss.qvalue_loss(td)
-    torch.testing.assert_close(loss_qvalue, (1.0 - y) ** 2 + (3.0 - y) ** 2)
-
-
 def test_target_candidates_come_from_the_target_actor():
     torch.manual_seed(0)
     loss = bear_loss()
@@ -175,83 +126,6 @@ def test_target_candidates_come_from_the_target_actor():
     assert target.shape == (4, 10, ACT)
     torch.testing.assert_close(target, draw(lambda o, n: loss._actor_samples(o, n, loss.target_actor_network_params)[0]))
     assert not torch.allclose(target, draw(loss.candidate_actions))
-
-
-def test_policy_plays_the_argmax_q1_actor_sample_within_bounds():
-    loss = bear_loss(qvalue=linear_critics(k=(-1.0, 1.0)))
-    policy = loss.policy(num_samples=10)
-    observation = torch.randn(5, OBS)
-    torch.manual_seed(3)
-    with torch.no_grad():
-        candidates = loss.candidate_actions(observation, 10)
-    expected = candidates[torch.arange(5), candidates[..., 0].argmin(-1)]
-    torch.manual_seed(3)
-    action = policy(TensorDict({"observation": observation}, [5]))["action"]
-    torch.testing.assert_close(action, expected)
-    low, high = SPEC.space.low, SPEC.space.high
-    assert ((action >= low) & (action <= high)).all() and action.shape == (5, ACT)
-    assert policy(TensorDict({"observation": torch.randn(OBS)}, []))["action"].shape == (ACT,)
-
-
-def test_state_dict_round_trip_keeps_multiplier_and_clock():
-    torch.manual_seed(0)
-    loss = bear_loss(warm_start_updates=7)
-    SoftUpdate(loss, tau=0.005)
-    loss.count_update(3)
-    with torch.no_grad():
-        loss.log_alpha.fill_(1.25)
-        for p in loss.parameters():
-            p.add_(0.1)
-    state = loss.state_dict()
-    assert state["update_count"].item() == 3 and state["warm_start_updates"].item() == 7
-    torch.manual_seed(1)
-    other = bear_loss(warm_start_updates=100)
-    SoftUpdate(other, tau=0.005)
-    other.load_state_dict(state)
-    assert other.log_alpha.item() == pytest.approx(1.35) and other.update_count.item() == 3
-    td = batch()
-    torch.manual_seed(7)
-    a = loss(td)
-    torch.manual_seed(7)
-    b = other(td)
-    for key, value in a.items():
-        torch.testing.assert_close(value, b[key])
-
-
-def test_same_seed_same_numbers_including_the_multiplier_init():
-    def run(seed):
-        torch.manual_seed(seed)
-        algo = _algo(warm_start_updates=1)
-        log_alpha = algo.loss.log_alpha.item()
-        metrics = [algo.update(batch(seed=i)) for i in range(3)]
-        return log_alpha, metrics
-
-    (la1, m1), (la2, m2), (la3, m3) = run(5), run(5), run(6)
-    assert la1 == la2 != la3
-    for x, y in zip(m1, m2):
-        for key in x:
-            assert torch.equal(x[key], y[key]), key
-    assert not torch.equal(m1[-1]["loss_actor"], m3[-1]["loss_actor"])
-
-
-def test_seed_batches_reduce_per_seed():
-    torch.manual_seed(0)
-    loss = bear_loss(reduction="none", warm_start_updates=0)
-    td = batch((3, 4))
-    flat = td.reshape(-1)
-    torch.manual_seed(1)
-    seeded = loss(td)
-    torch.manual_seed(1)
-    flat_out = loss(flat)
-    for key in LOSS_KEYS:
-        assert seeded[key].shape == (3, 4), key
-        torch.testing.assert_close(seeded[key].reshape(-1), flat_out[key])
-    assert seeded["mmd"].shape == (3,)
-    loss.reduction = "mean"
-    torch.manual_seed(1)
-    mean = loss(td)
-    for key in LOSS_KEYS:
-        torch.testing.assert_close(mean[key], seeded[key].mean(-1).mean())
 
 
 def test_action_bounds_come_from_the_actor_spec_or_fail_clearly():

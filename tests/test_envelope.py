@@ -12,7 +12,8 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
-from torchrl_bail.envelope import BestWeights, EarlyStoppingTracker, fit_upper_envelope
+from torchrl_bail import envelope as envelope_module
+from torchrl_bail.envelope import BestWeights, EarlyStoppingTracker, envelope_split, fit_upper_envelope
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 
 
@@ -87,33 +88,82 @@ def test_tracker_state_round_trip():
         BestWeights(net).load_into(net)
 
 
-def _fit(mode: str, snapshots: list):
+#: a crafted validation curve: improvements at epochs 1, 2 and 5; with patience 2 the paper modes revert after
+#: epochs 4 and 7 (two non-improving epochs each, the count restarting after a revert)
+CURVE = [5.0, 4.0, 6.0, 7.0, 3.0, 8.0, 9.0, 10.0]
+
+
+def _fit_on_curve(mode: str, monkeypatch, stop_at: int | None = None):
+    """A real fit whose validation losses are :data:`CURVE`; returns the fit, the net and its weights after every
+    epoch (as the callback sees them: after any revert of that epoch)."""
+    scripted = iter(CURVE)
+    monkeypatch.setattr(envelope_module, "validation_loss", lambda loss_module, validation: next(scripted))
     torch.manual_seed(0)
-    g = torch.Generator().manual_seed(0)
-    obs = torch.randn(300, 3, generator=g)
-    returns = obs[:, 0] * 10 + torch.randn(300, generator=g)
-    net = make_value_network(3, (16, 16))
+    obs = torch.randn(60, 3, generator=torch.Generator().manual_seed(0))
+    net = make_value_network(3, (8,))
+    snapshots = []
 
     def record(epoch, info):
         snapshots.append(_weights(net))
+        return epoch == stop_at
 
-    fit = fit_upper_envelope(net, obs, returns, epochs=12, patience=2, batch_size=32, lr=3e-2,
+    fit = fit_upper_envelope(net, obs, obs[:, 0] * 10, epochs=len(CURVE), patience=2, batch_size=16, lr=3e-2,
                              early_stopping=mode, progress=False, generator=torch.Generator().manual_seed(1),
                              callback=record)
-    return fit, net
+    return fit, net, snapshots
 
 
-def test_fit_returns_the_best_weights_in_paper_mode_and_the_last_as_coded():
-    snapshots: list = []
-    fit, net = _fit("paper", snapshots)
-    assert fit.returned == "best" and 1 <= fit.best_epoch <= fit.epochs
-    assert fit.best_val_loss == min(fit.val_loss[: fit.best_epoch])
-    assert _equal(_weights(net), snapshots[fit.best_epoch - 1])
+@pytest.mark.parametrize("mode, reverts, returned, final_epoch", [
+    ("paper", [4, 7], "best", 5), ("paper_best", [4, 7], "best", 5), ("paper_revert", [4, 7], "last", 8),
+    ("as_coded", [], "last", 8), ("as_coded_last", [], "last", 8),
+])
+def test_every_early_stopping_mode_on_a_crafted_validation_curve(mode, reverts, returned, final_epoch, monkeypatch):
+    fit, net, snapshots = _fit_on_curve(mode, monkeypatch)
+    assert fit.epochs == 8 and fit.val_loss == CURVE
+    assert (fit.best_epoch, fit.best_val_loss) == (5, 3.0)
+    assert fit.revert_epochs == reverts and fit.returned == returned
+    # the returned weights are the recorded ones: those after the best epoch, or after the last
+    assert _equal(_weights(net), snapshots[final_epoch - 1])
+    if reverts:  # a revert really loads the copy: after epoch 4 the weights are those after epoch 2
+        assert _equal(snapshots[3], snapshots[1]) and _equal(snapshots[6], snapshots[4])
+    else:  # as coded, training never jumps back
+        assert not _equal(snapshots[3], snapshots[1])
 
+
+def test_a_truthy_callback_stops_the_fit_with_the_best_weights_so_far(monkeypatch):
+    fit, net, snapshots = _fit_on_curve("paper", monkeypatch, stop_at=3)
+    assert fit.epochs == 3 and fit.best_epoch == 2
+    assert _equal(_weights(net), snapshots[1])
+
+
+def test_split_forces_the_largest_return_into_training():
+    for seed in range(5):
+        g = torch.Generator().manual_seed(seed)
+        returns = torch.randn(101, generator=g)
+        best = int(returns.argmax())
+        train, val = envelope_split(returns, 0.2, generator=g)
+        assert int(train[0]) == best and best not in val.tolist()
+        assert (len(train), len(val)) == (math.floor(0.8 * 101) + 1, 101 - math.floor(0.8 * 101) - 1)
+        assert sorted(torch.cat([train, val]).tolist()) == list(range(101))
+    # through the fit: the peak is trained on however the rest is shuffled
+    obs = torch.randn(40, 2, generator=torch.Generator().manual_seed(0))
+    returns = torch.zeros(40)
+    returns[17] = 100.0
+    fit = fit_upper_envelope(make_value_network(2, (8,)), obs, returns, epochs=1, progress=False,
+                             generator=torch.Generator().manual_seed(3))
+    assert 17 in fit.train_index.tolist() and 17 not in fit.val_index.tolist()
+
+
+def test_without_a_validation_set_the_last_weights_come_back():
+    obs = torch.randn(30, 2, generator=torch.Generator().manual_seed(0))
+    net = make_value_network(2, (8,))
     snapshots = []
-    fit, net = _fit("as_coded", snapshots)
-    assert fit.returned == "last" and fit.revert_epochs == []
-    assert _equal(_weights(net), snapshots[-1])
+    fit = fit_upper_envelope(net, obs, obs[:, 0], epochs=3, val_fraction=0.0, progress=False,
+                             callback=lambda epoch, info: snapshots.append(_weights(net)))
+    assert len(fit.val_index) == 0 and fit.best_epoch == 3 and fit.returned == "last"
+    assert all(math.isnan(v) for v in fit.val_loss) and _equal(_weights(net), snapshots[-1])
+    with pytest.warns(UserWarning, match="no validation point"):
+        fit_upper_envelope(make_value_network(2, (8,)), obs[:3], obs[:3, 0], epochs=1, progress=False)
 
 
 def _pbail(envelope: dict | None = None, **kwargs) -> tuple[ProgressiveBAIL, TensorDict]:

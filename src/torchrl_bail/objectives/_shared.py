@@ -12,7 +12,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-__all__ = ["check_reduction", "reduce_per_seed", "LazyInKeysLoss", "value_and_return"]
+__all__ = ["check_reduction", "reduce_per_seed", "LazyInKeysLoss", "required_entry", "value_and_return"]
 
 
 def check_reduction(reduction: str | None) -> str:
@@ -62,6 +62,17 @@ class LazyInKeysLoss(LossModule):
         self._in_keys = None
 
 
+def required_entry(loss_module: LossModule, tensordict: TensorDictBase, key: NestedKey) -> torch.Tensor:
+    """``tensordict[key]``, or a :class:`KeyError` naming the loss, the key and ``set_keys`` when it is missing."""
+    entry = tensordict.get(key, None)
+    if entry is None:
+        raise KeyError(
+            f"{type(loss_module).__name__}: the batch has no {key!r} entry; store it there or point set_keys(...) at "
+            f"the key that holds it. Keys present: {sorted(map(str, tensordict.keys(True, True)))}"
+        )
+    return entry
+
+
 def value_and_return(loss_module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """``(V(s), G)`` with the batch shape ``[*B]``: ``loss_module.value_network`` (functional parameters) evaluated
     on ``tensordict`` and the return ``tensor_keys.value_target`` cast to V's dtype. A trailing dimension of 1 is
@@ -70,7 +81,7 @@ def value_and_return(loss_module: LossModule, tensordict: TensorDictBase) -> tup
     network = loss_module.value_network
     with loss_module.value_network_params.to_module(network, preserve_module_state=False):
         value = network(tensordict.select(*network.in_keys)).get(keys.value)
-    target = tensordict.get(keys.value_target)
+    target = required_entry(loss_module, tensordict, keys.value_target)
     batch_shape = tensordict.batch_size
     if value.ndim == len(batch_shape) + 1 and value.shape[-1] == 1:
         value = value.squeeze(-1)

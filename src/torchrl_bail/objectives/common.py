@@ -25,7 +25,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import _cache_values, _vmap_func
 
-from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
+from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed, required_entry
 from torchrl_bail.objectives.vae import conditional_vae_loss
 
 __all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target", "expand_samples"]
@@ -270,15 +270,16 @@ class TwinCriticVAELoss(LossModule):
         """
         k = self.tensor_keys
         with torch.no_grad():
-            next_observation = tensordict.get(_next(k.observation))
+            next_observation = required_entry(self, tensordict, _next(k.observation))
             candidates = self._target_candidates(next_observation, self.num_samples)
             next_values = self._q_values(expand_samples(next_observation, self.num_samples), candidates,
                                          self.target_qvalue_network_params)
             target = soft_clipped_double_q_target(
-                next_values, tensordict.get(_next(k.reward)), self._terminated(tensordict),
+                next_values, required_entry(self, tensordict, _next(k.reward)), self._terminated(tensordict),
                 gamma=self.gamma, lmbda=self.lmbda,
             )
-        q = self._q_values(tensordict.get(k.observation), tensordict.get(k.action), self.qvalue_network_params)
+        q = self._q_values(required_entry(self, tensordict, k.observation), required_entry(self, tensordict, k.action),
+                           self.qvalue_network_params)
         loss = self._reduce((q - target).pow(2).sum(0), tensordict)
         metadata = {"q_mean": q.detach().mean(0).mean(-1), "target_value_mean": target.mean(-1)}
         self._clear_weakrefs(tensordict, "qvalue_network_params", "target_qvalue_network_params",

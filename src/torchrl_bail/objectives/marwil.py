@@ -15,7 +15,7 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 
-from torchrl_bail.objectives._shared import LazyInKeysLoss, check_reduction, value_and_return
+from torchrl_bail.objectives._shared import LazyInKeysLoss, check_reduction, required_entry, value_and_return
 
 __all__ = ["MARWILLoss"]
 
@@ -284,7 +284,7 @@ class MARWILLoss(LazyInKeysLoss):
         """``mean_a (pi(s) - a)^2``, shape ``[*B]``, carrying the actor's graph."""
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             predicted = self.actor_network(tensordict.select(*self.actor_network.in_keys)).get(self.tensor_keys.action)
-        action = tensordict.get(self.tensor_keys.action)
+        action = required_entry(self, tensordict, self.tensor_keys.action)
         if predicted.shape != action.shape:
             raise ValueError(
                 f"MARWILLoss: the actor predicts {self.tensor_keys.action!r} with shape {tuple(predicted.shape)} "

@@ -21,7 +21,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
-from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed
+from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed, required_entry
 
 __all__ = ["VAELoss", "vae_loss_terms", "conditional_vae_loss"]
 
@@ -148,8 +148,8 @@ class VAELoss(LossModule):
 
 def conditional_vae_loss(module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The VAE loss of any loss module holding ``vae_network`` (+ params), ``kl_weight`` and the two keys."""
-    observation = tensordict.get(module.tensor_keys.observation)
-    action = tensordict.get(module.tensor_keys.action)
+    observation = required_entry(module, tensordict, module.tensor_keys.observation)
+    action = required_entry(module, tensordict, module.tensor_keys.action)
     with module.vae_network_params.to_module(module.vae_network, preserve_module_state=False):
         reconstruction, mean, log_std = module.vae_network(observation, action)
     recon, kl = vae_loss_terms(reconstruction, action, mean, log_std)

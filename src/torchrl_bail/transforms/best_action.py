@@ -136,12 +136,13 @@ def best_action_mask(
         border = torch.full(returns.shape[:-1], math.nan, dtype=returns.dtype, device=returns.device)
         return (mask, border) if return_border else mask
     ratio = returns / values
-    ratio = torch.where(torch.isnan(ratio), torch.full_like(ratio, -math.inf), ratio)
+    undefined = torch.isnan(ratio)  # 0 / 0: ranked last and never kept, even when the border reaches it
+    ratio = torch.where(undefined, torch.full_like(ratio, -math.inf), ratio)
     # round() guards floor against representation error (e.g. 0.3 * 10 = 3.0000000000000004)
     k = max(1, math.floor(round(percentile * n, 6)))
     # the k-th largest is the (n - k + 1)-th smallest
     border = torch.kthvalue(ratio, n - k + 1, dim=-1).values
-    mask = ratio >= border.unsqueeze(-1)
+    mask = (ratio >= border.unsqueeze(-1)) & ~undefined
     return (mask, border) if return_border else mask
 
 

@@ -1,0 +1,205 @@
+"""The one table every loss and every algorithm registers in to get the contract suite (tests/test_contract.py).
+
+A new loss: add a :class:`LossCase` to :data:`LOSS_CASES` (a builder taking ``reduction``, the loss terms and the
+parameter groups each must reach, the keys ``set_keys`` may rename). A new algorithm: add an :class:`AlgoCase` to
+:data:`ALGO_CASES` under its registry name (a builder with tiny networks and the tiny CLI overrides). The suite then
+checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round trips, seeds
+and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
+
+The tiny inputs come from :mod:`_batch_rl_testing` (4-d observations, 2-d actions with unequal bounds, 8-8 nets).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from _batch_rl_testing import HIDDEN, OBS, SPEC, batch, bcq_loss, bear_loss, vae
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import EnsembleModule
+
+from torchrl_bail.algorithms import BAIL, BCQ, BEAR, MARWIL, BehaviourCloning, ProgressiveBAIL
+from torchrl_bail.algorithms.bc import make_bc_loss
+from torchrl_bail.modules import make_deterministic_actor, make_value_network
+from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
+
+
+def loss_batch(shape=(6,), seed: int = 0) -> TensorDict:
+    """Every key any case reads: a TED transition batch plus a Monte-Carlo ``return`` of MuJoCo-like size."""
+    td = batch(shape, seed=seed)
+    td.set("return", 10 * torch.randn(*td.batch_size, generator=torch.Generator().manual_seed(seed + 100)))
+    return td
+
+
+@dataclass(frozen=True)
+class LossCase:
+    """How the contract suite builds and feeds one loss.
+
+    Attributes:
+        name: the test id.
+        build: ``build(reduction=...) -> LossModule``; the suite seeds torch before calling it.
+        reaches: each back-propagated output -> the parameter groups (first component of the parameter's name,
+            e.g. ``"actor_network_params"`` or ``"log_alpha"``) it must reach, and no other.
+        rename: ``tensor_keys`` field -> a new data key for ``set_keys`` (the data entry is moved there).
+        stochastic: the loss draws from torch's global generator (latents, actor noise).
+        torchrl_own: TorchRL's own loss (BC): what TorchRL tests (keys, masks, keyword calls, argument checks) is
+            not tested again here.
+        build_ensemble: ``build_ensemble(seeds)`` -> the loss on seed-ensembled networks (``EnsembleModule``).
+    """
+
+    name: str
+    build: Callable[..., torch.nn.Module]
+    reaches: dict[str, frozenset[str]]
+    rename: dict[str, str] = field(default_factory=dict)
+    stochastic: bool = False
+    torchrl_own: bool = False
+    build_ensemble: Callable[[int], torch.nn.Module] | None = None
+
+    def __repr__(self) -> str:  # the test id
+        return self.name
+
+
+def _actor():
+    return make_deterministic_actor(OBS, SPEC, HIDDEN)
+
+
+def _value():
+    return make_value_network(OBS, HIDDEN)
+
+
+def _ensemble(module, seeds: int):
+    return EnsembleModule(module, num_copies=seeds, expand_input=False)
+
+
+def _groups(*names: str) -> frozenset[str]:
+    return frozenset(names)
+
+
+_TWIN_CRITIC_TERMS = {"loss_vae": _groups("vae_network_params"), "loss_qvalue": _groups("qvalue_network_params"),
+                      "loss_actor": _groups("actor_network_params")}
+#: the critics read the loss' observation/action keys, so BCQ and BEAR rename what they read under "next"
+_BOOTSTRAP_RENAME = {"reward": "r", "terminated": "true_end"}
+
+LOSS_CASES = [
+    LossCase("upper_envelope", lambda reduction="mean": UpperEnvelopeLoss(_value(), reduction=reduction),
+             {"loss_envelope": _groups("value_network_params")}, rename={"value_target": "mc_return"},
+             build_ensemble=lambda seeds: UpperEnvelopeLoss(_ensemble(_value(), seeds), reduction="none")),
+    LossCase("marwil", lambda reduction="mean": MARWILLoss(_actor(), _value(), reduction=reduction),
+             {"loss_actor": _groups("actor_network_params"), "loss_value": _groups("value_network_params")},
+             rename={"value_target": "mc_return"},
+             build_ensemble=lambda seeds: MARWILLoss(_ensemble(_actor(), seeds), _ensemble(_value(), seeds),
+                                                     reduction="none")),
+    LossCase("vae", lambda reduction="mean": VAELoss(vae(), reduction=reduction),
+             {"loss_vae": _groups("vae_network_params")},
+             rename={"observation": "state", "action": "behaviour_action"}, stochastic=True),
+    LossCase("bc", lambda reduction="mean": make_bc_loss(_actor(), reduction=reduction),
+             {"loss_bc": _groups("actor_network_params")}, torchrl_own=True),
+    LossCase("bcq", lambda reduction="mean": bcq_loss(reduction=reduction), _TWIN_CRITIC_TERMS,
+             rename=_BOOTSTRAP_RENAME, stochastic=True),
+    # BEAR's actor objective switches after the warm start: both objectives must keep to the actor
+    LossCase("bear_warm_start", lambda reduction="mean": bear_loss(reduction=reduction),
+             {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
+    LossCase("bear", lambda reduction="mean": bear_loss(reduction=reduction, warm_start_updates=0),
+             {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
+]
+
+
+@dataclass(frozen=True)
+class AlgoCase:
+    """How the contract suite builds one algorithm of the registry ``ALGORITHMS``.
+
+    Attributes:
+        name: the registry name (``algo.name``).
+        build: ``build() -> Algorithm`` with tiny networks and mini-batches of :data:`ALGO_BATCH`; the suite seeds
+            torch before calling it.
+        cli: the config overrides that make a run through the config and ``run`` take seconds.
+        not_updated: modules outside the optimizers of :meth:`update` (BAIL's envelope is fitted in ``prepare``,
+            Progressive BAIL's selection envelope receives copied weights).
+    """
+
+    name: str
+    build: Callable[[], object]
+    cli: tuple[str, ...]
+    not_updated: frozenset[str] = frozenset()
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+ALGO_BATCH = 16
+_TINY = {"obs_dim": OBS, "action_spec": SPEC, "batch_size": ALGO_BATCH, "epochs": 1}
+_NETS = {"vae": {"hidden": HIDDEN}, "actor": {"hidden": HIDDEN}, "critic": {"hidden": HIDDEN}}
+_ENVELOPE = {"hidden": HIDDEN}
+_SMALL_POLICY = "algo.policy.hidden=[16,16]"
+_TWIN_CRITIC_NETS = ("algo.vae.hidden=[16,16]", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")
+
+ALGO_CASES = {case.name: case for case in [
+    AlgoCase("bc", lambda: BehaviourCloning(hidden=HIDDEN, **_TINY), ("algo.epochs=0.005", _SMALL_POLICY)),
+    AlgoCase("bail", lambda: BAIL(hidden=HIDDEN, envelope={**_ENVELOPE, "epochs": 3, "batch_size": 16}, **_TINY),
+             ("algo.epochs=0.005", "algo.envelope.epochs=3", "algo.envelope.batch_size=200", _SMALL_POLICY),
+             not_updated=frozenset({"envelope"})),
+    AlgoCase("pbail", lambda: ProgressiveBAIL(hidden=HIDDEN, envelope={**_ENVELOPE, "validate_every": 2}, **_TINY),
+             ("algo.epochs=0.004", "algo.envelope.validate_every=2", _SMALL_POLICY),
+             not_updated=frozenset({"selection_envelope"})),
+    AlgoCase("marwil", lambda: MARWIL(hidden=HIDDEN, value_hidden=HIDDEN, c2_rate=0.01, **_TINY),
+             ("algo.epochs=0.005", _SMALL_POLICY)),
+    AlgoCase("bcq", lambda: BCQ(**_NETS, **_TINY), ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
+    AlgoCase("bear", lambda: BEAR(**_NETS, warm_start_updates=2, **_TINY),
+             ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
+]}
+
+#: transitions in the tiny batch every tiny end-to-end run shares
+TINY_STEPS = 600
+#: the tiny run: a batch of a tiny DDPG's 600 Hopper transitions (its updates dominate the cost), one evaluation
+TINY_RUN = (
+    "+exp=hopper_ddpg05", "preset=quick", "progress=false", "samples_per_epoch=1000000",
+    f"batch.steps={TINY_STEPS}", "batch.start_steps=300", "batch.agent.actor_hidden=[8,8]",
+    "batch.agent.critic_hidden=[8,8]", "batch.agent.batch_size=16", "env.max_episode_steps=100",
+    "returns.horizon=100", "eval.episodes=1", "eval.max_steps=100", "eval.every_epochs=0.002",
+)
+
+
+def row_noise(*size, dtype=None, device=None, **_) -> torch.Tensor:
+    """A stand-in for ``torch.randn`` whose values depend only on an element's last two indices.
+
+    A loss evaluated on ``[S, B]`` then draws, for each seed, the very numbers ``S`` separate ``[B]`` calls draw,
+    so per-seed results of stochastic losses can be compared exactly.
+    """
+    shape = tuple(size[0]) if len(size) == 1 and not isinstance(size[0], int) else tuple(size)
+    rows, cols = (shape[-2] if len(shape) > 1 else 1), (shape[-1] if shape else 1)
+    grid = torch.arange(rows).unsqueeze(-1) * 0.37 + torch.arange(cols) * 0.91 + 0.2
+    noise = torch.sin(grid).to(dtype=dtype or torch.get_default_dtype(), device=device)
+    return noise.reshape((rows, cols)[-len(shape):] if shape else ()).expand(shape).contiguous()
+
+
+def row_noise_like(tensor: torch.Tensor, **kwargs) -> torch.Tensor:
+    return row_noise(tensor.shape, dtype=kwargs.get("dtype", tensor.dtype), device=tensor.device)
+
+
+def equal_trees(a, b, path: str = "state") -> None:
+    """Asserts that two (nested) state dicts hold the same values, tensors and arrays bit for bit (whatever an
+    algorithm's ``state_dict`` grows to hold: dicts, lists, tensordicts, generator states, plain values)."""
+    if isinstance(a, TensorDictBase):
+        assert isinstance(b, TensorDictBase), path
+        equal_trees(a.to_dict(), b.to_dict(), path)
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), path
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{path}: keys {sorted(a)} != {sorted(b)}"
+        for key in a:
+            equal_trees(a[key], b[key], f"{path}[{key!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            equal_trees(x, y, f"{path}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.shape == b.shape and a.dtype == b.dtype, path
+        assert torch.equal(a, b) or (a.is_floating_point() and torch.equal(a.isnan(), b.isnan())
+                                     and torch.equal(a.nan_to_num(), b.nan_to_num())), path
+    elif isinstance(a, float) and math.isnan(a):
+        assert isinstance(b, float) and math.isnan(b), path
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"

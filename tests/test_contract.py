@@ -1,0 +1,363 @@
+"""The contract every loss and every algorithm keeps, run over the cases registered in tests/_contract.py.
+
+Losses: each back-propagated term reaches only its own parameters and never a target network; ``set_keys`` renames
+what the loss reads; the three reductions agree; an ``[S, B]`` batch gives, seed by seed, what ``S`` separate
+``[B]`` calls give (masks and seed-ensembled networks included); keyword calls equal tensordict calls; a
+``state_dict`` round trip gives identical outputs.
+
+Algorithms (every entry of the registry ``ALGORITHMS``): optimizers own disjoint parameters and all step; the
+policy acts within the bounds; same seed, same numbers; a checkpoint round trip continues identically; a tiny run
+through the config and ``torchrl_bail.train.run`` writes its artifacts.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import math
+
+import pytest
+import torch
+from _batch_rl_testing import ACT, OBS, SPEC, one_thread  # noqa: F401 (autouse fixture)
+from _contract import (
+    ALGO_BATCH,
+    ALGO_CASES,
+    LOSS_CASES,
+    TINY_RUN,
+    TINY_STEPS,
+    equal_trees,
+    loss_batch,
+    row_noise,
+    row_noise_like,
+)
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.objectives import BCLoss, LossModule
+
+import torchrl_bail.objectives
+from torchrl_bail import config_dir
+from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
+
+REDUCTIONS = ("none", "mean", "sum")
+loss_cases = pytest.mark.parametrize("case", LOSS_CASES, ids=repr)
+algo_cases = pytest.mark.parametrize("case", list(ALGO_CASES.values()), ids=repr)
+
+
+# -- helpers ----------------------------------------------------------------------------------------------------
+def _build(case, seed: int = 0, **kwargs):
+    torch.manual_seed(seed)
+    return case.build(**kwargs)
+
+
+def _call(loss, td, seed: int = 1):
+    """The loss' outputs on ``td`` with torch's global generator at ``seed`` (stochastic losses draw from it)."""
+    torch.manual_seed(seed)
+    return loss(td)
+
+
+def _group(name: str) -> str:
+    return name.split(".")[0]
+
+
+def _groups_with_grad(loss) -> set[str]:
+    return {_group(name) for name, p in loss.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+
+
+def _target_tensors(loss) -> list[torch.Tensor]:
+    groups = {_group(name) for name, _ in loss.named_parameters()}
+    out = []
+    for group in groups:
+        target = getattr(loss, f"target_{group}", None)
+        if target is not None:
+            out.extend(target.values(True, True))
+    return out
+
+
+def _assert_outputs_equal(a, b) -> None:
+    assert set(a.keys()) == set(b.keys())
+    for key in a.keys():
+        torch.testing.assert_close(a[key], b[key], msg=lambda m, key=key: f"{key}: {m}")
+
+
+def _rename_entries(td: TensorDict, old: str, new: str) -> TensorDict:
+    """Moves every entry whose last key is ``old`` (at the root or under ``"next"``) to ``new``."""
+    td = td.clone(False)
+    for key in list(td.keys(True, True)):
+        path = key if isinstance(key, tuple) else (key,)
+        if path[-1] == old:
+            td.rename_key_(key, (*path[:-1], new) if len(path) > 1 else new)
+    return td
+
+
+def _leaf(key) -> str:
+    return key[-1] if isinstance(key, tuple) else key
+
+
+# -- the registry is covered ------------------------------------------------------------------------------------
+def test_every_loss_and_algorithm_has_a_contract_case():
+    losses = {obj for name in torchrl_bail.objectives.__all__
+              if isinstance(obj := getattr(torchrl_bail.objectives, name), type) and issubclass(obj, LossModule)}
+    covered = {type(_build(case)) for case in LOSS_CASES}
+    missing = {cls.__name__ for cls in losses | {BCLoss}} - {cls.__name__ for cls in covered}
+    assert not missing, f"register a LossCase for {sorted(missing)} in tests/_contract.py"
+    assert set(ALGO_CASES) == set(ALGORITHMS), "register an AlgoCase for every ALGORITHMS entry in tests/_contract.py"
+
+
+# -- losses ---------------------------------------------------------------------------------------------------------
+@loss_cases
+def test_loss_outputs_and_which_parameters_each_term_reaches(case):
+    loss = _build(case)
+    out = _call(loss, loss_batch())
+    assert {key for key in out.keys() if key.startswith("loss")} == set(case.reaches)
+    for key, value in out.items():
+        assert value.shape == (), key
+        assert value.requires_grad == (key in case.reaches), key
+    params = list(loss.parameters())
+    assert len({id(p) for p in params}) == len(params), "a parameter is listed twice"
+    targets = _target_tensors(loss)
+    for term, groups in case.reaches.items():
+        loss.zero_grad(set_to_none=True)
+        _call(loss, loss_batch())[term].backward()
+        assert _groups_with_grad(loss) == groups, term
+        assert all(not t.requires_grad and t.grad is None for t in targets), f"{term} reached a target network"
+    loss.zero_grad(set_to_none=True)
+    out = _call(loss, loss_batch())
+    sum(out[term] for term in case.reaches).backward()
+    untrained = [name for name, p in loss.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
+    assert not untrained, f"parameters no term trains: {untrained}"
+
+
+@loss_cases
+def test_set_keys_renames_what_the_loss_reads(case):
+    if not case.rename:
+        pytest.skip(f"{case.name} reads no key it could rename")
+    td = loss_batch()
+    expected = _call(_build(case), td)
+    loss = _build(case)
+    defaults = {field: getattr(loss.tensor_keys, field) for field in case.rename}
+    loss.set_keys(**case.rename)
+    renamed = td
+    for field, new in case.rename.items():
+        renamed = _rename_entries(renamed, defaults[field], new)
+    leaves = {_leaf(key) for key in loss.in_keys}
+    assert set(case.rename.values()) <= leaves and not set(defaults.values()) & leaves, loss.in_keys
+    _assert_outputs_equal(_call(loss, renamed), expected)
+    with pytest.raises(KeyError):
+        _call(loss, td)  # the old names are no longer read
+    with pytest.raises(ValueError):
+        loss.set_keys(no_such_key="x")
+    loss.set_keys(**dict.fromkeys(case.rename))
+    assert {field: getattr(loss.tensor_keys, field) for field in case.rename} == defaults
+
+
+@loss_cases
+def test_reductions_agree(case):
+    td = loss_batch()
+    outs = {reduction: _call(_build(case, reduction=reduction), td) for reduction in REDUCTIONS}
+    for key in outs["none"].keys():
+        none, mean, total = outs["none"][key], outs["mean"][key], outs["sum"][key]
+        if key in case.reaches:
+            assert none.shape[0] == td.shape[0], key
+            torch.testing.assert_close(mean, none.mean())
+            torch.testing.assert_close(total, none.sum())
+        else:  # diagnostics do not depend on the reduction
+            torch.testing.assert_close(mean, none)
+            torch.testing.assert_close(total, none)
+    if not case.torchrl_own:
+        with pytest.raises(ValueError, match="reduction"):
+            _build(case, reduction="max")
+
+
+@loss_cases
+@pytest.mark.parametrize("reduction", REDUCTIONS)
+def test_seed_batch_equals_separate_calls(case, reduction, monkeypatch):
+    """``[S, B]`` -> per seed what ``S`` separate ``[B]`` calls give (in eval mode: no running statistic moves)."""
+    loss = _build(case, reduction=reduction).eval()
+    td = loss_batch((3, 5))
+    if case.stochastic:  # the same noise for a seed's rows whether it runs alone or beside the others
+        monkeypatch.setattr(torch, "randn", row_noise)
+        monkeypatch.setattr(torch, "randn_like", row_noise_like)
+    out = loss(td)
+    separate = [loss(td[s]) for s in range(3)]
+    for key, value in out.items():
+        per_seed = torch.stack([sep[key] for sep in separate])
+        if key in case.reaches and reduction != "none":
+            expected = per_seed.mean() if reduction == "mean" else per_seed.sum()
+        elif value.shape == separate[0][key].shape:  # one value for all seeds (e.g. BEAR's alpha)
+            assert (per_seed == per_seed[0]).all(), key
+            expected = separate[0][key]
+        else:
+            expected = per_seed
+        torch.testing.assert_close(value, expected, msg=lambda m, key=key: f"{key}: {m}")
+
+
+@pytest.mark.parametrize("case", [c for c in LOSS_CASES if not c.torchrl_own], ids=repr)
+def test_masks_reduce_each_seed_over_its_own_points(case):
+    td = loss_batch((2, 3))
+    td["valid"] = torch.tensor([[True, True, False], [True, False, False]])
+    outs = {}
+    for reduction in ("none", "mean"):
+        loss = _build(case, reduction=reduction)
+        loss.loss_mask_key = "valid"
+        outs[reduction] = _call(loss, td)
+    for term in case.reaches:
+        none = outs["none"][term]
+        assert (none[~td["valid"]] == 0).all(), term
+        expected = ((none[0, 0] + none[0, 1]) / 2 + none[1, 0]) / 2
+        torch.testing.assert_close(outs["mean"][term], expected, msg=term)
+
+
+@pytest.mark.parametrize("case", [c for c in LOSS_CASES if not c.torchrl_own], ids=repr)
+def test_keyword_call_matches_the_tensordict_call(case):
+    loss = _build(case)
+    td = loss_batch()
+    expected = _call(loss, td)
+    terms = sorted(case.reaches)
+    loss.select_out_keys(*terms)
+    kwargs = {"_".join(key) if isinstance(key, tuple) else key: td.get(key) for key in loss.in_keys}
+    torch.manual_seed(1)
+    got = loss(**kwargs)
+    got = got if isinstance(got, tuple) else (got,)
+    for term, value in zip(terms, got):
+        torch.testing.assert_close(value, expected[term], msg=term)
+
+
+@loss_cases
+def test_loss_state_dict_round_trip(case):
+    loss = _build(case, seed=0)
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    buffer = io.BytesIO()
+    torch.save(loss.state_dict(), buffer)
+    buffer.seek(0)
+    other = _build(case, seed=1)
+    other.load_state_dict(torch.load(buffer))
+    equal_trees(other.state_dict(), loss.state_dict())
+    _assert_outputs_equal(_call(other, loss_batch()), _call(loss, loss_batch()))
+
+
+@pytest.mark.parametrize("case", [c for c in LOSS_CASES if c.build_ensemble], ids=repr)
+def test_seed_ensemble_gradients_stay_in_their_seed(case):
+    seeds = 3
+    torch.manual_seed(0)
+    loss = case.build_ensemble(seeds)
+    out = loss(loss_batch((seeds, 7)))
+    for term in case.reaches:
+        loss.zero_grad(set_to_none=True)
+        assert out[term].shape == (seeds, 7), term
+        out[term].mean(-1)[1].backward(retain_graph=True)
+        stacked = [p for p in loss.parameters() if p.grad is not None and p.grad.abs().sum() > 0]
+        assert stacked, term
+        for p in stacked:  # the [S, ...] copies: only seed 1's slice moves
+            assert p.shape[0] == seeds and p.grad[0].abs().sum() == 0 and p.grad[2].abs().sum() == 0, term
+
+
+# -- algorithms -----------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
+def _algo_data() -> TensorDict:
+    return loss_batch((64,), seed=3)
+
+
+def _prepared(case, init_seed: int = 0, data_seed: int = 0):
+    """The algorithm built under ``init_seed`` and its training data, prepared with a ``data_seed`` generator."""
+    torch.manual_seed(init_seed)
+    algo = case.build()
+    data = algo.prepare(_algo_data().clone(), PrepareContext(generator=torch.Generator().manual_seed(data_seed)))
+    return algo, data
+
+
+def _updates(algo, data, n: int, seed: int) -> list[dict]:
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    return [algo.update(data[torch.randint(len(data), (ALGO_BATCH,), generator=g)]) for _ in range(n)]
+
+
+@torch.no_grad()
+def _act(algo, seed: int = 5) -> torch.Tensor:
+    """The policy's actions on four fixed observations, evaluated as the evaluator does (without gradient)."""
+    torch.manual_seed(seed)
+    observation = torch.randn(4, OBS, generator=torch.Generator().manual_seed(seed))
+    return algo.policy(TensorDict({"observation": observation}, [4]))["action"]
+
+
+def _metrics_equal(a: list[dict], b: list[dict]) -> bool:
+    return all(x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x) for x, y in zip(a, b))
+
+
+@algo_cases
+def test_optimizers_own_disjoint_parameters_and_every_one_steps(case):
+    algo, data = _prepared(case)
+    owner = {}
+    for name, optimizer in algo.optimizers.items():
+        for group in optimizer.param_groups:
+            for p in group["params"]:
+                assert id(p) not in owner, f"a parameter is in optimizers {owner.get(id(p))} and {name}"
+                owner[id(p)] = name
+    for module_name, module in algo.modules.items():
+        for key, tensor in module.state_dict(keep_vars=True).items():
+            if "target_" in key:
+                assert id(tensor) not in owner, f"target {module_name}.{key} is in an optimizer"
+        for key, p in module.named_parameters():
+            updated = id(p) in owner
+            assert updated != (module_name in case.not_updated), f"{module_name}.{key} in an optimizer: {updated}"
+    before = {name: [p.detach().clone() for g in o.param_groups for p in g["params"]]
+              for name, o in algo.optimizers.items()}
+    metrics = _updates(algo, data, 1, seed=1)[0]
+    for name, optimizer in algo.optimizers.items():
+        after = [p for g in optimizer.param_groups for p in g["params"]]
+        assert any(not torch.equal(x, y) for x, y in zip(before[name], after)), f"optimizer {name} did not step"
+    for key, value in metrics.items():
+        assert isinstance(value, torch.Tensor) and not value.requires_grad and value.numel() == 1, key
+        assert torch.isfinite(value), key
+
+
+@algo_cases
+def test_policy_acts_within_the_bounds(case):
+    algo, _ = _prepared(case)
+    action = _act(algo)
+    assert action.shape == (4, ACT)
+    assert ((action >= SPEC.space.low) & (action <= SPEC.space.high)).all()
+    single = algo.policy(TensorDict({"observation": torch.zeros(OBS)}, []))["action"]
+    assert single.shape == (ACT,)
+
+
+@algo_cases
+def test_same_seed_same_numbers(case):
+    def run(seed):
+        algo, data = _prepared(case, init_seed=seed, data_seed=seed)
+        return _updates(algo, data, 3, seed=seed), _act(algo), algo.summary()
+
+    (m1, a1, s1), (m2, a2, s2), (m3, a3, _) = run(0), run(0), run(1)
+    assert _metrics_equal(m1, m2) and torch.equal(a1, a2)
+    equal_trees(s1, s2, "summary")
+    assert not (_metrics_equal(m1, m3) and torch.equal(a1, a3)), "another seed gave the same numbers"
+
+
+@algo_cases
+def test_checkpoint_round_trip_continues_identically(case):
+    """Through bytes, as the trainer's checkpoint: whatever ``state_dict`` holds comes back, and the next updates
+    (and actions) are those of the uninterrupted run. A resumed run prepares its data with the same seed."""
+    algo, data = _prepared(case, init_seed=0)
+    _updates(algo, data, 2, seed=1)
+    buffer = io.BytesIO()
+    torch.save(algo.state_dict(), buffer)
+    buffer.seek(0)
+    resumed, _ = _prepared(case, init_seed=1)
+    resumed.load_state_dict(torch.load(buffer, weights_only=False))
+    equal_trees(resumed.state_dict(), algo.state_dict())
+    assert _metrics_equal(_updates(resumed, data, 2, seed=2), _updates(algo, data, 2, seed=2))
+    assert torch.equal(_act(resumed), _act(algo))
+
+
+@algo_cases
+def test_tiny_run_through_the_config(case, tiny_run_data_dir, tmp_path):
+    from torchrl_bail.train import run
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY_RUN, f"algo={case.name}", *case.cli, f"data_dir={tiny_run_data_dir}"])
+    summary = run(cfg, tmp_path)
+    assert (summary["algo"], summary["num_transitions"]) == (case.name, TINY_STEPS)
+    assert math.isfinite(summary["final_return"]) and summary["iterations"] >= 1
+    for name in ("summary.json", "policy.pt", "checkpoint.pt", "learning_curve.png", "config.yaml"):
+        assert (tmp_path / name).stat().st_size > 0, name
