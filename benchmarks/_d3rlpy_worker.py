@@ -9,11 +9,15 @@ imported here.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import warnings
 
 warnings.filterwarnings("ignore")
+# replies go to the original stdout; everything d3rlpy or gym print goes to stderr
+REPLY = os.fdopen(os.dup(1), "w")
+os.dup2(2, 1)
 
 import d3rlpy  # noqa: E402
 import numpy as np  # noqa: E402
@@ -66,7 +70,7 @@ def main() -> None:
     np.random.seed(0)
     data = dataset(cfg["transitions"], cfg["obs"], cfg["act"])
     algos = build(cfg, data)
-    print(json.dumps({"d3rlpy": d3rlpy.__version__, "torch": torch.__version__}), flush=True)
+    print(json.dumps({"d3rlpy": d3rlpy.__version__, "torch": torch.__version__}), file=REPLY, flush=True)
     for line in sys.stdin:
         parts = line.split()
         if not parts or parts[0] == "quit":
@@ -77,7 +81,7 @@ def main() -> None:
         start = time.perf_counter()
         for _ in range(n):
             algo.update(data.sample_transition_batch(batch_size))
-        print(n / (time.perf_counter() - start), flush=True)
+        print(n / (time.perf_counter() - start), file=REPLY, flush=True)
 
 
 if __name__ == "__main__":

@@ -63,9 +63,10 @@ class TwinCriticVAEAlgorithm(Algorithm):
             raise ValueError(f"algo.tau must be in (0, 1], got {tau}")
         self.loss = loss.to(self.device)
         self.target_updater = fused_soft_update(self.loss, tau=float(tau))
-        self.optimizers["vae"] = torch.optim.Adam(self.loss.vae_network_params.parameters(), lr=vae_lr)
-        self.optimizers["critic"] = torch.optim.Adam(self.loss.qvalue_network_params.parameters(), lr=critic_lr)
-        self.optimizers["actor"] = torch.optim.Adam(self.loss.actor_network_params.parameters(), lr=actor_lr)
+        self.optimizers["vae"] = torch.optim.Adam(self.loss.vae_network_params.parameters(), lr=vae_lr, foreach=True)
+        self.optimizers["critic"] = torch.optim.Adam(self.loss.qvalue_network_params.parameters(), lr=critic_lr,
+                                                foreach=True)
+        self.optimizers["actor"] = torch.optim.Adam(self.loss.actor_network_params.parameters(), lr=actor_lr, foreach=True)
         self.modules["loss"] = self.loss
         self._policy = BestOfNPolicy(self.loss, num_samples)
 
