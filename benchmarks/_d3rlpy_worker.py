@@ -2,7 +2,7 @@
 
 It builds d3rlpy 2.8's BCQ, BEAR and BC at the sizes ``bench_d3rlpy.py`` passes, then answers lines on stdin:
 ``<algo> <n>`` runs ``n`` training iterations of ``<algo>`` (``sample_transition_batch`` + ``update``, what
-d3rlpy's ``fit`` runs per step) and prints ``<updates/s>``; ``quit`` ends it. Only numpy, torch and d3rlpy are
+d3rlpy's ``fit`` runs per step) and prints ``<updates per wall-clock second> <updates per CPU second>``; ``quit`` ends it. Only numpy, torch and d3rlpy are
 imported here.
 """
 
@@ -78,10 +78,10 @@ def main() -> None:
         name, n = parts[0], int(parts[1])
         algo = algos[name]
         batch_size = algo.config.batch_size
-        start = time.perf_counter()
+        wall, cpu = time.perf_counter(), time.process_time()
         for _ in range(n):
             algo.update(data.sample_transition_batch(batch_size))
-        print(n / (time.perf_counter() - start), file=REPLY, flush=True)
+        print(n / (time.perf_counter() - wall), n / (time.process_time() - cpu), file=REPLY, flush=True)
 
 
 if __name__ == "__main__":

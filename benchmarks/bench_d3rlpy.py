@@ -13,6 +13,10 @@ Both sides time one training iteration as each library's training loop runs it: 
 long-lived subprocess (``_d3rlpy_worker.py`` under ``--python``); rounds alternate between the two sides so a
 noisy neighbour hits both, and the table reports the medians and ``ratio = torchrl_bail / d3rlpy``.
 
+Rates are per CPU second of the timed process (``time.process_time``; one thread, so this is the rate an idle
+core would give) and, beside them, per wall-clock second. On a shared machine the wall-clock rounds swing by 2x
+with the neighbours' load; CPU time is what stays comparable between rounds.
+
 Sizes (the BAIL paper's baselines, arXiv:1910.12179, Sec. 5 and supplement): 100k synthetic transitions with
 |S| = 11, |A| = 3; BCQ: VAE 750-750 with latent 2|A|, actor and two critics 400-300, batch 100, 10 sampled
 actions in the target, Adam 1e-3 everywhere; BEAR: the same plus 5 MMD samples, Laplacian kernel
@@ -50,9 +54,10 @@ import os
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
-from _bench import rate, write_json
+from _bench import write_json
 
 import torch  # noqa: E402
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  # noqa: E402
@@ -84,15 +89,24 @@ class D3rlpySide:
             raise SystemExit(f"the d3rlpy worker did not start under {python} (is d3rlpy 2.8 installed there?)")
         self.versions = json.loads(header)
 
-    def rate(self, name: str, n: int) -> float:
+    def rates(self, name: str, n: int) -> tuple[float, float]:
         self.proc.stdin.write(f"{name} {n}\n")
         self.proc.stdin.flush()
-        return float(self.proc.stdout.readline())
+        wall, cpu = self.proc.stdout.readline().split()
+        return float(wall), float(cpu)
 
     def close(self) -> None:
         self.proc.stdin.write("quit\n")
         self.proc.stdin.close()
         self.proc.wait()
+
+
+def rates(fn, n: int) -> tuple[float, float]:
+    """``(calls per wall-clock second, calls per CPU second of this process)`` over ``n`` calls of ``fn``."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(n):
+        fn()
+    return n / (time.perf_counter() - wall), n / (time.process_time() - cpu)
 
 
 def our_updates(data) -> dict:
@@ -125,24 +139,30 @@ def main() -> None:
     try:
         for algo in args.algos.split(","):
             n = args.updates * (5 if algo == "bc" else 1)
-            rate(ours[algo], 0, warmup=5)
-            peer.rate(algo, 5)
+            rates(ours[algo], 5)
+            peer.rates(algo, 5)
             lib, d3 = [], []
             for _ in range(args.repeats):
-                lib.append(rate(ours[algo], n, warmup=0))
-                d3.append(peer.rate(algo, n))
-            a, b = statistics.median(lib), statistics.median(d3)
-            rows.append({"name": names[algo], "unit": "updates/s", "torchrl_bail": a, "d3rlpy": b, "ratio": a / b,
-                         "rounds_torchrl_bail": lib, "rounds_d3rlpy": d3})
-            print(f"{names[algo]:<26} torchrl_bail {a:8.1f}  d3rlpy {b:8.1f}  ratio {a / b:5.2f}", flush=True)
+                lib.append(rates(ours[algo], n))
+                d3.append(peer.rates(algo, n))
+            row = {"name": names[algo], "unit": "updates/s"}
+            for i, clock in enumerate(("cpu", "wall")):
+                a, b = statistics.median(r[i] for r in lib), statistics.median(r[i] for r in d3)
+                row.update({f"torchrl_bail_{clock}": a, f"d3rlpy_{clock}": b, f"ratio_{clock}": a / b})
+            row.update(rounds_torchrl_bail=lib, rounds_d3rlpy=d3)
+            rows.append(row)
+            print(f"{names[algo]:<26} CPU-time rates: torchrl_bail {row['torchrl_bail_cpu']:7.1f}  d3rlpy "
+                  f"{row['d3rlpy_cpu']:7.1f}  ratio {row['ratio_cpu']:5.2f}   (wall clock: {row['ratio_wall']:.2f})",
+                  flush=True)
     finally:
         peer.close()
     print(f"\nupdates/s, medians of {args.repeats} alternating rounds (torch {torch.__version__}, "
           f"{args.threads} thread(s); d3rlpy {peer.versions['d3rlpy']} with torch {peer.versions['torch']}; "
           f"load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(f"{'case':<26} {'torchrl_bail':>13} {'d3rlpy':>9} {'ratio':>7}")
+    print(f"{'case':<26} {'torchrl_bail':>13} {'d3rlpy':>9} {'ratio':>7}   {'(wall clock ratio)':>18}")
     for r in rows:
-        print(f"{r['name']:<26} {r['torchrl_bail']:>13.1f} {r['d3rlpy']:>9.1f} {r['ratio']:>7.2f}")
+        print(f"{r['name']:<26} {r['torchrl_bail_cpu']:>13.1f} {r['d3rlpy_cpu']:>9.1f} {r['ratio_cpu']:>7.2f}   "
+              f"{r['ratio_wall']:>18.2f}")
     write_json(rows, args.json)
 
 
