@@ -146,7 +146,7 @@ def main() -> None:
                 lib.append(rates(ours[algo], n))
                 d3.append(peer.rates(algo, n))
             row = {"name": names[algo], "unit": "updates/s"}
-            for i, clock in enumerate(("cpu", "wall")):
+            for i, clock in enumerate(("wall", "cpu")):
                 a, b = statistics.median(r[i] for r in lib), statistics.median(r[i] for r in d3)
                 row.update({f"torchrl_bail_{clock}": a, f"d3rlpy_{clock}": b, f"ratio_{clock}": a / b})
             row.update(rounds_torchrl_bail=lib, rounds_d3rlpy=d3)

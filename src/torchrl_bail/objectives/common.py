@@ -95,7 +95,7 @@ class _PlainMLP:
     """
 
     def __init__(self, steps: list) -> None:
-        self.steps = steps  # (weight key, bias key | None) for a Linear, the layer itself otherwise
+        self.steps = steps  # (weight key, bias key | None) for a Linear, torch.relu_ or the layer itself otherwise
         self.keys = [key for step in steps if isinstance(step, tuple) for key in step if key is not None]
 
     @classmethod
@@ -108,6 +108,8 @@ class _PlainMLP:
         for name, layer in module.named_children():
             if type(layer) is nn.Linear:
                 steps.append((prefix + (name, "weight"), prefix + (name, "bias") if layer.bias is not None else None))
+            elif type(layer) is nn.ReLU and steps and isinstance(steps[-1], tuple):
+                steps.append(torch.relu_)
             elif next(layer.parameters(), None) is None and next(layer.buffers(), None) is None:
                 steps.append(layer)
             else:
@@ -124,7 +126,7 @@ class _PlainMLP:
         for step in self.steps:
             if isinstance(step, tuple):
                 x = nn.functional.linear(x, weights[step[0]], None if step[1] is None else weights[step[1]])
-            else:
+            else:  # torch.relu_ after a Linear (whose backward never reads its output) or a parameter-free layer
                 x = step(x)
         return x
 
