@@ -34,6 +34,7 @@ from torchrl_bail.algorithms.twin_critic_vae import (
     NET_DEFAULTS,
     VAE_DEFAULTS,
     TwinCriticVAEAlgorithm,
+    adam,
     build_vae_and_critics,
     use_vmap,
 )
@@ -108,7 +109,7 @@ class BEAR(TwinCriticVAEAlgorithm):
                         kl_weight=kl_weight, deactivate_vmap=not use_vmap(critic["vmap"], device))
         super().__init__(loss=loss, vae_lr=vae["lr"], critic_lr=critic["lr"], actor_lr=actor["lr"], tau=tau,
                          num_samples=num_samples, batch_size=batch_size, epochs=epochs, device=device)
-        self.optimizers["alpha"] = torch.optim.Adam([self.loss.log_alpha], lr=lagrange_lr)
+        self.optimizers["alpha"] = adam([self.loss.log_alpha], lagrange_lr)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         metrics = self._update_vae_and_critics(batch)

@@ -82,7 +82,8 @@ class BCQLoss(TwinCriticVAELoss):
       samples perturbed by the *current* actor, argmax of the *current* ``Q_1``; it samples whatever the
       exploration type (this is the authors' deterministic test-time procedure) and works for any batch of envs.
     * **Twin critics** are stacked parameters (TorchRL's ``expand_dim`` idiom) run by ``torch.vmap``, or by a
-      loop over the two slices with ``deactivate_vmap=True`` (faster on CPU: two matmuls beat one batched one).
+      loop over the two slices with ``deactivate_vmap=True`` (faster on CPU: two matmuls beat one batched one);
+      MLP critics then run straight from the stacked tensors (``F.linear``, no ``to_module``), bit-identically.
     * **No priority/TD-error output**: the batch is sampled uniformly.
 
     Outputs of :meth:`forward`: ``loss_vae``, ``loss_qvalue``, ``loss_actor`` and the detached diagnostics
