@@ -124,6 +124,12 @@ class _Checked:
     def check(self) -> None:
         """Cross-field rules; raise :class:`ConfigError` with the (relative) key."""
 
+    def _registered_as(self, key: str, registry: dict[str, type], hint: str) -> None:
+        """``key`` must hold the name this schema has in ``registry`` (:data:`ALGO_SCHEMAS`, :data:`BATCH_SCHEMAS`)."""
+        name = next(name for name, schema in registry.items() if schema is type(self))
+        if getattr(self, key) != name:
+            raise ConfigError(key, getattr(self, key), f"{name} ({hint})")
+
     def _ordered(self, low: str, high: str) -> None:
         if not getattr(self, low) < getattr(self, high):
             raise ConfigError(low, getattr(self, low), f"less than {high} = {getattr(self, high)}")
@@ -163,11 +169,8 @@ class BatchConfig(_Checked):
     steps: int = positive("a positive number of transitions")
     oracle: OracleConfig = MISSING
 
-    RECIPE = ""  # the recipe this schema describes
-
     def check(self) -> None:
-        if self.recipe != self.RECIPE:
-            raise ConfigError("recipe", self.recipe, f"{self.RECIPE} (the recipe of this batch schema)")
+        self._registered_as("recipe", BATCH_SCHEMAS, "the recipe of this batch schema")
 
 
 @dataclass
@@ -188,8 +191,6 @@ class DDPGBatchConfig(BatchConfig):
     sigma: float = non_negative("a non-negative noise std (absolute, not scaled by the action bound)")
     start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
     agent: DDPGAgentConfig = MISSING
-
-    RECIPE = "ddpg"
 
 
 @dataclass
@@ -220,8 +221,6 @@ class SACAgentConfig(_Checked):
 class SACBatchConfig(BatchConfig):
     sac: SACAgentConfig = MISSING
 
-    RECIPE = "sac"
-
     def check(self) -> None:
         super().check()
         if self.steps > self.sac.train_steps:
@@ -234,8 +233,6 @@ class SACExecBatchConfig(BatchConfig):
     sac: SACAgentConfig = MISSING
     policy: str = one_of("mediocre", "optimal")
     stochastic: bool = MISSING
-
-    RECIPE = "sac_exec"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -255,11 +252,8 @@ class AlgoConfig(_Checked):
     batch_size: int = at_least(1, "a positive mini-batch size")
     epochs: float = positive("a positive number of epochs (10^6 samples each)")
 
-    NAME = ""
-
     def check(self) -> None:
-        if self.name != self.NAME:
-            raise ConfigError("name", self.name, f"{self.NAME} (choose the algorithm with algo=<name>)")
+        self._registered_as("name", ALGO_SCHEMAS, "choose the algorithm with algo=<name>")
 
 
 @dataclass
@@ -297,8 +291,6 @@ class BAILConfig(AlgoConfig):
     selection: BAILSelectionConfig = MISSING
     policy: NetConfig = MISSING
 
-    NAME = "bail"
-
 
 @dataclass
 class PBAILEnvelopeConfig(EnvelopeConfig):
@@ -315,14 +307,10 @@ class PBAILConfig(AlgoConfig):
     validation: str = one_of("split", "with_replacement")
     policy: NetConfig = MISSING
 
-    NAME = "pbail"
-
 
 @dataclass
 class BCConfig(AlgoConfig):
     policy: NetConfig = MISSING
-
-    NAME = "bc"
 
 
 @dataclass
@@ -335,8 +323,6 @@ class MARWILConfig(AlgoConfig):
     eps: float = non_negative()
     value: NetConfig = MISSING
     policy: NetConfig = MISSING
-
-    NAME = "marwil"
 
 
 @dataclass
@@ -371,8 +357,6 @@ class BCQConfig(TwinCriticVAEConfig):
     phi: float = non_negative()
     actor: NetConfig = MISSING
 
-    NAME = "bcq"
-
 
 @dataclass
 class BEARActorConfig(NetConfig):
@@ -393,8 +377,6 @@ class BEARConfig(TwinCriticVAEConfig):
     lagrange_lr: float = learning_rate()
     warm_start_updates: int = at_least(0)
     actor: BEARActorConfig = MISSING
-
-    NAME = "bear"
 
     def check(self) -> None:
         super().check()
