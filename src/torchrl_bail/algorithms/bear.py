@@ -9,10 +9,9 @@ the first critic. With batch 100, one epoch (10^6 samples) is 10^4 updates.
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
-    >>> small = {"hidden": [16, 16]}
-    >>> config = algo_config("bear", vae=small, actor=small, critic=small, warm_start_updates=1, batch_size=8)
+    >>> small = {"hidden": [16, 16]}  # the config: a mapping over conf/algo/bear.yaml's values
+    >>> config = {"vae": small, "actor": small, "critic": small, "warm_start_updates": 1, "batch_size": 8}
     >>> algo = BEAR(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)
     >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
     ...                     "next": {"observation": torch.randn(8, 4), "reward": torch.randn(8, 1),
