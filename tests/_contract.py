@@ -2,9 +2,9 @@
 
 A new loss: add a :class:`LossCase` to :data:`LOSS_CASES` (a builder taking ``reduction``, the loss terms and the
 parameter groups each must reach, the keys ``set_keys`` may rename). A new algorithm: add an :class:`AlgoCase` to
-:data:`ALGO_CASES` under its registry name (its config overrides for tiny networks and the tiny CLI overrides). The suite then
-checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round trips, seeds
-and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
+:data:`ALGO_CASES` under its registry name (its config overrides for tiny networks and the tiny CLI overrides). The
+suite then checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round
+trips, seeds and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
 
 The tiny inputs come from :mod:`_batch_rl_testing` (4-d observations, 2-d actions with unequal bounds, 8-8 nets).
 """

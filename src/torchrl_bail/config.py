@@ -42,8 +42,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from torchrl_bail.resume import ResumeError, register_resolvers
 
-__all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
-           "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
+__all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS",
+           "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error", "register_schemas",
+           "run_cli", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")

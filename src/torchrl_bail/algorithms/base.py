@@ -7,8 +7,8 @@ into the data the loop samples from (BAIL fits its envelope and keeps the best a
 Every algorithm is built from its config group, ``Algorithm(obs_dim, action_spec, config, device)``: ``config``
 is the ``algo`` node of the command line, :func:`torchrl_bail.config.algo_config` (the defaults of
 ``conf/algo/<name>.yaml`` with overrides) or a plain nested mapping (the keys it leaves out take the yaml's
-values). The yaml files are the one place an algorithm's default values live; the constructors hold none. The schedule (mini-batch size and length in
-epochs of 10^6 samples) comes from the config too.
+values). The yaml files are the one place an algorithm's default values live; the constructors hold none. The
+schedule (mini-batch size and length in epochs of 10^6 samples) comes from the config too.
 """
 
 from __future__ import annotations

@@ -54,7 +54,8 @@ class DeterministicActorAlgorithm(Algorithm):
     def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
         super().__init__(obs_dim, action_spec, config, device)
         policy = self.config.policy
-        self.actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), tuple(policy.hidden)).to(self.device)
+        actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), tuple(policy.hidden))
+        self.actor = actor.to(self.device)
         self.modules["actor"] = self.actor
         self.optimizers["actor"] = torch.optim.Adam(self.actor.parameters(), lr=policy.lr)
 

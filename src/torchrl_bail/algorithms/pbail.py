@@ -8,18 +8,18 @@ selection envelope is.
 
 Switches where the authors' code and the paper differ (spec 11):
 
-* ``best_envelope="paper"`` (the yaml's default): ``phi'`` is a real copy of the lowest-validation weights, and the training
-  envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule of
-  :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
+* ``best_envelope="paper"`` (the yaml's default): ``phi'`` is a real copy of the lowest-validation weights, and the
+  training envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule
+  of :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
   ``"as_coded"``: the released code's aliasing: ``phi'`` is the live weights, no revert.
-* ``selection_envelope="best"`` (the yaml's default): the separate selection network selects; it receives ``phi'`` whenever
-  ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
+* ``selection_envelope="best"`` (the yaml's default): the separate selection network selects; it receives ``phi'``
+  whenever ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
   ``best_envelope="as_coded"``, the *current* weights at every non-improving validation, as the released code
   does (so it keeps its random init until the first validation increase).
   ``"training"``: Algorithm 2 of the supplementary material read literally: "select data point i if
   ``G_i > x V_phi(s_i)``" with the *training* envelope ``V_phi``; ``phi'`` only serves the reverts.
-* ``v_projection=True`` (the yaml's default, as coded; not in the paper): ``V < 1`` is mapped to ``exp(V - 1)`` before
-  the ratio, which keeps early, near-zero envelopes from flipping the ranking.
+* ``v_projection=True`` (the yaml's default, as coded; not in the paper): ``V < 1`` is mapped to ``exp(V - 1)``
+  before the ratio, which keeps early, near-zero envelopes from flipping the ranking.
 * ``validation="split"`` (the yaml's default, the paper's 0.8/0.2 split) or ``"with_replacement"`` (the code's
   ``randint``: about 18 % unique validation points).
 
