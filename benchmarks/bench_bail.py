@@ -28,6 +28,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
+from torchrl_bail.config import algo_config
 from torchrl_bail.data import monte_carlo_returns
 from torchrl_bail.envelope import envelope_step
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
@@ -124,7 +125,7 @@ def bench_policy(n_updates: int) -> dict:
     spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
 
     torch.manual_seed(0)
-    algo = BehaviourCloning(obs_dim=OBS, action_spec=spec, batch_size=batch, epochs=1)
+    algo = BehaviourCloning(OBS, spec, algo_config("bc", batch_size=batch))
     buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch)
 
     def library():
@@ -154,8 +155,8 @@ def bench_progressive(n_updates: int) -> dict:
     spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
 
     torch.manual_seed(0)
-    algo = ProgressiveBAIL(obs_dim=OBS, action_spec=spec, batch_size=batch, epochs=1,
-                           envelope={"validate_every": 10**9})  # validation (1 in 1250 updates) is not timed
+    # validation (1 in 1250 updates) is not timed
+    algo = ProgressiveBAIL(OBS, spec, algo_config("pbail", batch_size=batch, envelope={"validate_every": 10**9}))
     prepared = algo.prepare(data, PrepareContext(generator=torch.Generator().manual_seed(0)))
     buffer = TensorDictReplayBuffer(storage=TensorStorage(prepared), sampler=RandomSampler(), batch_size=batch)
 

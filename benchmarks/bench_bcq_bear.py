@@ -31,6 +31,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT, BATCH, N_TARGET, N_MATCH = 11, 3, 100, 10, 5
@@ -207,7 +208,7 @@ class BareBEAR(BareBase):
 def bench(name: str, algo_cls, bare_cls, data: TensorDict, n_updates: int, repeats: int, **kwargs) -> dict:
     spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
     torch.manual_seed(0)
-    algo = algo_cls(obs_dim=OBS, action_spec=spec, batch_size=BATCH, epochs=1, **kwargs)
+    algo = algo_cls(OBS, spec, algo_config(algo_cls.name, batch_size=BATCH, **kwargs))
     buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=RandomSampler(), batch_size=BATCH)
     torch.manual_seed(0)
     bare = bare_cls(data)

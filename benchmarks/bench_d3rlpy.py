@@ -73,6 +73,7 @@ from bench_bcq_bear import ACT, BATCH, N_MATCH, N_TARGET, OBS, synthetic_data  #
 from torchrl_bail.algorithms.bc import BehaviourCloning  # noqa: E402
 from torchrl_bail.algorithms.bcq import BCQ  # noqa: E402
 from torchrl_bail.algorithms.bear import BEAR  # noqa: E402
+from torchrl_bail.config import algo_config  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 BC_BATCH = 1000
@@ -123,7 +124,7 @@ def our_updates(data) -> dict:
     for name, cls, batch, kwargs in [("bcq", BCQ, BATCH, {}), ("bear", BEAR, BATCH, {"warm_start_updates": 0}),
                                      ("bc", BehaviourCloning, BC_BATCH, {})]:
         torch.manual_seed(0)
-        algo = cls(obs_dim=OBS, action_spec=spec, batch_size=batch, epochs=1, **kwargs)
+        algo = cls(OBS, spec, algo_config(name, batch_size=batch, epochs=1, **kwargs))
         buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch)
         out[name] = (lambda a=algo, b=buffer: a.update(b.sample()))
     return out

@@ -24,17 +24,16 @@ import argparse
 
 import torch
 from _bench import bare_mlp, compare, print_table, write_json
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
-from torchrl_bail import config_dir
-from torchrl_bail.algorithms import PrepareContext, build_algorithm
+from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.marwil import MARWIL
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT = 11, 3  # Hopper-v5
-CFG = OmegaConf.load(config_dir() / "algo" / "marwil.yaml")
+CFG = algo_config("marwil")
 
 
 class BareMARWIL:
@@ -75,7 +74,7 @@ def make_data(n: int, seed: int) -> TensorDict:
 
 def make_library() -> MARWIL:
     torch.manual_seed(0)
-    return build_algorithm(CFG, OBS, action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT), "cpu")
+    return MARWIL(OBS, action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT), CFG)
 
 
 def bench_update(n_updates: int, repeats: int) -> dict:

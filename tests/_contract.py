@@ -2,9 +2,9 @@
 
 A new loss: add a :class:`LossCase` to :data:`LOSS_CASES` (a builder taking ``reduction``, the loss terms and the
 parameter groups each must reach, the keys ``set_keys`` may rename). A new algorithm: add an :class:`AlgoCase` to
-:data:`ALGO_CASES` under its registry name (a builder with tiny networks and the tiny CLI overrides). The suite then
-checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round trips, seeds
-and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
+:data:`ALGO_CASES` under its registry name (its config overrides for tiny networks and the tiny CLI overrides). The
+suite then checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round
+trips, seeds and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
 
 The tiny inputs come from :mod:`_batch_rl_testing` (4-d observations, 2-d actions with unequal bounds, 8-8 nets).
 """
@@ -21,8 +21,9 @@ from _batch_rl_testing import HIDDEN, OBS, SPEC, batch, bcq_loss, bear_loss, vae
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule
 
-from torchrl_bail.algorithms import BAIL, BCQ, BEAR, MARWIL, BehaviourCloning, ProgressiveBAIL
+from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
 
@@ -113,41 +114,46 @@ class AlgoCase:
 
     Attributes:
         name: the registry name (``algo.name``).
-        build: ``build() -> Algorithm`` with tiny networks and mini-batches of :data:`ALGO_BATCH`; the suite seeds
-            torch before calling it.
+        overrides: :func:`~torchrl_bail.config.algo_config` overrides for tiny networks (:meth:`build` adds
+            mini-batches of :data:`ALGO_BATCH`).
         cli: the config overrides that make a run through the config and ``run`` take seconds.
         not_updated: modules outside the optimizers of :meth:`update` (BAIL's envelope is fitted in ``prepare``,
             Progressive BAIL's selection envelope receives copied weights).
     """
 
     name: str
-    build: Callable[[], object]
+    overrides: dict
     cli: tuple[str, ...]
     not_updated: frozenset[str] = frozenset()
+
+    def build(self):
+        """The algorithm with tiny networks; the suite seeds torch before calling it."""
+        config = algo_config(self.name, batch_size=ALGO_BATCH, epochs=1, **self.overrides)
+        return ALGORITHMS[self.name](OBS, SPEC, config)
 
     def __repr__(self) -> str:
         return self.name
 
 
 ALGO_BATCH = 16
-_TINY = {"obs_dim": OBS, "action_spec": SPEC, "batch_size": ALGO_BATCH, "epochs": 1}
-_NETS = {"vae": {"hidden": HIDDEN}, "actor": {"hidden": HIDDEN}, "critic": {"hidden": HIDDEN}}
-_ENVELOPE = {"hidden": HIDDEN}
+_NET = {"hidden": list(HIDDEN)}
+_POLICY = {"policy": _NET}
+_NETS = {"vae": _NET, "actor": _NET, "critic": _NET}
 _SMALL_POLICY = "algo.policy.hidden=[16,16]"
 _TWIN_CRITIC_NETS = ("algo.vae.hidden=[16,16]", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")
 
 ALGO_CASES = {case.name: case for case in [
-    AlgoCase("bc", lambda: BehaviourCloning(hidden=HIDDEN, **_TINY), ("algo.epochs=0.005", _SMALL_POLICY)),
-    AlgoCase("bail", lambda: BAIL(hidden=HIDDEN, envelope={**_ENVELOPE, "epochs": 3, "batch_size": 16}, **_TINY),
+    AlgoCase("bc", _POLICY, ("algo.epochs=0.005", _SMALL_POLICY)),
+    AlgoCase("bail", {**_POLICY, "envelope": {**_NET, "epochs": 3, "batch_size": 16}},
              ("algo.epochs=0.005", "algo.envelope.epochs=3", "algo.envelope.batch_size=200", _SMALL_POLICY),
              not_updated=frozenset({"envelope"})),
-    AlgoCase("pbail", lambda: ProgressiveBAIL(hidden=HIDDEN, envelope={**_ENVELOPE, "validate_every": 2}, **_TINY),
+    AlgoCase("pbail", {**_POLICY, "envelope": {**_NET, "validate_every": 2}},
              ("algo.epochs=0.004", "algo.envelope.validate_every=2", _SMALL_POLICY),
              not_updated=frozenset({"selection_envelope"})),
-    AlgoCase("marwil", lambda: MARWIL(hidden=HIDDEN, value_hidden=HIDDEN, c2_rate=0.01, **_TINY),
+    AlgoCase("marwil", {**_POLICY, "value": _NET, "c2_rate": 0.01},
              ("algo.epochs=0.005", _SMALL_POLICY)),
-    AlgoCase("bcq", lambda: BCQ(**_NETS, **_TINY), ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
-    AlgoCase("bear", lambda: BEAR(**_NETS, warm_start_updates=2, **_TINY),
+    AlgoCase("bcq", _NETS, ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
+    AlgoCase("bear", {**_NETS, "warm_start_updates": 2},
              ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
 ]}
 

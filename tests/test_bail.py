@@ -15,15 +15,17 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail.algorithms import BAIL, BehaviourCloning, PrepareContext, ProgressiveBAIL
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.trainer import train
 from torchrl_bail.transforms.best_action import best_action_mask
 
 SPEC = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
 N, GOOD = 400, 0.3
-NETS = {"hidden": (32, 32), "batch_size": 64, "lr": 3e-3}
+#: the imitation's config overrides (every algorithm here)
+NETS = {"policy": {"hidden": [32, 32], "lr": 3e-3}, "batch_size": 64, "epochs": 1}
 UPDATES = 300
-ENVELOPE = {"hidden": (32, 32), "epochs": 25, "batch_size": 50, "lr": 1e-2}
+ENVELOPE = {"hidden": [32, 32], "epochs": 25, "batch_size": 50, "lr": 1e-2}
 
 
 def best_action(observation: torch.Tensor) -> torch.Tensor:
@@ -46,9 +48,9 @@ def _context(seed: int = 0) -> PrepareContext:
     return PrepareContext(generator=torch.Generator().manual_seed(seed))
 
 
-def _bail(**kwargs) -> BAIL:
+def _bail(**overrides) -> BAIL:
     torch.manual_seed(0)
-    return BAIL(obs_dim=3, action_spec=SPEC, envelope=dict(ENVELOPE), percentile=GOOD, epochs=1, **NETS, **kwargs)
+    return BAIL(3, SPEC, algo_config("bail", envelope=ENVELOPE, **{"selection.percentile": GOOD}, **NETS, **overrides))
 
 
 def _imitation_error(algo, updates: int) -> float:
@@ -82,22 +84,25 @@ def test_bail_keeps_exactly_the_best_actions_and_the_percentile():
 def test_ranking_by_return_alone_mixes_good_and_bad_pairs():
     """Ablation D.2 keeps the top 30 % by return: rich states' bad pairs push out poor states' good ones."""
     data = crafted_batch()
-    selected = _bail(selection_by="return").prepare(data, _context())
+    selected = _bail(**{"selection.by": "return"}).prepare(data, _context())
     kept = torch.isin(data["return"], selected["return"])
     assert len(selected) == math.floor(GOOD * N) and selected["return"].min() >= data["return"][~kept].max()
     assert (kept & ~data["good"]).sum() > 10 and (~kept & data["good"]).sum() > 10
 
 
+def _pbail(**overrides) -> ProgressiveBAIL:
+    return ProgressiveBAIL(3, SPEC, algo_config("pbail", **{"selection.percentile": 0.25}, **NETS, **overrides))
+
+
 @pytest.fixture(scope="module")
 def bc_error() -> float:
     torch.manual_seed(0)
-    return _imitation_error(BehaviourCloning(obs_dim=3, action_spec=SPEC, epochs=1, **NETS), updates=UPDATES)
+    return _imitation_error(BehaviourCloning(3, SPEC, algo_config("bc", **NETS)), updates=UPDATES)
 
 
 @pytest.mark.parametrize("make", [
     _bail,
-    lambda: ProgressiveBAIL(obs_dim=3, action_spec=SPEC, epochs=1, percentile=0.25, **NETS,
-                            envelope={"hidden": (32, 32), "validate_every": 100, "lr": 1e-2}),
+    lambda: _pbail(envelope={"hidden": [32, 32], "validate_every": 100, "lr": 1e-2}),
 ], ids=["bail", "pbail"])
 def test_imitation_recovers_the_best_actions_where_bc_does_not(make, bc_error):
     error = _imitation_error(make(), updates=UPDATES)
@@ -108,8 +113,7 @@ def _pbail_after_one_update(actions: torch.Tensor | None = None):
     """A fresh Progressive BAIL (same seed every call), one update on the first 64 prepared pairs (``actions``
     replacing theirs); returns the algorithm, that mini-batch and the update's metrics."""
     torch.manual_seed(0)
-    algo = ProgressiveBAIL(obs_dim=3, action_spec=SPEC, epochs=1, percentile=0.25, **NETS,
-                           envelope={"hidden": (16,), "validate_every": 1})
+    algo = _pbail(envelope={"hidden": [16], "validate_every": 1})
     batch = algo.prepare(crafted_batch(), _context())[:64]
     if actions is not None:
         batch["action"] = actions

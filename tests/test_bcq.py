@@ -12,6 +12,7 @@ from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bcq import BCQ
+from torchrl_bail.config import algo_config
 from torchrl_bail.objectives.common import soft_clipped_double_q_target
 from torchrl_bail.trainer import train
 
@@ -96,9 +97,8 @@ def test_bad_arguments_are_named():
 
 def test_update_runs_in_the_authors_order_and_counts_samples():
     torch.manual_seed(0)
-    small = {"hidden": HIDDEN}
-    algo = BCQ(obs_dim=OBS, action_spec=SPEC, vae=small, actor=small, critic=small, batch_size=100,
-               epochs=300 / 1e6)
+    small = {"hidden": list(HIDDEN)}
+    algo = BCQ(OBS, SPEC, algo_config("bcq", vae=small, actor=small, critic=small, batch_size=100, epochs=300 / 1e6))
     calls = []
     for name in ("vae_loss", "qvalue_loss", "actor_loss"):
         method = getattr(algo.loss, name)

@@ -13,12 +13,12 @@ from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bear import BEAR
+from torchrl_bail.config import algo_config
 from torchrl_bail.objectives.bear import laplacian_mmd
 
-def _algo(**kwargs) -> BEAR:
-    small = {"hidden": HIDDEN}
-    return BEAR(obs_dim=OBS, action_spec=SPEC, vae=small, actor=dict(small), critic=small, batch_size=6, epochs=1,
-                **kwargs)
+def _algo(**overrides) -> BEAR:
+    small = {"hidden": list(HIDDEN)}
+    return BEAR(OBS, SPEC, algo_config("bear", vae=small, actor=small, critic=small, batch_size=6, **overrides))
 
 
 

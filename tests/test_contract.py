@@ -6,13 +6,15 @@ what the loss reads; the three reductions agree; an ``[S, B]`` batch gives, seed
 ``state_dict`` round trip gives identical outputs.
 
 Algorithms (every entry of the registry ``ALGORITHMS``): optimizers own disjoint parameters and all step; the
-policy acts within the bounds; same seed, same numbers; a checkpoint round trip continues identically; a tiny run
+policy acts within the bounds; ``conf/algo/<name>.yaml`` holds every default (no constructor restates one); same
+seed, same numbers; a checkpoint round trip continues identically; a tiny run
 through the config and ``torchrl_bail.train.run`` writes its artifacts.
 """
 
 from __future__ import annotations
 
 import functools
+import inspect
 import io
 import math
 
@@ -31,12 +33,14 @@ from _contract import (
     row_noise_like,
 )
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.objectives import BCLoss, LossModule
 
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
-from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
+from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
+from torchrl_bail.config import ConfigError, algo_config
 
 REDUCTIONS = ("none", "mean", "sum")
 loss_cases = pytest.mark.parametrize("case", LOSS_CASES, ids=repr)
@@ -101,6 +105,30 @@ def test_every_loss_and_algorithm_has_a_contract_case():
     missing = {cls.__name__ for cls in losses | {BCLoss}} - {cls.__name__ for cls in covered}
     assert not missing, f"register a LossCase for {sorted(missing)} in tests/_contract.py"
     assert set(ALGO_CASES) == set(ALGORITHMS), "register an AlgoCase for every ALGORITHMS entry in tests/_contract.py"
+
+
+# -- one default per constant: the yaml --------------------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_no_constructor_restates_a_default_of_the_yaml(name):
+    for cls in ALGORITHMS[name].__mro__:
+        if issubclass(cls, Algorithm) and "__init__" in vars(cls):
+            defaults = [p.name for p in inspect.signature(cls.__init__).parameters.values()
+                        if p.default is not p.empty and p.name != "device"]
+            assert not defaults, f"{cls.__name__}.__init__ restates defaults of conf/algo/{name}.yaml: {defaults}"
+    algo = ALGORITHMS[name](OBS, SPEC, algo_config(name))
+    yaml = OmegaConf.load(config_dir() / "algo" / f"{name}.yaml")
+    yaml.pop("defaults")
+    assert OmegaConf.to_container(algo.config) == OmegaConf.to_container(yaml)
+
+
+def test_a_mapping_takes_the_yaml_values_it_leaves_out_and_is_checked():
+    algo = ALGORITHMS["bc"](OBS, SPEC, {"policy": {"hidden": [8]}, "batch_size": 4})
+    assert algo.config == algo_config("bc", batch_size=4, **{"policy.hidden": [8]})
+    assert algo.config.policy.lr == algo_config("bc").policy.lr and algo.batch_size == 4
+    with pytest.raises(ConfigError, match=r"algo\.policy\.lr = -1\.0: expected a positive learning rate"):
+        ALGORITHMS["bc"](OBS, SPEC, {"policy": {"lr": -1.0}})
+    with pytest.raises(ConfigError, match=r"algo\.name = 'bc': expected bail"):
+        ALGORITHMS["bail"](OBS, SPEC, algo_config("bc"))
 
 
 # -- losses ---------------------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
+from torchrl_bail.config import algo_config
 from torchrl_bail import envelope as envelope_module
 from torchrl_bail.envelope import BestWeights, EarlyStoppingTracker, envelope_split, fit_upper_envelope
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
@@ -169,9 +170,9 @@ def test_without_a_validation_set_the_last_weights_come_back():
 def _pbail(envelope: dict | None = None, **kwargs) -> tuple[ProgressiveBAIL, TensorDict]:
     torch.manual_seed(0)
     spec = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
-    envelope = {"hidden": (16, 16), "validate_every": 1, "patience": 2, "lr": 0.05, **(envelope or {})}
-    algo = ProgressiveBAIL(obs_dim=3, action_spec=spec, hidden=(16, 16), batch_size=40, epochs=1,
-                           envelope=envelope, **kwargs)
+    envelope = {"hidden": [16, 16], "validate_every": 1, "patience": 2, "lr": 0.05, **(envelope or {})}
+    config = algo_config("pbail", policy={"hidden": [16, 16]}, batch_size=40, envelope=envelope, **kwargs)
+    algo = ProgressiveBAIL(3, spec, config)
     g = torch.Generator().manual_seed(0)
     data = TensorDict({"observation": torch.randn(200, 3, generator=g), "action": torch.rand(200, 2, generator=g),
                        "return": torch.rand(200, generator=g) * 100}, [200])

@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModule
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, MARWIL, BehaviourCloning, build_algorithm
 from torchrl_bail.algorithms.bc import make_bc_loss
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss
 
@@ -214,10 +215,10 @@ def test_beta_zero_is_behaviour_cloning():
     # and as algorithms: same seed, same batches -> the same actor after a few Adam steps
     spec = action_spec_from_bounds([-1.0] * 2, [1.0] * 2)
     torch.manual_seed(1)
-    marwil = MARWIL(obs_dim=5, action_spec=spec, hidden=(16,), value_hidden=(8,), beta=0.0, batch_size=16,
-                    epochs=1)
+    policy = {"policy": {"hidden": [16]}, "batch_size": 16}
+    marwil = MARWIL(5, spec, algo_config("marwil", value={"hidden": [8]}, beta=0.0, **policy))
     torch.manual_seed(1)
-    bc = BehaviourCloning(obs_dim=5, action_spec=spec, hidden=(16,), batch_size=16, epochs=1)
+    bc = BehaviourCloning(5, spec, algo_config("bc", **policy))
     for _ in range(5):
         batch = _random_batch(scale=1000.0)
         torch.testing.assert_close(marwil.update(batch)["loss_actor"], bc.update(batch)["loss_bc"])
@@ -227,8 +228,8 @@ def test_beta_zero_is_behaviour_cloning():
 
 def _run_algo(seed: int, updates: int = 3) -> tuple[list[dict], MARWIL]:
     torch.manual_seed(seed)
-    algo = MARWIL(obs_dim=5, action_spec=action_spec_from_bounds([-1.0] * 2, [1.0] * 2), hidden=(16, 16),
-                  value_hidden=(16,), c2_rate=0.01, batch_size=16, epochs=1)
+    config = algo_config("marwil", policy={"hidden": [16, 16]}, value={"hidden": [16]}, c2_rate=0.01, batch_size=16)
+    algo = MARWIL(5, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)
     g = torch.Generator().manual_seed(seed)
     metrics = []
     for _ in range(updates):

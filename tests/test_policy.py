@@ -106,16 +106,17 @@ def test_export_runs_without_this_package(bc_run, tmp_path, fmt):
 
 
 def _tiny_bcq(tmp_path):
+    from omegaconf import OmegaConf
+
     from torchrl_bail.algorithms.bcq import BCQ
+    from torchrl_bail.config import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)
     nets = {"vae": {"hidden": [16, 16]}, "actor": {"hidden": [16, 16]}, "critic": {"hidden": [16, 16]}}
-    algo = BCQ(obs_dim=11, action_spec=spec, **nets, num_samples=10, batch_size=4, epochs=1e-5)
-    cfg = {"seed": 0, "env": {"id": "Hopper-v5"}, "algo": {"name": "bcq", "num_samples": 10, "phi": 0.05,
-                                                           "lmbda": 0.75, "kl_weight": 0.5, "latent_clip": 0.5,
-                                                           "gamma": 0.99, "tau": 0.005, "batch_size": 4,
-                                                           "epochs": 1e-5, **nets}}
+    config = algo_config("bcq", **nets, batch_size=4, epochs=1e-5)
+    algo = BCQ(11, spec, config)
+    cfg = {"seed": 0, "env": {"id": "Hopper-v5"}, "algo": OmegaConf.to_container(config)}
     return algo, save_policy(tmp_path / "policy.pt", algo, cfg, obs_dim=11, action_spec=spec)
 
 

@@ -22,13 +22,16 @@ from tensordict import TensorDict
 import torchrl_bail.algorithms as algorithms_module
 import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
-from torchrl_bail.algorithms import BAIL, BCQ, BEAR, MARWIL, BehaviourCloning, PrepareContext, ProgressiveBAIL
+from torchrl_bail.algorithms import ALGORITHMS, BehaviourCloning, PrepareContext
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.resume import ResumeError, Resumption
 from torchrl_bail.trainer import train
 
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
-SMALL = {"hidden": (16, 16)}
+SMALL = {"hidden": [16, 16]}
+POLICY = {"policy": {"hidden": [16]}, "batch_size": 16, "epochs": 1}
+TWIN_CRITIC = {"vae": SMALL, "actor": SMALL, "critic": SMALL, "batch_size": 16, "epochs": 1}
 
 
 def _data(n: int = 300, seed: int = 0) -> TensorDict:
@@ -42,18 +45,17 @@ def _data(n: int = 300, seed: int = 0) -> TensorDict:
     }, [n])
 
 
-ALGOS = {
-    "bc": lambda: BehaviourCloning(obs_dim=4, action_spec=SPEC, hidden=(16,), batch_size=16, epochs=1),
-    "bail": lambda: BAIL(obs_dim=4, action_spec=SPEC, hidden=(16,), batch_size=16, epochs=1,
-                         envelope={"hidden": (16,), "epochs": 3, "batch_size": 50}),
-    "pbail": lambda: ProgressiveBAIL(obs_dim=4, action_spec=SPEC, hidden=(16,), batch_size=16, epochs=1,
-                                     envelope={"hidden": (16,), "validate_every": 2, "patience": 2}),
-    "marwil": lambda: MARWIL(obs_dim=4, action_spec=SPEC, hidden=(16,), value_hidden=(16,), c2_rate=0.1,
-                             batch_size=16, epochs=1),
-    "bcq": lambda: BCQ(obs_dim=4, action_spec=SPEC, vae=SMALL, actor=SMALL, critic=SMALL, batch_size=16, epochs=1),
-    "bear": lambda: BEAR(obs_dim=4, action_spec=SPEC, vae=SMALL, actor=SMALL, critic=SMALL, warm_start_updates=5,
-                         batch_size=16, epochs=1),
+#: each algorithm's config overrides: tiny networks, mini-batches of 16
+OVERRIDES = {
+    "bc": POLICY,
+    "bail": {**POLICY, "envelope": {"hidden": [16], "epochs": 3, "batch_size": 50}},
+    "pbail": {**POLICY, "envelope": {"hidden": [16], "validate_every": 2, "patience": 2}},
+    "marwil": {**POLICY, "value": {"hidden": [16]}, "c2_rate": 0.1},
+    "bcq": TWIN_CRITIC,
+    "bear": {**TWIN_CRITIC, "warm_start_updates": 5},
 }
+ALGOS = {name: lambda name=name: ALGORITHMS[name](4, SPEC, algo_config(name, **OVERRIDES[name]))
+         for name in OVERRIDES}
 
 
 def _updates(algo, data, n: int, seed: int) -> list[dict]:
@@ -127,7 +129,7 @@ def test_training_loop_resumed_from_its_checkpoint_equals_the_uninterrupted_loop
 
     def fresh():
         torch.manual_seed(0)
-        return BehaviourCloning(obs_dim=4, action_spec=SPEC, hidden=(16,), batch_size=8, epochs=200 / 1e6)
+        return BehaviourCloning(4, SPEC, algo_config("bc", **{**POLICY, "batch_size": 8, "epochs": 200 / 1e6}))
 
     reference_algo = fresh()
     reference = train(reference_algo, data, **kwargs)

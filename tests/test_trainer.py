@@ -6,13 +6,14 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.trainer import EvalPoint, TrainHistory, train
 
 
 def _bc(epochs: float, batch_size: int = 10) -> BehaviourCloning:
-    return BehaviourCloning(obs_dim=3, action_spec=action_spec_from_bounds([-1.0], [1.0]), hidden=(16,),
-                            batch_size=batch_size, epochs=epochs)
+    config = algo_config("bc", policy={"hidden": [16]}, batch_size=batch_size, epochs=epochs)
+    return BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
 
 
 def _data(n: int = 200) -> TensorDict:

@@ -18,6 +18,7 @@ from _batch_rl_testing import (
 
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
+from torchrl_bail.config import algo_config
 
 
 def _critic_values_and_grads(loss, data, plain: bool):
@@ -73,8 +74,8 @@ def test_critics_that_are_not_plain_mlps_keep_the_tensordict_path():
 def _updates(cls, fused: bool, n: int = 6, **kwargs):
     small = {"hidden": HIDDEN}
     torch.manual_seed(0)
-    algo = cls(obs_dim=OBS, action_spec=SPEC, vae=small, actor=dict(small), critic=small, batch_size=6, epochs=1,
-               **kwargs)
+    algo = cls(OBS, SPEC, algo_config(cls.name, vae=small, actor=dict(small), critic=dict(small), batch_size=6,
+                                      epochs=1, **kwargs))
     if not fused:  # torch's reference (single-tensor) Adam over the same parameters and learning rates
         for name, opt in algo.optimizers.items():
             algo.optimizers[name] = torch.optim.Adam(opt.param_groups[0]["params"], lr=opt.param_groups[0]["lr"],
@@ -101,8 +102,8 @@ def test_fused_adam_agrees_with_the_reference_adam_to_float_precision(cls, kwarg
 
 def _algo_optimizers(cls, kwargs):
     small = {"hidden": HIDDEN}
-    algo = cls(obs_dim=OBS, action_spec=SPEC, vae=small, actor=dict(small), critic=small, batch_size=6, epochs=1,
-               **kwargs)
+    algo = cls(OBS, SPEC, algo_config(cls.name, vae=small, actor=dict(small), critic=dict(small), batch_size=6,
+                                      epochs=1, **kwargs))
     return list(algo.optimizers.values())
 
 

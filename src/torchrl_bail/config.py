@@ -42,8 +42,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from torchrl_bail.resume import ResumeError, register_resolvers
 
-__all__ = ["ALGO_SCHEMAS", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
-           "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
+__all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS",
+           "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error", "register_schemas",
+           "run_cli", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -98,10 +99,6 @@ def fraction():
     return _rule(lambda v: 0 < v <= 1, "a fraction in (0, 1]")
 
 
-def open_fraction():
-    return _rule(lambda v: 0 < v < 1, "a fraction in (0, 1)")
-
-
 def one_of(*choices: Any):
     return _rule(lambda v: v in choices, " | ".join(map(str, choices)))
 
@@ -127,6 +124,12 @@ class _Checked:
 
     def check(self) -> None:
         """Cross-field rules; raise :class:`ConfigError` with the (relative) key."""
+
+    def _registered_as(self, key: str, registry: dict[str, type], hint: str) -> None:
+        """``key`` must hold the name this schema has in ``registry`` (:data:`ALGO_SCHEMAS`, :data:`BATCH_SCHEMAS`)."""
+        name = next(name for name, schema in registry.items() if schema is type(self))
+        if getattr(self, key) != name:
+            raise ConfigError(key, getattr(self, key), f"{name} ({hint})")
 
     def _ordered(self, low: str, high: str) -> None:
         if not getattr(self, low) < getattr(self, high):
@@ -167,11 +170,8 @@ class BatchConfig(_Checked):
     steps: int = positive("a positive number of transitions")
     oracle: OracleConfig = MISSING
 
-    RECIPE = ""  # the recipe this schema describes
-
     def check(self) -> None:
-        if self.recipe != self.RECIPE:
-            raise ConfigError("recipe", self.recipe, f"{self.RECIPE} (the recipe of this batch schema)")
+        self._registered_as("recipe", BATCH_SCHEMAS, "the recipe of this batch schema")
 
 
 @dataclass
@@ -192,8 +192,6 @@ class DDPGBatchConfig(BatchConfig):
     sigma: float = non_negative("a non-negative noise std (absolute, not scaled by the action bound)")
     start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
     agent: DDPGAgentConfig = MISSING
-
-    RECIPE = "ddpg"
 
 
 @dataclass
@@ -224,8 +222,6 @@ class SACAgentConfig(_Checked):
 class SACBatchConfig(BatchConfig):
     sac: SACAgentConfig = MISSING
 
-    RECIPE = "sac"
-
     def check(self) -> None:
         super().check()
         if self.steps > self.sac.train_steps:
@@ -238,8 +234,6 @@ class SACExecBatchConfig(BatchConfig):
     sac: SACAgentConfig = MISSING
     policy: str = one_of("mediocre", "optimal")
     stochastic: bool = MISSING
-
-    RECIPE = "sac_exec"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -259,11 +253,8 @@ class AlgoConfig(_Checked):
     batch_size: int = at_least(1, "a positive mini-batch size")
     epochs: float = positive("a positive number of epochs (10^6 samples each)")
 
-    NAME = ""
-
     def check(self) -> None:
-        if self.name != self.NAME:
-            raise ConfigError("name", self.name, f"{self.NAME} (choose the algorithm with algo=<name>)")
+        self._registered_as("name", ALGO_SCHEMAS, "choose the algorithm with algo=<name>")
 
 
 @dataclass
@@ -273,7 +264,7 @@ class EnvelopeConfig(_Checked):
     penalty: float = _rule(lambda v: v >= 1, "a penalty K >= 1 (1: ordinary regression)")
     lr: float = learning_rate()
     weight_decay: float = non_negative("a non-negative L2 coefficient")
-    val_fraction: float = open_fraction()
+    val_fraction: float = _rule(lambda v: 0 <= v < 1, "a fraction in [0, 1) (0: no validation, no early stopping)")
     patience: int = at_least(1)
 
 
@@ -301,8 +292,6 @@ class BAILConfig(AlgoConfig):
     selection: BAILSelectionConfig = MISSING
     policy: NetConfig = MISSING
 
-    NAME = "bail"
-
 
 @dataclass
 class PBAILEnvelopeConfig(EnvelopeConfig):
@@ -319,14 +308,10 @@ class PBAILConfig(AlgoConfig):
     validation: str = one_of("split", "with_replacement")
     policy: NetConfig = MISSING
 
-    NAME = "pbail"
-
 
 @dataclass
 class BCConfig(AlgoConfig):
     policy: NetConfig = MISSING
-
-    NAME = "bc"
 
 
 @dataclass
@@ -339,8 +324,6 @@ class MARWILConfig(AlgoConfig):
     eps: float = non_negative()
     value: NetConfig = MISSING
     policy: NetConfig = MISSING
-
-    NAME = "marwil"
 
 
 @dataclass
@@ -375,8 +358,6 @@ class BCQConfig(TwinCriticVAEConfig):
     phi: float = non_negative()
     actor: NetConfig = MISSING
 
-    NAME = "bcq"
-
 
 @dataclass
 class BEARActorConfig(NetConfig):
@@ -397,8 +378,6 @@ class BEARConfig(TwinCriticVAEConfig):
     lagrange_lr: float = learning_rate()
     warm_start_updates: int = at_least(0)
     actor: BEARActorConfig = MISSING
-
-    NAME = "bear"
 
     def check(self) -> None:
         super().check()
@@ -536,6 +515,59 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(err.full_key, "???", "a value (it has no default)") from None
 
     visit(cfg)
+
+
+def algo_config(name: str, /, **overrides: Any) -> DictConfig:
+    """The ``algo`` node of ``algo=<name>``: the values of ``conf/algo/<name>.yaml`` typed by their schema, with
+    ``overrides`` applied and every rule checked, as the command line does.
+
+    The yaml file is the one place an algorithm's defaults live; this is how library code and tests configure an
+    algorithm without the command line. A key may be dotted (``**{"policy.hidden": [8]}``) and a dict merges into
+    its block (``vae={"hidden": [16]}`` keeps the VAE's other values).
+
+    Examples:
+        >>> cfg = algo_config("bcq", batch_size=8, vae={"hidden": [16]})
+        >>> cfg.tau, cfg.batch_size, list(cfg.vae.hidden), cfg.vae.lr
+        (0.005, 8, [16], 0.001)
+        >>> algo_config("bail", **{"selection.percentile": 1.5})
+        Traceback (most recent call last):
+        ...
+        torchrl_bail.config.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+    """
+    node = _algo_defaults(name)
+    for key, value in overrides.items():
+        OmegaConf.update(node, key, value, merge=True)
+    return _checked_algo(node)
+
+
+def checked_algo_config(name: str, config: Any) -> DictConfig:
+    """``config`` (an ``algo`` node: a DictConfig or a plain nested mapping) over the defaults of
+    ``conf/algo/<name>.yaml``, as a fresh node typed by the schema of ``name``; the first failed rule raises
+    :class:`ConfigError` naming ``algo.<key>``. A complete node (the command line's) comes back as it is; keys a
+    mapping leaves out take the yaml's values."""
+    if isinstance(config, DictConfig):
+        config = OmegaConf.to_container(config, resolve=True)
+    if config.get("name", name) != name:
+        raise ConfigError("algo.name", config["name"], f"{name} (the config of the algorithm being built)")
+    return _checked_algo(OmegaConf.merge(_algo_defaults(name), config))
+
+
+def _algo_defaults(name: str) -> DictConfig:
+    try:
+        schema = ALGO_SCHEMAS[name]
+    except KeyError:
+        raise ConfigError("algo.name", name, f"one of {', '.join(ALGO_SCHEMAS)}") from None
+    values = OmegaConf.load(config_dir() / "algo" / f"{name}.yaml")
+    values.pop("defaults", None)  # it names ``schema``
+    return OmegaConf.merge(OmegaConf.structured(schema), values)
+
+
+def _checked_algo(node: DictConfig) -> DictConfig:
+    try:
+        validate_config(node)
+    except ConfigError as err:
+        raise err.under("algo") from None
+    return node
 
 
 def describe_error(err: BaseException) -> str:

@@ -29,8 +29,8 @@ Examples:
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> spec = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
-    >>> algo = BehaviourCloning(obs_dim=3, action_spec=spec, hidden=(8,), batch_size=4, epochs=1e-6)
     >>> cfg = {"algo": {"name": "bc", "policy": {"hidden": [8]}}, "env": {"id": "Hopper-v5"}}
+    >>> algo = BehaviourCloning(3, spec, cfg["algo"])  # the keys left out: conf/algo/bc.yaml's values
     >>> path = save_policy(Path(tempfile.mkdtemp()) / "policy.pt", algo, cfg, obs_dim=3, action_spec=spec)
     >>> policy = load_policy(path)
     >>> obs = TensorDict({"observation": torch.randn(4, 3)}, [4])

@@ -11,9 +11,10 @@ Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
+    >>> from torchrl_bail.config import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
-    >>> algo = BehaviourCloning(obs_dim=3, action_spec=action_spec_from_bounds([-1.0], [1.0]), hidden=(8,),
-    ...                         batch_size=10, epochs=100 / 1e6)
+    >>> config = algo_config("bc", batch_size=10, epochs=100 / 1e6, policy={"hidden": [8]})
+    >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
     >>> data = TensorDict({"observation": torch.randn(50, 3), "action": torch.rand(50, 1) * 2 - 1}, [50])
     >>> history = train(algo, data, evaluate=lambda policy: 1.0, eval_every_epochs=50 / 1e6, progress=False)
     >>> history.iterations, [e.epoch * 1e6 for e in history.evaluations]

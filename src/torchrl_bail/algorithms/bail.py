@@ -13,10 +13,10 @@ regression instead of the envelope).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
 
@@ -30,50 +30,32 @@ __all__ = ["BAIL"]
 
 
 class BAIL(BehaviourCloning):
-    """Static BAIL.
+    """Static BAIL, from ``conf/algo/bail.yaml``'s config (arguments as in
+    :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
-    Keyword Args:
-        obs_dim, action_spec, hidden, lr, batch_size, epochs, device: as in
-            :class:`~torchrl_bail.algorithms.bc.BehaviourCloning` (BAIL imitates for 50 epochs).
-        envelope (dict): keyword arguments of :func:`~torchrl_bail.envelope.fit_upper_envelope` plus
-            ``hidden`` and ``head_scale`` of the envelope network.
-        percentile (float): share of the batch kept. Defaults to ``0.30``.
-        selection_by (str): ``"envelope"`` (ratio ``G / V``) or ``"return"`` (top-p by ``G``; no envelope).
-        nonpositive_value (str): how ``V <= 0`` enters the ratio, see
-            :class:`~torchrl_bail.transforms.BestActionFilter`. Defaults to ``"raw"``.
+    The config's ``envelope`` block is the envelope network (``hidden``, ``head_scale``) and the keyword arguments
+    of :func:`~torchrl_bail.envelope.fit_upper_envelope`; ``selection`` sets the
+    :class:`~torchrl_bail.transforms.BestActionFilter` (``percentile``, ``nonpositive_value``) and what ranks
+    (``by``: ``"envelope"``, the ratio ``G / V``, or ``"return"``, top-p by ``G`` with no envelope); ``policy``
+    is the imitating actor.
     """
 
     name = "bail"
     #: what prepare measured (envelope fit, selection) for summary.json; the envelope weights are a module
     state_attributes = ("_summary",)
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        hidden: Sequence[int] = (400, 300),
-        lr: float = 1e-3,
-        batch_size: int = 1000,
-        epochs: float = 50,
-        envelope: dict | None = None,
-        percentile: float = 0.30,
-        selection_by: Literal["envelope", "return"] = "envelope",
-        nonpositive_value: Literal["raw", "project", "error"] = "raw",
-        device="cpu",
-    ) -> None:
-        super().__init__(obs_dim=obs_dim, action_spec=action_spec, hidden=hidden, lr=lr,
-                         batch_size=batch_size, epochs=epochs, device=device)
-        if selection_by not in ("envelope", "return"):
-            raise ValueError(f"algo.selection.by must be 'envelope' or 'return', got {selection_by!r}")
-        envelope = dict(envelope or {})
-        self.envelope_kwargs = envelope
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        envelope = OmegaConf.to_container(self.config.envelope)
         self.value_network = make_value_network(
-            obs_dim, envelope.pop("hidden", (128, 128)), head_scale=envelope.pop("head_scale", 0.1)
+            obs_dim, tuple(envelope.pop("hidden")), head_scale=envelope.pop("head_scale")
         ).to(self.device)
+        #: the keyword arguments of fit_upper_envelope
+        self.envelope_kwargs = envelope
         self.modules["envelope"] = self.value_network
-        self.selection_by = selection_by
-        self.filter = BestActionFilter(percentile=percentile, nonpositive_value=nonpositive_value)
+        selection = self.config.selection
+        self.selection_by = selection.by
+        self.filter = BestActionFilter(percentile=selection.percentile, nonpositive_value=selection.nonpositive_value)
         self._summary: dict[str, Any] = {}
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:

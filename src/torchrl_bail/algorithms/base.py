@@ -4,7 +4,11 @@ An algorithm owns its networks, losses and optimizers and contributes three thin
 :func:`torchrl_bail.trainer.train`: a :meth:`~Algorithm.prepare` stage that turns the batch (with its returns)
 into the data the loop samples from (BAIL fits its envelope and keeps the best actions there), an
 :meth:`~Algorithm.update` step on one mini-batch, and a deterministic :attr:`~Algorithm.policy` to evaluate.
-Its schedule (mini-batch size and length in epochs of 10^6 samples) comes from its config.
+Every algorithm is built from its config group, ``Algorithm(obs_dim, action_spec, config, device)``: ``config``
+is the ``algo`` node of the command line, :func:`torchrl_bail.config.algo_config` (the defaults of
+``conf/algo/<name>.yaml`` with overrides) or a plain nested mapping (the keys it leaves out take the yaml's
+values). The yaml files are the one place an algorithm's default values live; the constructors hold none. The
+schedule (mini-batch size and length in epochs of 10^6 samples) comes from the config too.
 """
 
 from __future__ import annotations
@@ -18,6 +22,9 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torchrl.data import TensorSpec
+
+from torchrl_bail.config import checked_algo_config
 
 __all__ = ["Algorithm", "PrepareContext"]
 
@@ -47,22 +54,28 @@ class PrepareContext:
 class Algorithm(ABC):
     """Base class: networks in :attr:`modules`, optimizers in :attr:`optimizers`, a schedule, a policy.
 
-    Subclasses set ``name``, build their networks/losses/optimizers in ``__init__`` and implement
-    :meth:`update`. The defaults of :meth:`prepare` (train on the whole batch) and :meth:`summary` (nothing
-    to add) suit most baselines.
+    Subclasses set ``name`` (their ``conf/algo/<name>.yaml``), build their networks/losses/optimizers in
+    ``__init__`` from :attr:`config` and implement :meth:`update`. The defaults of :meth:`prepare` (train on the
+    whole batch) and :meth:`summary` (nothing to add) suit most baselines.
+
+    Args:
+        obs_dim (int): observation size.
+        action_spec (TensorSpec): the bounded action spec.
+        config: the algorithm's config group (see the module docstring); checked against its schema
+            (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
+        device: training device. Defaults to ``"cpu"``.
     """
 
     name: str = "algorithm"
 
-    def __init__(self, *, batch_size: int, epochs: float, device: torch.device | str = "cpu") -> None:
-        if int(batch_size) < 1:
-            raise ValueError(f"algo.batch_size must be >= 1, got {batch_size}")
-        if float(epochs) <= 0:
-            raise ValueError(f"algo.epochs must be > 0, got {epochs}")
-        self.batch_size = int(batch_size)
-        self.epochs = float(epochs)
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device: torch.device | str = "cpu") -> None:
+        self.config = checked_algo_config(self.name, config)
+        self.obs_dim = int(obs_dim)
+        self.action_spec = action_spec
+        self.batch_size = int(self.config.batch_size)
+        self.epochs = float(self.config.epochs)
         #: samples one update counts towards an epoch (Progressive BAIL counts only its envelope's share)
-        self.samples_per_update = float(batch_size)
+        self.samples_per_update = float(self.batch_size)
         self.device = torch.device(device)
         self.modules: dict[str, nn.Module] = {}
         self.optimizers: dict[str, torch.optim.Optimizer] = {}

@@ -6,9 +6,10 @@ It is also BAIL's imitation step: :class:`~torchrl_bail.algorithms.bail.BAIL` is
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
+    >>> from torchrl_bail.config import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
-    >>> algo = BehaviourCloning(obs_dim=4, action_spec=action_spec_from_bounds([-1.0] * 2, [1.0] * 2),
-    ...                         hidden=(16,), batch_size=8, epochs=1)
+    >>> algo = BehaviourCloning(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2),
+    ...                         algo_config("bc", batch_size=8, epochs=1, policy={"hidden": [16]}))
     >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1}, [8])
     >>> sorted(algo.update(batch))
     ['loss_bc']
@@ -17,7 +18,6 @@ Examples:
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -45,26 +45,19 @@ def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
 class DeterministicActorAlgorithm(Algorithm):
     """An algorithm whose policy is a deterministic tanh actor with its own Adam optimizer (BC, BAIL, MARWIL).
 
-    Builds :attr:`actor` with :func:`~torchrl_bail.modules.make_deterministic_actor`, registers it as
-    ``modules["actor"]`` with ``optimizers["actor"]`` and evaluates it as :attr:`policy`; subclasses add their
-    losses and :meth:`update`. Keyword arguments as in :class:`BehaviourCloning`.
+    Builds :attr:`actor` with :func:`~torchrl_bail.modules.make_deterministic_actor` from the config's ``policy``
+    block (``hidden``, ``lr``), registers it as ``modules["actor"]`` with ``optimizers["actor"]`` and evaluates it
+    as :attr:`policy`; subclasses add their losses and :meth:`update`. Arguments as in
+    :class:`~torchrl_bail.algorithms.base.Algorithm`.
     """
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        hidden: Sequence[int] = (400, 300),
-        lr: float = 1e-3,
-        batch_size: int = 1000,
-        epochs: float = 100,
-        device="cpu",
-    ) -> None:
-        super().__init__(batch_size=batch_size, epochs=epochs, device=device)
-        self.actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), hidden).to(self.device)
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        policy = self.config.policy
+        actor = make_deterministic_actor(obs_dim, action_spec.to(self.device), tuple(policy.hidden))
+        self.actor = actor.to(self.device)
         self.modules["actor"] = self.actor
-        self.optimizers["actor"] = torch.optim.Adam(self.actor.parameters(), lr=lr)
+        self.optimizers["actor"] = torch.optim.Adam(self.actor.parameters(), lr=policy.lr)
 
     @property
     def policy(self):
@@ -72,33 +65,16 @@ class DeterministicActorAlgorithm(Algorithm):
 
 
 class BehaviourCloning(DeterministicActorAlgorithm):
-    """BC on whatever :meth:`prepare` returns (the whole batch here).
+    """BC on whatever :meth:`prepare` returns (the whole batch here), from ``conf/algo/bc.yaml``'s config.
 
-    Keyword Args:
-        obs_dim (int): observation size.
-        action_spec (TensorSpec): bounded action spec; the actor outputs ``tanh`` scaled to it.
-        hidden (sequence of int): actor hidden sizes. Defaults to ``(400, 300)``.
-        lr (float): Adam learning rate. Defaults to ``1e-3``.
-        batch_size (int): mini-batch size, sampled with replacement. Defaults to ``1000``.
-        epochs (float): length in epochs of 10^6 samples. Defaults to ``100``.
-        device: training device. Defaults to ``"cpu"``.
+    Arguments as in :class:`~torchrl_bail.algorithms.base.Algorithm`; the config's ``policy`` block is the actor,
+    its mini-batches are sampled with replacement.
     """
 
     name = "bc"
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        hidden: Sequence[int] = (400, 300),
-        lr: float = 1e-3,
-        batch_size: int = 1000,
-        epochs: float = 100,
-        device="cpu",
-    ) -> None:
-        super().__init__(obs_dim=obs_dim, action_spec=action_spec, hidden=hidden, lr=lr, batch_size=batch_size,
-                         epochs=epochs, device=device)
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
         self.bc_loss = make_bc_loss(self.actor)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

@@ -10,9 +10,9 @@ Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.modules import action_spec_from_bounds
-    >>> small = {"hidden": (16, 16)}
-    >>> algo = BEAR(obs_dim=4, action_spec=action_spec_from_bounds([-1.0] * 2, [1.0] * 2), vae=small, actor=small,
-    ...             critic=small, warm_start_updates=1, batch_size=8, epochs=1)
+    >>> small = {"hidden": [16, 16]}  # the config: a mapping over conf/algo/bear.yaml's values
+    >>> config = {"vae": small, "actor": small, "critic": small, "warm_start_updates": 1, "batch_size": 8}
+    >>> algo = BEAR(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)
     >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
     ...                     "next": {"observation": torch.randn(8, 4), "reward": torch.randn(8, 1),
     ...                              "terminated": torch.zeros(8, 1, dtype=torch.bool)}}, [8])
@@ -22,94 +22,47 @@ Examples:
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algorithms.twin_critic_vae import (
-    CRITIC_DEFAULTS,
-    NET_DEFAULTS,
-    VAE_DEFAULTS,
-    TwinCriticVAEAlgorithm,
-    adam,
-    build_vae_and_critics,
-    use_vmap,
-)
+from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, adam
 from torchrl_bail.modules import make_sac_actor
 from torchrl_bail.objectives.bear import BEARLoss
 
 __all__ = ["BEAR"]
 
-#: the authors' actor: BCQ's sizes, MMD noise clipped to +-0.5, log-std unclamped
-ACTOR_DEFAULTS = {**NET_DEFAULTS, "noise_clip": 0.5, "log_std_min": -math.inf, "log_std_max": math.inf}
-
 
 class BEAR(TwinCriticVAEAlgorithm):
-    """BEAR on :class:`~torchrl_bail.objectives.bear.BEARLoss`.
+    """BEAR on :class:`~torchrl_bail.objectives.bear.BEARLoss`, from ``conf/algo/bear.yaml``'s config (arguments as
+    in :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
-    Keyword Args:
-        obs_dim, action_spec, vae, critic, lmbda, num_samples, kl_weight, latent_clip, gamma, tau, batch_size,
-            epochs, device: as in :class:`~torchrl_bail.algorithms.bcq.BCQ` (``num_samples`` counts the
-            target actor's samples in the critic target and the candidates at action selection).
-        actor (dict): ``hidden`` (400, 300), ``lr`` (1e-3), ``noise_clip`` (0.5), ``log_std_min`` /
-            ``log_std_max`` (unclamped: -inf / inf).
-        kernel_sigma (float): Laplacian kernel width. Defaults to ``10.0``.
-        num_samples_match (int): samples per state for the MMD. Defaults to ``5``.
-        mmd_stabiliser (float): added under the MMD's square root. Defaults to ``1e-6``.
-        epsilon (float): MMD threshold. Defaults to ``0.05``.
-        log_alpha_init (float, optional): initial ``log alpha``; ``None`` draws it from ``N(0, 1)``.
-        log_alpha_min, log_alpha_max (float): clamp of ``log alpha`` after each step. Default ``-5`` and ``10``.
-        lagrange_lr (float): Adam learning rate of ``log alpha``. Defaults to ``1e-3``.
-        warm_start_updates (int): updates with the MMD-only actor loss. Defaults to ``100000``.
+    The config's ``actor`` block is the tanh-Gaussian actor (``hidden``, ``lr``, ``log_std_min`` /
+    ``log_std_max``) and the clip of its MMD noise (``noise_clip``); ``lagrange_lr`` is the Adam rate of
+    ``log alpha``; ``vae``, ``critic``, ``tau`` as in
+    :class:`~torchrl_bail.algorithms.twin_critic_vae.TwinCriticVAEAlgorithm`; the other keys go to the loss
+    (``num_samples`` counts the target actor's samples in the critic target and the candidates at action
+    selection).
     """
 
     name = "bear"
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        vae: dict | None = None,
-        actor: dict | None = None,
-        critic: dict | None = None,
-        kernel_sigma: float = 10.0,
-        num_samples_match: int = 5,
-        mmd_stabiliser: float = 1e-6,
-        epsilon: float = 0.05,
-        log_alpha_init: float | None = None,
-        log_alpha_min: float = -5.0,
-        log_alpha_max: float = 10.0,
-        lagrange_lr: float = 1e-3,
-        warm_start_updates: int = 100_000,
-        lmbda: float = 0.75,
-        num_samples: int = 10,
-        kl_weight: float = 0.5,
-        latent_clip: float = 0.5,
-        gamma: float = 0.99,
-        tau: float = 0.005,
-        batch_size: int = 100,
-        epochs: float = 100,
-        device="cpu",
-    ) -> None:
-        vae = {**VAE_DEFAULTS, **(vae or {})}
-        actor = {**ACTOR_DEFAULTS, **(actor or {})}
-        critic = {**CRITIC_DEFAULTS, **(critic or {})}
-        vae_net, critics = build_vae_and_critics(obs_dim, action_spec, vae, critic, latent_clip)
-        policy_net = make_sac_actor(obs_dim, action_spec, tuple(actor["hidden"]),
-                                    log_std_min=float(actor["log_std_min"]), log_std_max=float(actor["log_std_max"]))
-        loss = BEARLoss(policy_net, critics, vae_net, action_spec=action_spec, num_samples=num_samples,
-                        num_samples_match=num_samples_match, kernel_sigma=kernel_sigma, epsilon=epsilon,
-                        noise_clip=actor["noise_clip"], mmd_stabiliser=mmd_stabiliser,
-                        warm_start_updates=warm_start_updates, log_alpha_init=log_alpha_init,
-                        log_alpha_min=log_alpha_min, log_alpha_max=log_alpha_max, lmbda=lmbda, gamma=gamma,
-                        kl_weight=kl_weight, deactivate_vmap=not use_vmap(critic["vmap"], device))
-        super().__init__(loss=loss, vae_lr=vae["lr"], critic_lr=critic["lr"], actor_lr=actor["lr"], tau=tau,
-                         num_samples=num_samples, batch_size=batch_size, epochs=epochs, device=device)
-        self.optimizers["alpha"] = adam([self.loss.log_alpha], lagrange_lr)
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        self.optimizers["alpha"] = adam([self.loss.log_alpha], self.config.lagrange_lr)
+
+    def _make_loss(self, vae, critics, deactivate_vmap: bool) -> BEARLoss:
+        cfg, spec = self.config, self.action_spec
+        actor = make_sac_actor(self.obs_dim, spec, tuple(cfg.actor.hidden), log_std_min=float(cfg.actor.log_std_min),
+                               log_std_max=float(cfg.actor.log_std_max))
+        return BEARLoss(actor, critics, vae, action_spec=spec, num_samples=cfg.num_samples,
+                        num_samples_match=cfg.num_samples_match, kernel_sigma=cfg.kernel_sigma, epsilon=cfg.epsilon,
+                        noise_clip=cfg.actor.noise_clip, mmd_stabiliser=cfg.mmd_stabiliser,
+                        warm_start_updates=cfg.warm_start_updates, log_alpha_init=cfg.log_alpha_init,
+                        log_alpha_min=cfg.log_alpha_min, log_alpha_max=cfg.log_alpha_max, lmbda=cfg.lmbda,
+                        gamma=cfg.gamma, kl_weight=cfg.kl_weight, deactivate_vmap=deactivate_vmap)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         metrics = self._update_vae_and_critics(batch)

@@ -9,9 +9,10 @@ default init x 0.1, bias 0); the running normaliser ``c^2`` is saved in :meth:`M
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
+    >>> from torchrl_bail.config import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
-    >>> algo = MARWIL(obs_dim=4, action_spec=action_spec_from_bounds([-1.0] * 2, [1.0] * 2), hidden=(16,),
-    ...               value_hidden=(16,), batch_size=8, epochs=1)
+    >>> config = algo_config("marwil", batch_size=8, policy={"hidden": [16]}, value={"hidden": [16]})
+    >>> algo = MARWIL(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)
     >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
     ...                     "return": torch.randn(8)}, [8])
     >>> sorted(algo.update(batch))
@@ -20,7 +21,6 @@ Examples:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -36,44 +36,25 @@ __all__ = ["MARWIL"]
 
 
 class MARWIL(DeterministicActorAlgorithm):
-    """MARWIL with a deterministic tanh actor (weighted MSE) and a state-value net.
+    """MARWIL with a deterministic tanh actor (weighted MSE) and a state-value net, from ``conf/algo/marwil.yaml``'s
+    config (arguments as in :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
-    Keyword Args:
-        obs_dim, action_spec, hidden, lr, batch_size, epochs, device: as in
-            :class:`~torchrl_bail.algorithms.bc.BehaviourCloning` (``hidden``/``lr`` are the actor's).
-        value_hidden (sequence of int): value-net hidden sizes. Defaults to ``(128, 128)``.
-        value_lr (float): the value net's Adam learning rate. Defaults to ``1e-3``.
-        beta, c2_init, c2_rate, vf_coeff, max_exponent, eps: see :class:`~torchrl_bail.objectives.MARWILLoss`.
+    The config's ``policy`` block is the actor, ``value`` the value net (``hidden``, Adam ``lr``); ``beta``,
+    ``c2_init``, ``c2_rate``, ``vf_coeff``, ``max_exponent`` and ``eps`` go to
+    :class:`~torchrl_bail.objectives.MARWILLoss`.
     """
 
     name = "marwil"
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        hidden: Sequence[int] = (400, 300),
-        lr: float = 1e-3,
-        value_hidden: Sequence[int] = (128, 128),
-        value_lr: float = 1e-3,
-        beta: float = 1.0,
-        c2_init: float = 100.0,
-        c2_rate: float = 1e-8,
-        vf_coeff: float = 1.0,
-        max_exponent: float = 20.0,
-        eps: float = 1e-8,
-        batch_size: int = 1000,
-        epochs: float = 100,
-        device="cpu",
-    ) -> None:
-        super().__init__(obs_dim=obs_dim, action_spec=action_spec, hidden=hidden, lr=lr, batch_size=batch_size,
-                         epochs=epochs, device=device)
-        self.value_network = make_value_network(obs_dim, value_hidden).to(self.device)
-        self.loss = MARWILLoss(self.actor, self.value_network, beta=beta, c2_init=c2_init, c2_rate=c2_rate,
-                               vf_coeff=vf_coeff, max_exponent=max_exponent, eps=eps).to(self.device)
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        cfg = self.config
+        self.value_network = make_value_network(obs_dim, tuple(cfg.value.hidden)).to(self.device)
+        self.loss = MARWILLoss(self.actor, self.value_network, beta=cfg.beta, c2_init=cfg.c2_init,
+                               c2_rate=cfg.c2_rate, vf_coeff=cfg.vf_coeff, max_exponent=cfg.max_exponent,
+                               eps=cfg.eps).to(self.device)
         self.modules["value"] = self.value_network
-        self.optimizers["value"] = torch.optim.Adam(self.value_network.parameters(), lr=value_lr)
+        self.optimizers["value"] = torch.optim.Adam(self.value_network.parameters(), lr=cfg.value.lr)
         self._optimizers = (self.optimizers["actor"], self.optimizers["value"])
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:

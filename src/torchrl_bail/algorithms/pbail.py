@@ -8,19 +8,19 @@ selection envelope is.
 
 Switches where the authors' code and the paper differ (spec 11):
 
-* ``best_envelope="paper"`` (default): ``phi'`` is a real copy of the lowest-validation weights, and the training
-  envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule of
-  :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
+* ``best_envelope="paper"`` (the yaml's default): ``phi'`` is a real copy of the lowest-validation weights, and the
+  training envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule
+  of :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
   ``"as_coded"``: the released code's aliasing: ``phi'`` is the live weights, no revert.
-* ``selection_envelope="best"`` (default): the separate selection network selects; it receives ``phi'`` whenever
-  ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
+* ``selection_envelope="best"`` (the yaml's default): the separate selection network selects; it receives ``phi'``
+  whenever ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
   ``best_envelope="as_coded"``, the *current* weights at every non-improving validation, as the released code
   does (so it keeps its random init until the first validation increase).
   ``"training"``: Algorithm 2 of the supplementary material read literally: "select data point i if
   ``G_i > x V_phi(s_i)``" with the *training* envelope ``V_phi``; ``phi'`` only serves the reverts.
-* ``v_projection=True`` (default, as coded; not in the paper): ``V < 1`` is mapped to ``exp(V - 1)`` before
-  the ratio, which keeps early, near-zero envelopes from flipping the ranking.
-* ``validation="split"`` (default, the paper's 0.8/0.2 split) or ``"with_replacement"`` (the code's
+* ``v_projection=True`` (the yaml's default, as coded; not in the paper): ``V < 1`` is mapped to ``exp(V - 1)``
+  before the ratio, which keeps early, near-zero envelopes from flipping the ranking.
+* ``validation="split"`` (the yaml's default, the paper's 0.8/0.2 split) or ``"with_replacement"`` (the code's
   ``randint``: about 18 % unique validation points).
 
 One epoch counts ``(1 - val_fraction) * batch_size`` samples per update, as the authors' logs do, so 100
@@ -29,8 +29,7 @@ epochs are 125k updates and an evaluation every 0.5 epoch is every 625 updates.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -49,19 +48,13 @@ VALIDATION_KEY = "envelope_validation"
 
 
 class ProgressiveBAIL(BehaviourCloning):
-    """Progressive BAIL (Alg. 2 of the supplementary material).
+    """Progressive BAIL (Alg. 2 of the supplementary material), from ``conf/algo/pbail.yaml``'s config (arguments
+    as in :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
-    Keyword Args:
-        obs_dim, action_spec, hidden, lr, batch_size, epochs, device: as in
-            :class:`~torchrl_bail.algorithms.bc.BehaviourCloning`.
-        envelope (dict): ``hidden``, ``head_scale``, ``penalty`` (1000), ``lr`` (3e-3), ``weight_decay`` (0.02),
-            ``val_fraction`` (0.2), ``validate_every`` (1250), ``patience`` (4).
-        percentile (float): share of each mini-batch imitated. Defaults to ``0.25``.
-        best_envelope (str): ``"paper"`` or ``"as_coded"``. Defaults to ``"paper"``.
-        selection_envelope (str): ``"best"`` (the selection network, fed from ``phi'``) or ``"training"``
-            (Alg. 2 literally: the training envelope selects). Defaults to ``"best"``.
-        v_projection (bool): ``V < 1 -> exp(V - 1)`` before the ratio. Defaults to ``True``.
-        validation (str): ``"split"`` or ``"with_replacement"``. Defaults to ``"split"``.
+    The config's ``envelope`` block is the envelope network, its :class:`~torchrl_bail.objectives.UpperEnvelopeLoss`
+    and Adam, its validation split and early stopping (``validate_every``, ``patience``); ``selection.percentile``
+    is the share of each mini-batch imitated; ``best_envelope``, ``selection_envelope``, ``v_projection`` and
+    ``validation`` are the switches of the module docstring; ``policy`` is the imitating actor.
     """
 
     name = "pbail"
@@ -69,54 +62,30 @@ class ProgressiveBAIL(BehaviourCloning):
     state_attributes = ("_best_state", "_best_val", "_increases", "_iteration", "_reverts", "_last_selected",
                         "_last_val")
 
-    def __init__(
-        self,
-        *,
-        obs_dim: int,
-        action_spec: TensorSpec,
-        hidden: Sequence[int] = (400, 300),
-        lr: float = 1e-3,
-        batch_size: int = 1000,
-        epochs: float = 100,
-        envelope: dict | None = None,
-        percentile: float = 0.25,
-        best_envelope: Literal["paper", "as_coded"] = "paper",
-        selection_envelope: Literal["best", "training"] = "best",
-        v_projection: bool = True,
-        validation: Literal["split", "with_replacement"] = "split",
-        device="cpu",
-    ) -> None:
-        super().__init__(obs_dim=obs_dim, action_spec=action_spec, hidden=hidden, lr=lr,
-                         batch_size=batch_size, epochs=epochs, device=device)
-        if best_envelope not in ("paper", "as_coded"):
-            raise ValueError(f"algo.best_envelope must be 'paper' or 'as_coded', got {best_envelope!r}")
-        if selection_envelope not in ("best", "training"):
-            raise ValueError(f"algo.selection_envelope must be 'best' or 'training', got {selection_envelope!r}")
-        if validation not in ("split", "with_replacement"):
-            raise ValueError(f"algo.validation must be 'split' or 'with_replacement', got {validation!r}")
-        env = {"hidden": (128, 128), "head_scale": 0.1, "penalty": 1000.0, "lr": 3e-3, "weight_decay": 0.02,
-               "val_fraction": 0.2, "validate_every": 1250, "patience": 4, **(envelope or {})}
-        if not 0.0 <= env["val_fraction"] < 1.0:
-            raise ValueError(f"algo.envelope.val_fraction must be in [0, 1), got {env['val_fraction']}")
-        self.val_fraction = float(env["val_fraction"])
-        self.validate_every = int(env["validate_every"])
-        self.patience = int(env["patience"])
-        self.percentile = float(percentile)
-        self.best_envelope = best_envelope
-        self.selection_envelope = selection_envelope
-        self.v_projection = bool(v_projection)
-        self.validation = validation
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        cfg = self.config
+        env = cfg.envelope
+        self.val_fraction = float(env.val_fraction)
+        self.validate_every = int(env.validate_every)
+        self.patience = int(env.patience)
+        self.percentile = float(cfg.selection.percentile)
+        self.best_envelope = cfg.best_envelope
+        self.selection_envelope = cfg.selection_envelope
+        self.v_projection = bool(cfg.v_projection)
+        self.validation = cfg.validation
         self.samples_per_update = (1.0 - self.val_fraction) * self.batch_size
 
-        self.value_network = make_value_network(obs_dim, env["hidden"], head_scale=env["head_scale"]).to(self.device)
+        hidden = tuple(env.hidden)
+        self.value_network = make_value_network(obs_dim, hidden, head_scale=env.head_scale).to(self.device)
         # an independently initialised selection envelope, as in the authors' code
-        self.selection_network = make_value_network(obs_dim, env["hidden"], head_scale=env["head_scale"]).to(self.device)
+        self.selection_network = make_value_network(obs_dim, hidden, head_scale=env.head_scale).to(self.device)
         self.per_element_bc_loss = make_bc_loss(self.actor, reduction="none")
-        self.envelope_loss = UpperEnvelopeLoss(self.value_network, penalty=env["penalty"], reduction="none")
+        self.envelope_loss = UpperEnvelopeLoss(self.value_network, penalty=env.penalty, reduction="none")
         self.modules.update(envelope=self.value_network, selection_envelope=self.selection_network)
-        self.optimizers["envelope"] = torch.optim.Adam(self.envelope_loss.parameters(), lr=env["lr"],
-                                                       weight_decay=env["weight_decay"])
-        as_coded = best_envelope == "as_coded"
+        self.optimizers["envelope"] = torch.optim.Adam(self.envelope_loss.parameters(), lr=env.lr,
+                                                       weight_decay=env.weight_decay)
+        as_coded = self.best_envelope == "as_coded"
         self.early_stopping = EarlyStoppingTracker(self.value_network, patience=self.patience, revert=not as_coded,
                                                    copy_best=not as_coded)
         self._iteration = 0

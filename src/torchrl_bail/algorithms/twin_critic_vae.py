@@ -8,28 +8,23 @@ target actor and critics (:class:`~torchrl.objectives.SoftUpdate` with ``tau``, 
 
 from __future__ import annotations
 
+from abc import abstractmethod
+
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.data import TensorSpec
 
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.modules import fused_soft_update, make_qvalue_network, make_vae
 from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss
 
-__all__ = ["CRITIC_DEFAULTS", "NET_DEFAULTS", "VAE_DEFAULTS", "TwinCriticVAEAlgorithm", "adam",
-           "build_vae_and_critics", "use_vmap"]
-
-#: the authors' VAE (spec 8.3); a config's ``vae`` block overrides any of these
-VAE_DEFAULTS = {"hidden": (750, 750), "lr": 1e-3, "latent_per_action": 2, "log_std_min": -4.0, "log_std_max": 15.0}
-#: the authors' actor (400-300, Adam 1e-3)
-NET_DEFAULTS = {"hidden": (400, 300), "lr": 1e-3}
-#: the authors' critics; ``vmap``: run the two with ``torch.vmap`` (True), one after the other (False) or
-#: ``"auto"``: vmap on accelerators, the loop on CPU (where two plain matmuls beat one batched matmul)
-CRITIC_DEFAULTS = {**NET_DEFAULTS, "vmap": "auto"}
+__all__ = ["TwinCriticVAEAlgorithm", "adam", "build_vae_and_critics", "use_vmap"]
 
 
 def use_vmap(setting, device: torch.device) -> bool:
-    """Resolves a critic ``vmap`` setting (``True`` | ``False`` | ``"auto"``) for ``device``."""
+    """Resolves a critic ``vmap`` setting (``True`` | ``False`` | ``"auto"``: vmap on accelerators, the loop on CPU,
+    where two plain matmuls beat one batched matmul) for ``device``."""
     if setting == "auto":
         return torch.device(device).type != "cpu"
     if isinstance(setting, bool):
@@ -37,8 +32,9 @@ def use_vmap(setting, device: torch.device) -> bool:
     raise ValueError(f"algo.critic.vmap must be true, false or auto, got {setting!r}")
 
 
-def build_vae_and_critics(obs_dim: int, action_spec: TensorSpec, vae: dict, critic: dict, latent_clip: float):
-    """The conditional VAE and two independently initialised critics ``(s, a) -> hidden -> 1``."""
+def build_vae_and_critics(obs_dim: int, action_spec: TensorSpec, vae, critic, latent_clip: float):
+    """The conditional VAE and two independently initialised critics ``(s, a) -> hidden -> 1`` from the config's
+    ``vae`` and ``critic`` blocks."""
     act_dim = action_spec.shape[-1]
     net = make_vae(obs_dim, action_spec, tuple(vae["hidden"]), latent_dim=int(vae["latent_per_action"]) * act_dim,
                    log_std_min=vae["log_std_min"], log_std_max=vae["log_std_max"], latent_clip=latent_clip)
@@ -60,24 +56,31 @@ def adam(params, lr: float) -> torch.optim.Adam:
 class TwinCriticVAEAlgorithm(Algorithm):
     """Base of :class:`~torchrl_bail.algorithms.bcq.BCQ` and :class:`~torchrl_bail.algorithms.bear.BEAR`.
 
-    A subclass builds its loss (a :class:`~torchrl_bail.objectives.common.TwinCriticVAELoss`), passes it here
-    with the three learning rates, and implements :meth:`update` from :meth:`_update_vae_and_critics`,
-    :meth:`_step` and :meth:`_finish_update`. The loss is the one module checkpointed (every network, target
-    and buffer); the evaluation policy is the loss' best-of-``num_samples`` policy.
+    Builds the VAE and the critics from the config's ``vae`` and ``critic`` blocks, asks the subclass'
+    :meth:`_make_loss` for its loss (a :class:`~torchrl_bail.objectives.common.TwinCriticVAELoss` with its actor),
+    and gives the VAE, the critics and the actor their Adam optimizers (``vae.lr``, ``critic.lr``, ``actor.lr``)
+    and the targets their soft update (``tau``). A subclass implements :meth:`update` from
+    :meth:`_update_vae_and_critics`, :meth:`_step` and :meth:`_finish_update`. The loss is the one module
+    checkpointed (every network, target and buffer); the evaluation policy is the loss' best-of-``num_samples``
+    policy. Arguments as in :class:`~torchrl_bail.algorithms.base.Algorithm`.
     """
 
-    def __init__(self, *, loss: TwinCriticVAELoss, vae_lr: float, critic_lr: float, actor_lr: float, tau: float,
-                 num_samples: int, batch_size: int, epochs: float, device="cpu") -> None:
-        super().__init__(batch_size=batch_size, epochs=epochs, device=device)
-        if not 0.0 < float(tau) <= 1.0:
-            raise ValueError(f"algo.tau must be in (0, 1], got {tau}")
+    def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
+        super().__init__(obs_dim, action_spec, config, device)
+        cfg = self.config
+        vae_net, critics = build_vae_and_critics(obs_dim, action_spec, cfg.vae, cfg.critic, cfg.latent_clip)
+        loss = self._make_loss(vae_net, critics, deactivate_vmap=not use_vmap(cfg.critic.vmap, device))
         self.loss = loss.to(self.device)
-        self.target_updater = fused_soft_update(self.loss, tau=float(tau))
-        self.optimizers["vae"] = adam(self.loss.vae_network_params.parameters(), vae_lr)
-        self.optimizers["critic"] = adam(self.loss.qvalue_network_params.parameters(), critic_lr)
-        self.optimizers["actor"] = adam(self.loss.actor_network_params.parameters(), actor_lr)
+        self.target_updater = fused_soft_update(self.loss, tau=float(cfg.tau))
+        self.optimizers["vae"] = adam(self.loss.vae_network_params.parameters(), cfg.vae.lr)
+        self.optimizers["critic"] = adam(self.loss.qvalue_network_params.parameters(), cfg.critic.lr)
+        self.optimizers["actor"] = adam(self.loss.actor_network_params.parameters(), cfg.actor.lr)
         self.modules["loss"] = self.loss
-        self._policy = BestOfNPolicy(self.loss, num_samples)
+        self._policy = BestOfNPolicy(self.loss, cfg.num_samples)
+
+    @abstractmethod
+    def _make_loss(self, vae: nn.Module, critics: list[nn.Module], deactivate_vmap: bool) -> TwinCriticVAELoss:
+        """The algorithm's loss on its actor (built here from :attr:`config`), ``vae`` and ``critics``."""
 
     @property
     def policy(self) -> BestOfNPolicy:
