@@ -1,7 +1,7 @@
 """Kill drill for behaviour collection: SIGKILL a small collection after at least one checkpoint, resume it in a
 new process, and compare the batch's bytes with an uninterrupted run's.
 
-    python benchmarks/_collection_drill.py [--trials 5] [--recipe ddpg|sac] [--seed 0] [--workdir DIR]
+    python benchmarks/_collection_drill.py [--trials 5] [--recipe ddpg|sac] [--seed 0] [--max-delay 8]
 
 Prints one line per trial (killed or finished first, the step it resumed from, match or not) and ``matched k/n``;
 exits 1 unless every trial matched. :func:`collection_trial` is the hook ``kill_drill.py --target collection``
@@ -142,11 +142,14 @@ def main() -> int:
     parser.add_argument("--recipe", choices=sorted(DRILL_OVERRIDES), default="ddpg")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workdir", default=None)
+    parser.add_argument("--max-delay", type=float, default=8.0, help="kill up to this many seconds after the first "
+                        "checkpoint")
     args = parser.parse_args()
     sys.path.insert(0, str(SRC))
     rng = random.Random(args.seed)
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="collection-drill-"))
-    matched = sum(collection_trial(rng, workdir, recipe=args.recipe) for _ in range(args.trials))
+    matched = sum(collection_trial(rng, workdir, recipe=args.recipe, max_delay_s=args.max_delay)
+                  for _ in range(args.trials))
     print(f"matched {matched}/{args.trials}")
     return 0 if matched == args.trials else 1
 
