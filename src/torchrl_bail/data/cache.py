@@ -14,9 +14,17 @@ training seed ``cfg.seed`` never changes a batch.
 
 Interruption: nothing is ever written under a batch's final name until it is complete (``save_batch`` writes to a
 temporary directory and renames it). Work in progress lives in a scratch directory
-``<data_dir>/.scratch/<name>-<hash>.<pid>.<random>`` (:func:`scratch_directory`) removed on exit (Ctrl-C included);
-a run killed outright leaves it behind and :func:`clean_stale` removes every scratch directory whose process is
-gone. :func:`file_lock` makes concurrent jobs wanting the same batch produce it once.
+``<data_dir>/.scratch/<name>-<hash>.<host>.<pid>.<random>`` (:func:`scratch_directory`) removed on exit (Ctrl-C
+included), and checkpoints in ``<data_dir>/.partial/<name>-<hash>`` (:func:`partial_directory`, written by
+:mod:`torchrl_bail.behaviour.checkpoint`) from which a killed collection resumes.
+
+Several hosts, one ``data_dir``: a lock (:func:`file_lock`) is an owner file created atomically, and a scratch
+directory has an ``owner.json``; both record host, pid and process start time (:func:`owner_record`), and the
+owner's :data:`HEARTBEAT` thread touches them every ``heartbeat_every_s``. :func:`owner_alive` decides: on this host
+the process must exist with the same start time; another host's owner is presumed alive until its heartbeat is
+older than ``stale_after_s`` (:func:`liveness_settings`; compared on the file server's clock). :func:`clean_stale`
+removes only what a gone owner left; a waiter takes over a gone owner's lock and logs whom it waited for.
+The ``batch`` keys that tune this and the checkpoints (:data:`OPERATIONAL_KEYS`) are outside the recipe hash.
 
 This module reads configs (an OmegaConf ``DictConfig`` or a plain nested ``dict``) but never produces data: the
 behaviour agents that fill the cache live in :mod:`torchrl_bail.behaviour`.
