@@ -135,3 +135,20 @@ def test_two_jobs_asking_for_the_same_batch_make_it_once(tmp_path):
     paths = {line.split()[1] for out, _ in outs for line in out.splitlines() if line.startswith("BATCH")}
     assert len(paths) == 1
     assert all(line.split()[2] == "300" for out, _ in outs for line in out.splitlines() if line.startswith("BATCH"))
+
+
+def test_a_job_whose_lock_was_taken_over_stops_before_writing(tmp_path):
+    from torchrl_bail.data.cache import HEARTBEAT, LockLost
+
+    lock = tmp_path / LOCKS / "b.lock"
+    with file_lock(lock, heartbeat_every_s=60):
+        HEARTBEAT.check()  # ours: fine
+        lock.write_text(json.dumps(_foreign_owner(token="theirs")))  # another host took it over
+        try:
+            HEARTBEAT.check()
+        except LockLost:
+            pass
+        else:
+            raise AssertionError("a lost lock must stop the job before it writes")
+    assert json.loads(lock.read_text())["token"] == "theirs", "the new owner's lock is left alone"
+    HEARTBEAT.check()  # released: nothing lost any more

@@ -20,6 +20,7 @@ from torchrl_bail.behaviour.recipes import validate_recipe
 from torchrl_bail.behaviour.sac import collect_sac, run_checkpoint, sac_run_lock
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
+    HEARTBEAT,
     LOCKS,
     batch_metadata,
     batch_name,
@@ -90,6 +91,7 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
             data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=root,
                                            checkpoint=checkpoint)
         metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
+        HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
         batch = save_batch(data, path, metadata)
     if recipe == "sac":  # the run's checkpoint is shared with whoever needs the same SAC run: remove it under its lock
         with sac_run_lock(cfg, root):

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from torchrl_bail.data.cache import config_value, partial_directory
+from torchrl_bail.data.cache import HEARTBEAT, config_value, partial_directory
 from torchrl_bail.io import atomic_path
 
 __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_rng_state", "set_global_rng_state"]
@@ -139,7 +139,9 @@ class CollectionCheckpoint:
 
     def save(self, state: dict[str, Any], stores: Mapping[str, Any]) -> None:
         """Writes the rows the ``stores`` (name -> :class:`~torchrl_bail.behaviour.buffers.EpisodeStore`) gained
-        since the last checkpoint, then ``state`` (atomically, last)."""
+        since the last checkpoint, then ``state`` (atomically, last). Raises
+        :class:`~torchrl_bail.data.cache.LockLost` instead if this job's lock was taken over meanwhile."""
+        HEARTBEAT.check()
         for name, store in stores.items():
             done, n = self._saved_rows.get(name, 0), len(store)
             if n > done:

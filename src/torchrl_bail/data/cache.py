@@ -81,6 +81,7 @@ __all__ = [
     "PARTIAL",
     "OPERATIONAL_KEYS",
     "HEARTBEAT",
+    "LockLost",
     "host_name",
     "process_start_time",
     "owner_record",
@@ -318,6 +319,10 @@ def owner_alive(owner: Mapping[str, Any] | None, heartbeat_age_s: float, stale_a
     return heartbeat_age_s < stale_after_s
 
 
+class LockLost(RuntimeError):
+    """Another job took over a lock this process held (its heartbeat stopped for too long)."""
+
+
 class Heartbeat:
     """A daemon thread that touches the owner files of this process's locks and scratch directories.
 
@@ -333,6 +338,7 @@ class Heartbeat:
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_pid = -1
+        self.lost: set[Path] = set()
 
     def register(self, path: Path, *, interval: float, token: str | None = None) -> None:
         with self._lock:
@@ -357,10 +363,24 @@ class Heartbeat:
                     log.error("lock %s was taken over by another job (our heartbeat was late); "
                               "this job no longer owns it", path)
                     self.unregister(path)
+                    self.lost.add(path)
                     continue
                 os.utime(path, None)
             except OSError:
                 pass
+
+    def check(self) -> None:
+        """Raises :class:`LockLost` if a lock of this process was taken over (e.g. the job was suspended for
+        longer than the staleness timeout): it must not write what the new owner now writes."""
+        with self._lock:
+            items = list(self._paths.items())
+        for path, (token, _) in items:
+            if token is not None and _read_owner(path).get("token") != token:
+                self.unregister(path)
+                self.lost.add(path)
+        if self.lost:
+            raise LockLost(f"lock {sorted(map(str, self.lost))[0]} was taken over by another job; stopping here "
+                           "(its heartbeat was older than the staleness timeout)")
 
     def _run(self) -> None:
         while True:
@@ -528,11 +548,13 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
             last_log = now
         time.sleep(delay)
         delay = min(delay * 1.5, 5.0)
+    HEARTBEAT.lost.discard(path)
     HEARTBEAT.register(path, interval=heartbeat_every_s, token=token)
     try:
         yield
     finally:
         HEARTBEAT.unregister(path)
+        HEARTBEAT.lost.discard(path)
         if _read_owner(path).get("token") == token:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(path)
