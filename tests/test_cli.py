@@ -63,10 +63,13 @@ def test_bail_end_to_end_writes_every_artifact(tmp_path, data_dir):
     assert (run_dir / "logs" / "scalars" / "eval" / "return.csv").exists()
 
 
-def test_same_seed_gives_the_same_summary(tmp_path, data_dir):
+@pytest.mark.parametrize("algo", ["bail", "bcq"])
+def test_same_seed_gives_the_same_summary_whether_the_batch_was_collected_or_cached(tmp_path, algo):
+    """Collection re-seeds the global generators with the behaviour seed; training must not notice."""
+    fresh = tmp_path / "fresh"  # run a collects the batch, run b loads it from the cache
     a, b = tmp_path / "a", tmp_path / "b"
-    _train(a, data_dir, "seed=3", *ALGO_TINY["bail"])
-    _train(b, data_dir, "seed=3", *ALGO_TINY["bail"])
+    _train(a, fresh, "seed=3", "batch.steps=600", "batch.start_steps=200", f"algo={algo}", *ALGO_TINY[algo])
+    _train(b, fresh, "seed=3", "batch.steps=600", "batch.start_steps=200", f"algo={algo}", *ALGO_TINY[algo])
     sa, sb = _summary(a), _summary(b)
     for s in (sa, sb):
         for volatile in ("wall_time_s", "run_dir"):

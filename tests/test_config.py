@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.train import ConfigError, validate_config
+from torchrl_bail.config import ConfigError, validate_config
 
 ALGOS = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
 
@@ -62,3 +62,56 @@ def test_slurm_launcher_config_composes():
         cfg = compose("config", overrides=["+exp=hopper_ddpg05", "hydra/launcher=slurm"], return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith("SlurmLauncher")
     assert cfg.hydra.launcher.timeout_min == 1440
+
+
+class _StubLogger:
+    def __init__(self):
+        self.hparams = None
+
+    def log_hparams(self, cfg):
+        self.hparams = cfg
+
+
+@pytest.mark.parametrize("backend", ["csv", "tensorboard", "wandb", "mlflow"])
+def test_logger_gets_project_group_name_and_the_resolved_config(monkeypatch, tmp_path, backend):
+    import torchrl.record.loggers
+
+    from torchrl_bail.train import make_logger
+
+    calls = []
+
+    def get_logger(logger_type, logger_name, experiment_name, **kwargs):
+        calls.append((logger_type, logger_name, experiment_name, kwargs))
+        return _StubLogger()
+
+    monkeypatch.setattr(torchrl.record.loggers, "get_logger", get_logger)
+    cfg = _compose("+exp=walker_sac", "algo=bcq", "seed=4", f"logger.backend={backend}", "logger.project=mine")
+    logger = make_logger(cfg, tmp_path / "seed4_x")
+    (logger_type, logger_dir, experiment, kwargs), = calls
+    assert (logger_type, logger_dir) == (backend, str(tmp_path / "seed4_x"))
+    if backend == "wandb":
+        assert experiment == "bcq_seed4_seed4_x"
+        assert kwargs == {"wandb_kwargs": {"project": "mine", "group": "walker_sac_b1"}}
+    elif backend == "mlflow":
+        assert experiment == "mine"
+        assert kwargs == {"mlflow_kwargs": {"tags": {"group": "walker_sac_b1", "mlflow.runName": "bcq_seed4_seed4_x"}}}
+    else:  # file backends write into <run_dir>/logs
+        assert experiment == "logs" and kwargs == {}
+    hp = logger.hparams  # every key, resolved and flat, for every backend
+    assert hp["algo.name"] == "bcq" and hp["seed"] == 4 and hp["logger.project"] == "mine"
+    assert hp["batch.sac.train_steps"] == 1_000_000 and hp["algo.vae.hidden"] == "[750, 750]"
+    assert all(isinstance(v, (bool, int, float, str)) for v in hp.values())
+
+
+def test_logger_name_from_the_config_wins(monkeypatch, tmp_path):
+    import torchrl.record.loggers
+
+    from torchrl_bail.train import make_logger
+
+    seen = {}
+    monkeypatch.setattr(torchrl.record.loggers, "get_logger",
+                        lambda *a, **kw: seen.update(args=a, kwargs=kw) or _StubLogger())
+    make_logger(_compose("+exp=hopper_ddpg05", "logger.backend=wandb", "logger.name=ablation-K1",
+                         "logger.group=ablations"), tmp_path)
+    assert seen["kwargs"]["experiment_name"] == "ablation-K1"
+    assert seen["kwargs"]["wandb_kwargs"]["group"] == "ablations"

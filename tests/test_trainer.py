@@ -66,3 +66,18 @@ def test_empty_data_is_a_clear_error():
 
     with pytest.raises(ValueError, match="empty"):
         train(_bc(1.0), _data(0), progress=False)
+
+
+def test_checkpoints_before_the_first_update_and_on_a_clock(tmp_path, monkeypatch):
+    """A kill before the first evaluation keeps what prepare produced; the time cadence adds checkpoints."""
+    from torchrl_bail import trainer
+
+    saved = []
+    monkeypatch.setattr(trainer, "save_checkpoint", lambda path, state: saved.append(state["iteration"]))
+    train(_bc(epochs=100 / 1e6), _data(), evaluate=lambda p: 0.0, eval_every_epochs=50 / 1e6, progress=False,
+          checkpoint_path=tmp_path / "c.pt")
+    assert saved == [0, 5, 10]  # before the first update, then at each evaluation
+    saved.clear()
+    train(_bc(epochs=100 / 1e6), _data(), evaluate=lambda p: 0.0, eval_every_epochs=50 / 1e6, progress=False,
+          checkpoint_path=tmp_path / "c.pt", checkpoint_every_s=0.0)
+    assert saved == list(range(11))

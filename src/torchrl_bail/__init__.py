@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import importlib.util
 import sys
-from pathlib import Path
 
 __version__ = "0.1.0"
+
+from torchrl_bail.config import config_dir  # noqa: E402  (light: Hydra/OmegaConf only)
 
 
 def fast_tensordict_outputs() -> None:
@@ -27,20 +28,3 @@ def fast_tensordict_outputs() -> None:
     """
     if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
         sys.modules["pandas"] = None  # type: ignore[assignment]
-
-
-def config_dir() -> Path:
-    """Directory holding the Hydra configs.
-
-    An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
-    them at the repository's top-level ``conf/``.
-    """
-    packaged = Path(__file__).resolve().parent / "conf"
-    if packaged.is_dir():
-        return packaged
-    repo = Path(__file__).resolve().parents[2] / "conf"
-    if repo.is_dir():
-        return repo
-    raise FileNotFoundError(
-        f"torchrl_bail configs not found: looked in {packaged} and {repo}. Reinstall the package."
-    )

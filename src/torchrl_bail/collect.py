@@ -26,6 +26,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
+from torchrl_bail.config import exit_on_config_error, run_cli, validate_config
 
 __all__ = ["main", "collect", "format_listing", "import_main"]
 
@@ -85,7 +86,10 @@ def _print_summary(s: dict) -> None:
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    _print_summary(collect(cfg))
+    with exit_on_config_error():
+        validate_config(cfg)
+        summary = collect(cfg)
+    _print_summary(summary)
 
 
 def format_listing(rows: list[dict]) -> str:
@@ -196,13 +200,14 @@ def main() -> None:
     if any(a == "--import" or a.startswith("--import=") for a in argv):
         raise SystemExit(import_main(argv))
     # keep collection runs' Hydra files apart from training runs, unless the user chose a directory
+    extra = []
     if not any(a.startswith(("hydra.run.dir", "hydra.sweep.dir")) for a in argv):
-        sys.argv += [
+        extra = [
             "hydra.run.dir=outputs/collect/${env.name}_${batch.kind}_b${batch.index}/${now:%Y%m%d-%H%M%S}",
             "hydra.sweep.dir=multirun/collect/${now:%Y-%m-%d_%H-%M-%S}",
         ]
     os.environ.setdefault("RL_WARNINGS", "0")
-    _hydra_main()
+    run_cli(_hydra_main, extra)  # a bad command line: one line on stderr, exit code 2
 
 
 if __name__ == "__main__":

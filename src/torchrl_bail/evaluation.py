@@ -182,6 +182,14 @@ class Evaluator:
                    for j in np.split(np.arange(n), len(seeds))]
         return results[0] if self.seeds is None else results
 
+    def state_dict(self) -> dict[str, int]:
+        """What a checkpoint needs to continue the evaluation stream: the number of evaluations run so far (every
+        episode's reset seed derives from it, see the module docstring)."""
+        return {"evaluations": self.evaluations}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.evaluations = int(state["evaluations"])
+
     def close(self) -> None:
         for env in self.envs:
             env.close()

@@ -3,82 +3,96 @@
 Data flows one way: batch (generated on demand, or imported from ``dataset=<path>``) -> Monte-Carlo returns
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
-``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``.
+``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` and ``summary.json``. Re-running the same command
+continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import random
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import hydra
-import numpy as np
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail import config_dir
-from torchrl_bail.algorithms import ALGORITHMS, PrepareContext, build_algorithm
-from torchrl_bail.data import monte_carlo_returns
-from torchrl_bail.evaluation import Evaluator
-from torchrl_bail.io import write_json_atomic
-from torchrl_bail.plots import plot_learning_curve
-from torchrl_bail.trainer import save_checkpoint, train
+from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
+from torchrl_bail.resume import Resumption
 
-__all__ = ["run", "main", "ConfigError"]
+# torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
+# (torchrl_bail.config.run_cli) in about a second, before they load.
+
+__all__ = ["run", "main", "ConfigError", "validate_config", "make_logger", "flat_hparams"]
 
 log = logging.getLogger("torchrl_bail")
 
 
-class ConfigError(ValueError):
-    """A configuration value is missing or out of range; the message names the key."""
+def _device(name: str):
+    import torch
 
-
-def validate_config(cfg: DictConfig) -> None:
-    """Checks the values every run depends on, before any work starts."""
-
-    def need(cond: bool, key: str, expected: str) -> None:
-        if not cond:
-            raise ConfigError(f"config key {key} = {OmegaConf.select(cfg, key)!r}: expected {expected}")
-
-    need(cfg.algo.name in ALGORITHMS, "algo.name", f"one of {sorted(ALGORITHMS)}")
-    need(0 < cfg.returns.gamma <= 1, "returns.gamma", "a discount in (0, 1]")
-    need(cfg.returns.horizon >= 1, "returns.horizon", "an integer >= 1")
-    need(cfg.returns.augment in ("gain", "none", "oracle"), "returns.augment", "gain | none | oracle")
-    if cfg.returns.augment == "oracle" and not cfg.get("dataset"):
-        need(bool(OmegaConf.select(cfg, "batch.oracle.enabled", default=False)), "returns.augment",
-             "gain | none, or oracle together with batch.oracle.enabled=true (oracle returns come from an oracle "
-             "batch's real continuations)")
-    need(cfg.samples_per_epoch >= 1, "samples_per_epoch", "a positive integer")
-    need(cfg.eval.episodes >= 1, "eval.episodes", "a positive integer")
-    need(cfg.eval.every_epochs > 0, "eval.every_epochs", "a positive number of epochs")
-    need(cfg.eval.final_window >= 1, "eval.final_window", "a positive integer")
-    need(cfg.algo.batch_size >= 1, "algo.batch_size", "a positive integer")
-    need(cfg.algo.epochs > 0, "algo.epochs", "a positive number of epochs")
-    need(cfg.device in ("cpu", "cuda", "auto") or str(cfg.device).startswith("cuda:"), "device",
-         "cpu | cuda | cuda:N | auto")
-    if str(cfg.device).startswith("cuda"):
-        need(torch.cuda.is_available(), "device", "a CUDA device, but torch sees none (use device=cpu or auto)")
-
-
-def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    return torch.device(name)  # cuda without a GPU was refused by validate_config
 
 
-def seed_everything(seed: int) -> torch.Generator:
+def seed_everything(seed: int):
+    """Seeds ``random``, NumPy and torch with the training seed; returns a torch generator seeded alike."""
+    import random
+
+    import numpy as np
+    import torch
+
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
     return torch.Generator().manual_seed(seed)
 
 
+@contextlib.contextmanager
+def preserved_rng_state():
+    """Runs the body without touching the global torch / NumPy / ``random`` generators.
+
+    Collecting a batch re-seeds them with the behaviour seed; wrapped in this, the training seed's streams
+    (network init, mini-batch sampling, BCQ/BEAR action sampling) are the same whether the batch was collected
+    in this run or loaded from the cache.
+
+    Examples:
+        >>> import random, numpy as np, torch
+        >>> _ = torch.manual_seed(0); expected = torch.rand(1)
+        >>> _ = torch.manual_seed(0)
+        >>> with preserved_rng_state():
+        ...     _ = torch.manual_seed(123); _ = np.random.seed(5); random.seed(7)
+        >>> bool(torch.rand(1) == expected)
+        True
+    """
+    import random
+
+    import numpy as np
+    import torch
+
+    np_state, py_state = np.random.get_state(), random.getstate()
+    with torch.random.fork_rng(devices=range(torch.cuda.device_count())):
+        try:
+            yield
+        finally:
+            np.random.set_state(np_state)
+            random.setstate(py_state)
+
+
 def load_training_batch(cfg: DictConfig):
-    """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch."""
+    """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch.
+
+    The global random generators are left as they were (see :func:`preserved_rng_state`).
+    """
+    with preserved_rng_state():
+        return _load_training_batch(cfg)
+
+
+def _load_training_batch(cfg: DictConfig):
     if cfg.get("dataset"):
         from torchrl_bail.data.importers import import_dataset
 
@@ -93,24 +107,81 @@ def load_training_batch(cfg: DictConfig):
     return ensure_batch(cfg, progress=cfg.progress)
 
 
-def _make_logger(cfg: DictConfig, run_dir: Path):
+def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as ``{"algo.envelope.lr": 0.003, ...}`` with scalar values (lists and null as text),
+    the form every logger backend accepts as hyper-parameters.
+
+    Examples:
+        >>> flat_hparams(OmegaConf.create({"seed": 1, "algo": {"hidden": [4, 4], "init": None}}))
+        {'seed': 1, 'algo.hidden': '[4, 4]', 'algo.init': 'null'}
+    """
+    flat: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                walk(value, f"{prefix}{key}" if not prefix else f"{prefix}.{key}")
+        else:
+            flat[prefix] = node if isinstance(node, (bool, int, float, str)) else (
+                "null" if node is None else str(node))
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return flat
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    """The TorchRL logger ``cfg.logger`` asks for, with the resolved config logged as hyper-parameters.
+
+    Run name: ``logger.name``, else ``<algo>_seed<seed>_<run dir name>``. wandb gets ``project``, ``group`` and
+    the run name; mlflow files the run under the experiment ``project`` with the ``group`` and run name as tags;
+    csv and tensorboard write into ``<run_dir>/logs`` (the run directory names the run).
+    """
     from torchrl.record.loggers import get_logger
 
-    return get_logger(cfg.logger.backend, logger_name=str(run_dir), experiment_name="logs",
-                      **({"project": cfg.logger.project} if cfg.logger.backend == "wandb" else {}))
+    backend, group = cfg.logger.backend, cfg.logger.group
+    name = cfg.logger.name or f"{cfg.algo.name}_seed{cfg.seed}_{Path(run_dir).name}"
+    kwargs: dict[str, Any] = {}
+    experiment = "logs"
+    if backend == "wandb":
+        experiment = name
+        kwargs["wandb_kwargs"] = {"project": cfg.logger.project, "group": group}
+    elif backend == "mlflow":
+        experiment = cfg.logger.project
+        kwargs["mlflow_kwargs"] = {"tags": {"group": group, "mlflow.runName": name}}
+    logger = get_logger(backend, logger_name=str(run_dir), experiment_name=experiment, **kwargs)
+    logger.log_hparams(flat_hparams(cfg))
+    return logger
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary."""
+    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary.
+
+    With ``resume=auto`` (default) a checkpoint in ``run_dir`` is continued and a finished run is reported, not
+    trained again (:mod:`torchrl_bail.resume`).
+    """
+    validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
+    # -- resume: lock the run directory, then continue, report complete, or start fresh --------------------------
+    with Resumption(cfg, Path(run_dir)) as resumption:
+        if resumption.complete is not None:
+            return resumption.complete
+        return _run(cfg, Path(run_dir), resumption)
+
+
+def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, Any]:
+    from torchrl_bail.algorithms import PrepareContext, build_algorithm
+    from torchrl_bail.data import monte_carlo_returns
+    from torchrl_bail.evaluation import Evaluator
+    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.plots import plot_learning_curve
+    from torchrl_bail.trainer import save_checkpoint, train
+
     start = time.perf_counter()
-    validate_config(cfg)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
     device = _device(cfg.device)
-    generator = seed_everything(int(cfg.seed))
-
     batch = load_training_batch(cfg)
+    # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later run,
+    # resumed ones included) must leave the training streams the same
+    generator = seed_everything(int(cfg.seed))
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
                           max_episode_steps=cfg.env.get("max_episode_steps"), device="cpu")
     try:
@@ -126,15 +197,24 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         data = data.select("observation", "action", "next", "episode").clone(False)
         data.set("return", returns)
 
-        logger = _make_logger(cfg, run_dir)
+        logger = make_logger(cfg, run_dir)
         algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
-        ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
-        train_data = algorithm.prepare(data, ctx)
+        # -- resume: a checkpoint restores what prepare fitted; nothing is refitted, logged or plotted twice --------
+        resumption.check_data(data)
+        checkpoint = resumption.checkpoint
+        if checkpoint is not None:
+            algorithm.load_state_dict(checkpoint["algorithm"])
+            train_data = algorithm.restore_prepared(data, PrepareContext(generator=generator))
+        else:
+            ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
+            train_data = algorithm.prepare(data, ctx)
+        every_minutes = cfg.checkpoint.get("every_minutes")
         history = train(
             algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
             eval_every_epochs=cfg.eval.every_epochs, logger=logger,
             checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
-            progress=cfg.progress,
+            checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
+            checkpoint_extra=resumption.checkpoint_extra, resume_from=checkpoint, progress=cfg.progress,
         )
     finally:
         evaluator.close()
@@ -160,17 +240,18 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "eval_failures": sum(e.failures for e in history.evaluations),
         "returns_augment": cfg.returns.augment,
         **algorithm.summary(),
-        "wall_time_s": time.perf_counter() - start,
+        **resumption.summary_fields(),
+        "wall_time_s": time.perf_counter() - start + (checkpoint or {}).get("wall_time_s", 0.0),
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
     }
     _add_normalized_scores(summary, cfg.env.id, batch.metadata)
-    write_json_atomic(run_dir / "summary.json", summary)
     plot_learning_curve(
         [e.epoch for e in history.evaluations], [e.mean_return for e in history.evaluations],
         run_dir / "learning_curve.png", dataset_mean=summary["dataset_mean_episode_return"],
         title=f"{cfg.algo.name} on {summary['batch']} (seed {cfg.seed})",
     )
+    write_json_atomic(run_dir / "summary.json", summary)  # last: a summary marks the run complete (resume)
     log.info("final_return %.1f (best %.1f, batch mean %.1f) -> %s", summary["final_return"],
              summary["best_return"], summary["dataset_mean_episode_return"], run_dir / "summary.json")
     return summary
@@ -192,19 +273,13 @@ def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = N
 def _hydra_main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
-    from torchrl_bail.data import BatchValidationError
-
-    try:
-        summary = run(cfg, Path(HydraConfig.get().runtime.output_dir))
-    except (ConfigError, BatchValidationError, FileNotFoundError) as err:  # a clear message, not a traceback
-        print(f"torchrl_bail: {type(err).__name__}: {err}", file=sys.stderr)
-        sys.exit(2)
-    return summary["final_return"]
+    with exit_on_config_error():
+        return run(cfg, Path(HydraConfig.get().runtime.output_dir))["final_return"]
 
 
 def main() -> None:
-    """Console entry point (``torchrl-bail-train``)."""
-    _hydra_main()
+    """Console entry point (``torchrl-bail-train``): a bad command line ends with one line on stderr, exit code 2."""
+    run_cli(_hydra_main)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@
 ``train`` samples mini-batches with replacement from the data an algorithm prepared, calls the algorithm's
 update step, evaluates the deterministic policy every ``eval_every_epochs`` (an epoch is 10^6 samples
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
-and writes an atomic checkpoint after each evaluation.
+and writes an atomic checkpoint before the first update, after each evaluation and every few minutes. Given
+that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
+as a run that was never interrupted (see the README's "Interrupted runs and preemption").
 
 Examples:
     >>> import torch
@@ -21,11 +23,14 @@ Examples:
 from __future__ import annotations
 
 import math
+import random
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
@@ -34,7 +39,10 @@ from tqdm.auto import tqdm
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.io import atomic_path
 
-__all__ = ["EvalPoint", "TrainHistory", "train", "save_checkpoint"]
+__all__ = ["CHECKPOINT_FORMAT", "EvalPoint", "TrainHistory", "rng_state", "save_checkpoint", "set_rng_state", "train"]
+
+#: version of the checkpoint layout :func:`train` writes and resumes from
+CHECKPOINT_FORMAT = 1
 
 
 @dataclass
@@ -67,6 +75,28 @@ def save_checkpoint(path: Path, state: dict) -> None:
         torch.save(state, tmp)
 
 
+def rng_state() -> dict[str, Any]:
+    """The global random streams a run draws from: ``random``, NumPy and torch (CPU and, if present, CUDA).
+
+    The mini-batch sampler (:class:`~torchrl.data.RandomSampler` over a :class:`~torchrl.data.TensorStorage`
+    without a dedicated generator) draws its indices from torch's global generator of the data's device, so
+    these states determine the sampler's stream too.
+    """
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["torch_cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restores what :func:`rng_state` captured."""
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if "torch_cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["torch_cuda"])
+
+
 def train(
     algorithm: Algorithm,
     data: TensorDictBase,
@@ -76,6 +106,9 @@ def train(
     eval_every_epochs: float = 0.5,
     logger=None,
     checkpoint_path: Path | None = None,
+    checkpoint_every_s: float | None = None,
+    checkpoint_extra: Callable[[], dict] | None = None,
+    resume_from: dict | None = None,
     progress: bool = True,
     log_every: int = 100,
 ) -> TrainHistory:
@@ -86,11 +119,19 @@ def train(
         data: the TensorDict ``[N]`` to sample from (with replacement).
 
     Keyword Args:
-        evaluate: ``policy -> EvalResult | float``; called every ``eval_every_epochs`` and at the end.
+        evaluate: ``policy -> EvalResult | float``; called every ``eval_every_epochs`` and at the end. When it
+            has ``state_dict``/``load_state_dict`` (its random stream), that state is checkpointed too.
         samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
         eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
         logger: a TorchRL logger (``log_scalar``), optional.
-        checkpoint_path: where to write the checkpoint after every evaluation, optional.
+        checkpoint_path: where to write the checkpoint: before the first update, after every evaluation and
+            every ``checkpoint_every_s`` seconds of training. Optional.
+        checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).
+        checkpoint_extra: ``() -> dict`` of run-level entries added to each checkpoint (config, log sizes).
+        resume_from (dict, optional): a checkpoint this function wrote; training continues after its iteration
+            with every network, optimizer, metric accumulator, evaluation and random stream as they were, so the
+            rest of the run is the same as an uninterrupted one. The algorithm's own
+            :meth:`~torchrl_bail.algorithms.base.Algorithm.load_state_dict` must already have run.
         progress (bool): tqdm progress bar. Defaults to ``True``.
         log_every (int): training scalars are averaged and logged every ``log_every`` updates.
     """
@@ -101,14 +142,36 @@ def train(
     iterations = max(1, math.ceil(algorithm.epochs * samples_per_epoch / per_update))
     eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / per_update))
     data = data.to(algorithm.device)
-    buffer = TensorDictReplayBuffer(
-        storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch_size
-    )
+    sampler = RandomSampler()
+    buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=sampler, batch_size=batch_size)
     history = TrainHistory()
-    start = time.perf_counter()
     sums: dict[str, torch.Tensor] = {}
-    bar = tqdm(total=iterations, desc=f"{algorithm.name}", unit="it", disable=not progress, dynamic_ncols=True)
-    for it in range(1, iterations + 1):
+    done, prior_wall_time = 0, 0.0
+    if resume_from is not None:
+        done, prior_wall_time = _restore(resume_from, iterations, history, sums, sampler, evaluate)
+    start = time.perf_counter()
+
+    def checkpoint(it: int) -> None:
+        save_checkpoint(checkpoint_path, {
+            "format": CHECKPOINT_FORMAT,
+            "algorithm": algorithm.state_dict(),
+            "iteration": it,
+            "iterations": iterations,
+            "evaluations": [asdict(e) for e in history.evaluations],
+            "metric_sums": {k: v.clone() if torch.is_tensor(v) else v for k, v in sums.items()},
+            "rng": rng_state(),
+            "sampler": sampler.state_dict(),
+            "evaluator": evaluate.state_dict() if hasattr(evaluate, "state_dict") else None,
+            "wall_time_s": prior_wall_time + time.perf_counter() - start,
+            **(checkpoint_extra() if checkpoint_extra is not None else {}),
+        })
+
+    if checkpoint_path is not None and done == 0:
+        checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
+    last_checkpoint = time.monotonic()
+    bar = tqdm(total=iterations, initial=done, desc=f"{algorithm.name}", unit="it", disable=not progress,
+               dynamic_ncols=True)
+    for it in range(done + 1, iterations + 1):
         metrics = algorithm.update(buffer.sample())
         for k, v in metrics.items():
             sums[k] = sums.get(k, 0.0) + v
@@ -118,7 +181,8 @@ def train(
             sums.clear()
         elif logger is None and it % log_every == 0:
             sums.clear()
-        if evaluate is not None and (it % eval_interval == 0 or it == iterations):
+        evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
+        if evaluated:
             point = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
             history.evaluations.append(point)
             if logger is not None:
@@ -126,17 +190,34 @@ def train(
                 logger.log_scalar("eval/epoch", point.epoch, step=it)
                 logger.log_scalar("eval/failures", point.failures, step=it)
             bar.set_postfix(epoch=f"{point.epoch:.2f}", eval_return=f"{point.mean_return:.1f}")
-            if checkpoint_path is not None:
-                save_checkpoint(checkpoint_path, {
-                    "algorithm": algorithm.state_dict(),
-                    "iteration": it,
-                    "evaluations": [e.__dict__ for e in history.evaluations],
-                })
+        if checkpoint_path is not None and (
+            evaluated or it == iterations
+            or (checkpoint_every_s is not None and time.monotonic() - last_checkpoint >= checkpoint_every_s)
+        ):
+            checkpoint(it)
+            last_checkpoint = time.monotonic()
         bar.update(1)
     bar.close()
     history.iterations = iterations
-    history.wall_time_s = time.perf_counter() - start
+    history.wall_time_s = prior_wall_time + time.perf_counter() - start
     return history
+
+
+def _restore(state: dict, iterations: int, history: TrainHistory, sums: dict, sampler, evaluate) -> tuple[int, float]:
+    """Loads the loop's side of a checkpoint; returns ``(iteration, wall time so far)``."""
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}: it was written by "
+                         "another version of torchrl_bail and cannot be resumed (start over with resume=false)")
+    if state["iterations"] != iterations:
+        raise ValueError(f"the checkpoint's schedule has {state['iterations']} iterations but this run has "
+                         f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
+    history.evaluations.extend(EvalPoint(**e) for e in state["evaluations"])
+    sums.update(state["metric_sums"])
+    sampler.load_state_dict(state["sampler"])
+    if state.get("evaluator") is not None and hasattr(evaluate, "load_state_dict"):
+        evaluate.load_state_dict(state["evaluator"])
+    set_rng_state(state["rng"])
+    return int(state["iteration"]), float(state.get("wall_time_s", 0.0))
 
 
 def _evaluate(evaluate: Callable, algorithm: Algorithm, iteration: int, epoch: float) -> EvalPoint:

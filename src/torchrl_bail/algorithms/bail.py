@@ -44,6 +44,8 @@ class BAIL(BehaviourCloning):
     """
 
     name = "bail"
+    #: what prepare measured (envelope fit, selection) for summary.json; the envelope weights are a module
+    state_attributes = ("_summary",)
 
     def __init__(
         self,
@@ -95,6 +97,20 @@ class BAIL(BehaviourCloning):
         else:  # ablation D.2: rank by return alone
             values = torch.ones_like(returns)
             self._summary.update(envelope_fraction_below=None)
+        return self._select(data, values, ctx)
+
+    def restore_prepared(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
+        """On resume: the checkpoint restored the fitted envelope, so only the (deterministic) selection reruns."""
+        returns = data["return"]
+        if self.selection_by == "envelope":
+            values = envelope_values(self.value_network, data["observation"].to(self.device)).cpu()
+        else:
+            values = torch.ones_like(returns)
+        return self._select(data, values, ctx)
+
+    def _select(self, data: TensorDictBase, values: torch.Tensor, ctx: PrepareContext) -> TensorDictBase:
+        """The best actions of ``data`` under the state values ``values`` (the filter's top ``percentile``)."""
+        returns = data["return"]
         keyed = data.select("observation", "action", "return").clone(False)
         keyed.set("state_value", values.to(returns.dtype))
         selected_buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(len(data)), transform=self.filter)

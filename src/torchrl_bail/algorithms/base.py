@@ -9,6 +9,7 @@ Its schedule (mini-batch size and length in epochs of 10^6 samples) comes from i
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,16 @@ class Algorithm(ABC):
         """Returns the data the loop samples mini-batches from (default: the whole batch)."""
         return data
 
+    def restore_prepared(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
+        """On resume, after :meth:`load_state_dict`: the data :meth:`prepare` returned, without refitting.
+
+        ``ctx`` carries the same generator state :meth:`prepare` saw and no logger or run directory (what prepare
+        logged and plotted is already there). The default runs :meth:`prepare` again, which is exact and cheap
+        when prepare fits nothing; an algorithm whose prepare fits a model (BAIL's envelope) overrides this to
+        rebuild its output from the fitted state the checkpoint restored.
+        """
+        return self.prepare(data, ctx)
+
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One update on a mini-batch; returns detached scalars to log."""
@@ -85,10 +96,20 @@ class Algorithm(ABC):
         return {}
 
     # -- checkpoints -----------------------------------------------------------------------------------
+    #: names of plain attributes (numbers, tensors, dicts of them) that change during training and belong in
+    #: the checkpoint next to the modules and optimizers (early-stopping counters, prepare's summary, ...)
+    state_attributes: tuple[str, ...] = ()
+
     def state_dict(self) -> dict[str, Any]:
+        """Everything the rest of a run depends on: every module, every optimizer, the :attr:`state_attributes`.
+
+        Loading it into a freshly built algorithm of the same config makes every later :meth:`update` produce
+        the same numbers as the original object (given the same random streams).
+        """
         return {
             "modules": {k: m.state_dict() for k, m in self.modules.items()},
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "attributes": {k: copy.deepcopy(getattr(self, k)) for k in self.state_attributes if hasattr(self, k)},
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -96,3 +117,5 @@ class Algorithm(ABC):
             m.load_state_dict(state["modules"][k])
         for k, o in self.optimizers.items():
             o.load_state_dict(state["optimizers"][k])
+        for k, v in state.get("attributes", {}).items():
+            setattr(self, k, copy.deepcopy(v))

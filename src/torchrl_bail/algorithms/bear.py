@@ -124,4 +124,5 @@ class BEAR(TwinCriticVAEAlgorithm):
                 **meta_alpha}
 
     def summary(self) -> dict[str, Any]:
-        return {"bear_final_log_alpha": float(self.loss.log_alpha), "bear_updates": int(self.loss.update_count)}
+        return {"bear_final_log_alpha": float(self.loss.log_alpha.detach()),
+                "bear_updates": int(self.loss.update_count)}

@@ -65,6 +65,9 @@ class ProgressiveBAIL(BehaviourCloning):
     """
 
     name = "pbail"
+    #: the early-stopping state: best snapshot and loss, consecutive increases, update clock, reverts
+    state_attributes = ("_best_state", "_best_val", "_increases", "_iteration", "_reverts", "_last_selected",
+                        "_last_val")
 
     def __init__(
         self,

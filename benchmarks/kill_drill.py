@@ -1,0 +1,246 @@
+"""Kill drill: does a long job survive SIGKILL? ``python benchmarks/kill_drill.py --algo bail --trials 10``
+
+Runs a reference job once, uninterrupted. Then each trial starts the same job in a fresh directory, SIGKILLs it
+after a random delay (one or two times, each kill followed by a restart of the same command, which resumes), lets
+the last start finish, and compares its outputs with the reference's: for training, ``summary.json`` (wall time,
+paths and ``resumed_from_iteration`` aside), every CSV scalar log byte for byte, and the final weights of every
+network. It prints one line per trial and how many trials matched; the exit status is 1 when any did not.
+
+A kill can land anywhere: during start-up or the batch load (nothing to resume: the restart starts fresh),
+during BAIL's envelope fit (before the first checkpoint), during training or an evaluation (resume from the last
+checkpoint), or after the end (the restart reports the run complete). ``--target`` picks what is drilled:
+
+* ``training`` (default): ``python -m torchrl_bail.train`` at a tiny scale (a 1500-step batch, small networks);
+  the batch is collected once beforehand so every process trains on the same cached batch.
+* ``collection``: ``python -m torchrl_bail.collect`` into a per-trial data directory, checkpointing every 150 env
+  steps, comparing the batch files (metadata timings and ``resumed_from_step`` aside): a killed collection resumes
+  from its last checkpoint (``<data_dir>/.partial``) and must give the reference's bytes.
+  ``benchmarks/_collection_drill.py`` runs the same check for the SAC run too.
+
+Extra Hydra overrides follow ``--`` (e.g. ``-- algo.epochs=0.5``). A target is a class with ``command``,
+``setup``, ``outputs`` and a ``progress_file``; registering another one in :data:`TARGETS` is all the drill needs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: a batch of 1500 Hopper steps from a tiny agent, short evaluations: seconds per job
+TINY = [
+    "+exp=hopper_ddpg05", "preset=quick", "batch.steps=1500", "batch.start_steps=300",
+    "batch.agent.actor_hidden=[32,32]", "batch.agent.critic_hidden=[32,32]", "env.max_episode_steps=200",
+    "eval.episodes=2", "eval.max_steps=200", "returns.horizon=200", "progress=false",
+]
+#: per algorithm: a few hundred updates with an evaluation every few dozen
+ALGO_TINY = {
+    "bail": ["algo.epochs=0.2", "eval.every_epochs=0.02", "algo.envelope.epochs=10", "algo.envelope.batch_size=100"],
+    "pbail": ["algo.epochs=0.3", "eval.every_epochs=0.02", "algo.envelope.validate_every=20"],
+    "bc": ["algo.epochs=0.4", "eval.every_epochs=0.02"],
+    "marwil": ["algo.epochs=0.4", "eval.every_epochs=0.02"],
+    "bcq": ["algo.epochs=0.02", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
+            "algo.critic.hidden=[32,32]"],
+    "bear": ["algo.epochs=0.03", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
+             "algo.critic.hidden=[32,32]", "algo.warm_start_updates=100"],
+}
+#: summary entries that legitimately differ between an interrupted and an uninterrupted run
+VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
+
+
+def _env() -> dict:
+    src = str(ROOT / "src")
+    path = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": f"{src}{os.pathsep}{path}" if path else src, "RL_WARNINGS": "0",
+            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"), "HYDRA_FULL_ERROR": "1"}
+
+
+def _sha1(path: Path) -> str:
+    return hashlib.sha1(path.read_bytes()).hexdigest()
+
+
+class TrainingTarget:
+    """``python -m torchrl_bail.train`` into ``run_dir``; outputs: summary, scalar logs, final weights."""
+
+    name = "training"
+    #: a file whose appearance marks the first point a restart can resume from
+    progress_file = "checkpoint.pt"
+
+    def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
+        self.algo = algo
+        self.overrides = [*TINY, f"algo={algo}", *ALGO_TINY.get(algo, []), *overrides, f"data_dir={data_dir}"]
+        self.data_dir = data_dir
+
+    def setup(self) -> None:
+        """Collects the batch once, so that no trial's timing includes it and every job reads the same file."""
+        subprocess.run([sys.executable, "-m", "torchrl_bail.collect", *self.overrides, "hydra.run.dir=" +
+                        str(self.data_dir / "collect_run")], env=_env(), check=True, capture_output=True, cwd=ROOT)
+
+    def command(self, run_dir: Path) -> list[str]:
+        return [sys.executable, "-m", "torchrl_bail.train", *self.overrides, f"hydra.run.dir={run_dir}"]
+
+    def outputs(self, run_dir: Path) -> dict[str, object]:
+        import torch
+
+        summary = json.loads((run_dir / "summary.json").read_text())
+        out = {"summary": {k: v for k, v in summary.items() if k not in VOLATILE}}
+        for path in sorted((run_dir / "logs" / "scalars").rglob("*.csv")):
+            out[path.relative_to(run_dir).as_posix()] = path.read_text()
+        state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["algorithm"]["modules"]
+        out["weights"] = {f"{m}/{k}": hashlib.sha1(v.cpu().contiguous().numpy().tobytes()).hexdigest()
+                          for m, sd in state.items() for k, v in sd.items() if hasattr(v, "numpy")}
+        return out
+
+    def resumed_from(self, run_dir: Path) -> list[int]:
+        return json.loads((run_dir / "summary.json").read_text()).get("resumed_from_iteration", [])
+
+
+class CollectionTarget:
+    """``python -m torchrl_bail.collect`` into a per-run data directory; outputs: every file of the batch."""
+
+    name = "collection"
+    progress_file = "data/.partial"  # appears with the first checkpoint
+    #: metadata entries that legitimately differ between runs
+    VOLATILE_METADATA = ("created_at", "collection_wall_time_s", "env_steps_per_s", "updates_per_s",
+                         "resumed_from_step")
+
+    def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
+        self.overrides = [*TINY, "batch.checkpoint_every_steps=150", *overrides]
+
+    def setup(self) -> None:
+        """Nothing: collecting is what is drilled."""
+
+    def command(self, run_dir: Path) -> list[str]:
+        return [sys.executable, "-m", "torchrl_bail.collect", *self.overrides, f"data_dir={run_dir / 'data'}",
+                f"hydra.run.dir={run_dir}"]
+
+    def outputs(self, run_dir: Path) -> dict[str, object]:
+        out: dict[str, object] = {}
+        root = run_dir / "data"
+        for path in sorted(p for p in root.rglob("*") if p.is_file()):
+            rel = path.relative_to(root).as_posix()
+            if path.name == "metadata.json":
+                meta = json.loads(path.read_text())
+                out[rel] = {k: v for k, v in meta.items() if k not in self.VOLATILE_METADATA}
+            else:
+                out[rel] = _sha1(path)
+        return out
+
+    def resumed_from(self, run_dir: Path) -> list[int]:
+        steps = []
+        for meta in (run_dir / "data").glob("*/metadata.json"):
+            step = json.loads(meta.read_text()).get("resumed_from_step")
+            steps += [] if step is None else [step]
+        return steps
+
+
+TARGETS = {"training": TrainingTarget, "collection": CollectionTarget}
+
+
+def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None = None) -> tuple[bool, float, float]:
+    """Runs ``cmd`` (output to ``log``); SIGKILLs it after ``kill_after`` s.
+
+    Returns ``(killed, seconds, seconds until `watch` appeared or nan)``.
+    """
+    start = time.perf_counter()
+    appeared = float("nan")
+    with open(log, "a") as f:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=_env(), cwd=ROOT)
+        while proc.poll() is None:
+            elapsed = time.perf_counter() - start
+            if kill_after is not None and elapsed >= kill_after:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                return True, elapsed, appeared
+            if watch is not None and appeared != appeared and watch.exists():
+                appeared = elapsed
+            time.sleep(0.05)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd[:4])} ... exited with {proc.returncode}; see {log}")
+    return False, time.perf_counter() - start, appeared
+
+
+def _differences(a: dict, b: dict) -> list[str]:
+    keys = sorted(set(a) | set(b))
+    out = []
+    for k in keys:
+        if a.get(k) != b.get(k):
+            if isinstance(a.get(k), dict) and isinstance(b.get(k), dict):
+                sub = [f"{k}.{kk}" for kk in sorted(set(a[k]) | set(b[k])) if a[k].get(kk) != b[k].get(kk)]
+                out.extend(sub[:3])
+            else:
+                out.append(k)
+    return out
+
+
+def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int = 2,
+          report=print) -> tuple[int, list[dict]]:
+    """Reference run + ``trials`` killed-and-resumed runs; returns ``(matches, per-trial records)``."""
+    target.setup()
+    ref_dir = workdir / "reference"
+    _, ref_seconds, first = _run(target.command(ref_dir), workdir / "reference.log", None,
+                                 watch=ref_dir / target.progress_file)
+    reference = target.outputs(ref_dir)
+    first = ref_seconds / 2 if first != first else first
+    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) "
+           f"-> {ref_dir}")
+    rng = random.Random(seed)
+    records, matches = [], 0
+    for trial in range(1, trials + 1):
+        run_dir = workdir / f"trial{trial:02d}"
+        log = workdir / f"trial{trial:02d}.log"
+        kills = []
+        for _ in range(rng.randint(1, max_kills)):
+            # most kills land after the first checkpoint (training, evaluation, writing), some before it
+            delay = rng.uniform(0.7 * first, ref_seconds)
+            killed, seconds, _ = _run(target.command(run_dir), log, delay)
+            kills.append(f"{seconds:.1f}s" if killed else "(finished first)")
+        _run(target.command(run_dir), log, None)
+        diffs = _differences(reference, target.outputs(run_dir))
+        matches += not diffs
+        record = {"trial": trial, "kills": kills, "resumed_from": target.resumed_from(run_dir), "diffs": diffs}
+        records.append(record)
+        report(f"trial {trial:2d}: SIGKILL at {', '.join(kills):<26} resumed from iterations "
+               f"{record['resumed_from'] or '-'} -> {'match' if not diffs else 'MISMATCH ' + ', '.join(diffs)}")
+    return matches, records
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--target", choices=sorted(TARGETS), default="training")
+    parser.add_argument("--algo", default="bail", help="training target: algo config name (default bail)")
+    parser.add_argument("--trials", type=int, default=10)
+    parser.add_argument("--max-kills", type=int, default=2, help="kills per trial: 1..N, drawn at random")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the kill delays")
+    parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary directory, removed")
+    parser.add_argument("overrides", nargs="*", help="extra Hydra overrides (after --)")
+    args = parser.parse_args(argv)
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="kill_drill_"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    target = TARGETS[args.target](args.algo, list(args.overrides), workdir / "data")
+    try:
+        matches, records = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills)
+    finally:
+        if args.workdir is None:
+            shutil.rmtree(workdir, ignore_errors=True)
+    kills = sum(len([k for k in r["kills"] if k != "(finished first)"]) for r in records)
+    resumed = sum(bool(r["resumed_from"]) for r in records)
+    label = args.algo if args.target == "training" else "collection"
+    print(f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIGKILLs; "
+          f"{resumed} trials resumed from a checkpoint, the others restarted before the first one)")
+    return 0 if matches == args.trials else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,664 @@
+"""Typed schemas of every config group, checked before any work starts.
+
+Each group's yaml file names its schema in its defaults list (Hydra 1.3 "structured config schema")::
+
+    # conf/algo/bail.yaml
+    defaults:
+      - base_bail_schema
+      - _self_
+
+The yaml files hold every value (one default per constant, with its comment); a schema here holds the types and
+the allowed ranges. Hydra rejects a wrong type (``seed=abc``) or an unknown key (``algo.foo=1``) while it composes;
+:func:`validate_config` then instantiates every schema node bottom-up, so each ``__post_init__`` range check runs
+and the first failure raises :class:`ConfigError` naming the full key and what was expected. The top level checks
+what spans groups: env/batch combinations from the catalogue, ``returns.augment=oracle``, and paths.
+
+This module imports only Hydra/OmegaConf, so a bad command line ends in about a second, before torch loads.
+
+Examples:
+    >>> from hydra import compose, initialize_config_dir
+    >>> from torchrl_bail import config_dir
+    >>> with initialize_config_dir(str(config_dir()), version_base="1.3"):
+    ...     cfg = compose("config", overrides=["+exp=hopper_ddpg05", "algo.selection.percentile=1.5"])
+    >>> validate_config(cfg)
+    Traceback (most recent call last):
+    ...
+    torchrl_bail.config.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import os
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from torchrl_bail.resume import ResumeError, register_resolvers
+
+__all__ = ["ALGO_SCHEMAS", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS", "CommandLineError", "Config", "ConfigError",
+           "describe_error", "exit_on_config_error", "register_schemas", "run_cli", "validate_config"]
+
+#: the envs the paper made DDPG batches for (the README's catalogue table)
+DDPG_ENVS = ("hopper", "walker", "halfcheetah")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing or out of range; the message names the key and what was expected."""
+
+    def __init__(self, key: str, value: Any, expected: str):
+        self.key, self.value, self.expected = key, value, expected
+        super().__init__(f"config key {key} = {value!r}: expected {expected}")
+
+    def under(self, prefix: str) -> ConfigError:
+        """The same error with the key ``<prefix>.<key>``."""
+        return ConfigError(f"{prefix}.{self.key}" if prefix else self.key, self.value, self.expected)
+
+
+class CommandLineError(ValueError):
+    """The command line itself cannot be composed into a config."""
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# field rules: a value's type comes from the annotation, its range from the rule (checked in __post_init__)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _rule(check: Callable[[Any], bool], expected: str):
+    return field(default=MISSING, metadata={"check": check, "expected": expected})
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v)
+
+
+def positive(expected: str = "a positive number"):
+    return _rule(lambda v: v > 0, expected)
+
+
+def at_least(low: int, expected: str | None = None):
+    return _rule(lambda v: v >= low, expected or f"an integer >= {low}")
+
+
+def non_negative(expected: str = "a number >= 0"):
+    return _rule(lambda v: v >= 0, expected)
+
+
+def discount():
+    return _rule(lambda v: 0 < v <= 1, "a discount in (0, 1]")
+
+
+def fraction():
+    return _rule(lambda v: 0 < v <= 1, "a fraction in (0, 1]")
+
+
+def open_fraction():
+    return _rule(lambda v: 0 < v < 1, "a fraction in (0, 1)")
+
+
+def one_of(*choices: Any):
+    return _rule(lambda v: v in choices, " | ".join(map(str, choices)))
+
+
+def layers():
+    return _rule(lambda v: len(v) > 0 and all(h > 0 for h in v), "a list of positive layer widths, e.g. [400, 300]")
+
+
+def learning_rate():
+    return positive("a positive learning rate")
+
+
+class _Checked:
+    """Runs every field's rule, then :meth:`check` (rules that span fields), on instantiation."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            rule = f.metadata.get("check")
+            if rule is not None and value is not None and not rule(value):
+                raise ConfigError(f.name, value, f.metadata["expected"])
+        self.check()
+
+    def check(self) -> None:
+        """Cross-field rules; raise :class:`ConfigError` with the (relative) key."""
+
+    def _ordered(self, low: str, high: str) -> None:
+        if not getattr(self, low) < getattr(self, high):
+            raise ConfigError(low, getattr(self, low), f"less than {high} = {getattr(self, high)}")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# env and batch (conf/env, conf/batch)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class EnvConfig(_Checked):
+    name: str = MISSING
+    id: str = MISSING
+    max_episode_steps: Optional[int] = at_least(1, "a positive integer (or null for the env's default)")
+    mediocre_threshold: int = MISSING
+
+
+@dataclass
+class OracleConfig(_Checked):
+    enabled: bool = MISSING
+    horizon: int = at_least(2)
+    keep: int = at_least(1, "a positive number of steps kept per episode")
+    gamma: float = discount()
+
+    def check(self) -> None:
+        if self.horizon <= self.keep:
+            raise ConfigError("horizon", self.horizon, f"an episode length larger than keep = {self.keep}")
+
+
+@dataclass
+class BatchConfig(_Checked):
+    kind: str = MISSING
+    recipe: str = MISSING
+    index: int = at_least(1, "an integer >= 1 (B1, B2, ...)")
+    seed: Optional[int] = non_negative("null or an integer >= 0")
+    steps: int = positive("a positive number of transitions")
+    oracle: OracleConfig = MISSING
+    # how a batch is collected, never what it holds (outside the recipe hash): conf/batch/_collection.yaml
+    checkpoint_every_s: Optional[float] = positive("seconds of work between collection checkpoints, or null (never)")
+    checkpoint_every_steps: Optional[int] = at_least(1, "env steps between collection checkpoints, or null")
+    lock_stale_after_s: float = positive("seconds after which another host's lock without heartbeat is stale")
+    heartbeat_every_s: float = positive("seconds between heartbeats of this job's locks and scratch directories")
+
+    RECIPE = ""  # the recipe this schema describes
+
+    def check(self) -> None:
+        if self.recipe != self.RECIPE:
+            raise ConfigError("recipe", self.recipe, f"{self.RECIPE} (the recipe of this batch schema)")
+
+
+@dataclass
+class DDPGAgentConfig(_Checked):
+    actor_hidden: List[int] = layers()
+    critic_hidden: List[int] = layers()
+    critic_arch: str = one_of("late_action", "concat")
+    actor_lr: float = learning_rate()
+    critic_lr: float = learning_rate()
+    critic_weight_decay: float = non_negative("a non-negative L2 coefficient")
+    gamma: float = discount()
+    tau: float = _rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    batch_size: int = at_least(1, "a positive mini-batch size")
+
+
+@dataclass
+class DDPGBatchConfig(BatchConfig):
+    sigma: float = non_negative("a non-negative noise std (absolute, not scaled by the action bound)")
+    start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
+    agent: DDPGAgentConfig = MISSING
+
+    RECIPE = "ddpg"
+
+
+@dataclass
+class SACAgentConfig(_Checked):
+    actor_hidden: List[int] = layers()
+    critic_hidden: List[int] = layers()
+    actor_lr: float = learning_rate()
+    critic_lr: float = learning_rate()
+    alpha_lr: float = learning_rate()
+    gamma: float = discount()
+    polyak: float = _rule(lambda v: 0 <= v < 1, "a target-network decay in [0, 1) (0.995)")
+    alpha_init: float = positive("a positive initial entropy coefficient")
+    target_entropy: Any = _rule(lambda v: v == "auto" or _is_number(v), "auto or a number")
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+    batch_size: int = at_least(1)
+    loss_function: str = one_of("l2", "smooth_l1", "l1")
+    start_steps: int = at_least(0)
+    train_steps: int = at_least(1)
+    eval_every: int = at_least(1)
+    eval_episodes: int = at_least(1)
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@dataclass
+class SACBatchConfig(BatchConfig):
+    sac: SACAgentConfig = MISSING
+
+    RECIPE = "sac"
+
+    def check(self) -> None:
+        super().check()
+        if self.steps > self.sac.train_steps:
+            raise ConfigError("steps", self.steps, f"at most sac.train_steps = {self.sac.train_steps} (the batch is "
+                              "the first steps transitions of the SAC run)")
+
+
+@dataclass
+class SACExecBatchConfig(BatchConfig):
+    sac: SACAgentConfig = MISSING
+    policy: str = one_of("mediocre", "optimal")
+    stochastic: bool = MISSING
+
+    RECIPE = "sac_exec"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# algorithms (conf/algo)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class NetConfig(_Checked):
+    hidden: List[int] = layers()
+    lr: float = learning_rate()
+
+
+@dataclass
+class AlgoConfig(_Checked):
+    name: str = MISSING
+    batch_size: int = at_least(1, "a positive mini-batch size")
+    epochs: float = positive("a positive number of epochs (10^6 samples each)")
+
+    NAME = ""
+
+    def check(self) -> None:
+        if self.name != self.NAME:
+            raise ConfigError("name", self.name, f"{self.NAME} (choose the algorithm with algo=<name>)")
+
+
+@dataclass
+class EnvelopeConfig(_Checked):
+    hidden: List[int] = layers()
+    head_scale: float = positive()
+    penalty: float = _rule(lambda v: v >= 1, "a penalty K >= 1 (1: ordinary regression)")
+    lr: float = learning_rate()
+    weight_decay: float = non_negative("a non-negative L2 coefficient")
+    val_fraction: float = open_fraction()
+    patience: int = at_least(1)
+
+
+@dataclass
+class BAILEnvelopeConfig(EnvelopeConfig):
+    batch_size: int = at_least(1)
+    epochs: int = at_least(1)
+    early_stopping: str = one_of("paper", "as_coded")
+
+
+@dataclass
+class SelectionConfig(_Checked):
+    percentile: float = fraction()
+
+
+@dataclass
+class BAILSelectionConfig(SelectionConfig):
+    by: str = one_of("envelope", "return")
+    nonpositive_value: str = one_of("raw", "project", "error")
+
+
+@dataclass
+class BAILConfig(AlgoConfig):
+    envelope: BAILEnvelopeConfig = MISSING
+    selection: BAILSelectionConfig = MISSING
+    policy: NetConfig = MISSING
+
+    NAME = "bail"
+
+
+@dataclass
+class PBAILEnvelopeConfig(EnvelopeConfig):
+    validate_every: int = at_least(1)
+
+
+@dataclass
+class PBAILConfig(AlgoConfig):
+    envelope: PBAILEnvelopeConfig = MISSING
+    selection: SelectionConfig = MISSING
+    best_envelope: str = one_of("paper", "as_coded")
+    selection_envelope: str = one_of("best", "training")
+    v_projection: bool = MISSING
+    validation: str = one_of("split", "with_replacement")
+    policy: NetConfig = MISSING
+
+    NAME = "pbail"
+
+
+@dataclass
+class BCConfig(AlgoConfig):
+    policy: NetConfig = MISSING
+
+    NAME = "bc"
+
+
+@dataclass
+class MARWILConfig(AlgoConfig):
+    beta: float = non_negative()
+    c2_init: float = positive()
+    c2_rate: float = fraction()
+    vf_coeff: float = non_negative()
+    max_exponent: float = positive()
+    eps: float = non_negative()
+    value: NetConfig = MISSING
+    policy: NetConfig = MISSING
+
+    NAME = "marwil"
+
+
+@dataclass
+class VAEConfig(NetConfig):
+    latent_per_action: int = at_least(1)
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@dataclass
+class CriticConfig(NetConfig):
+    vmap: Any = _rule(lambda v: v in ("auto", True, False), "auto | true | false")
+
+
+@dataclass
+class TwinCriticVAEConfig(AlgoConfig):
+    lmbda: float = _rule(lambda v: 0 <= v <= 1, "a weight in [0, 1]")
+    num_samples: int = at_least(1)
+    kl_weight: float = non_negative()
+    latent_clip: float = positive()
+    gamma: float = discount()
+    tau: float = _rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    vae: VAEConfig = MISSING
+    critic: CriticConfig = MISSING
+
+
+@dataclass
+class BCQConfig(TwinCriticVAEConfig):
+    phi: float = non_negative()
+    actor: NetConfig = MISSING
+
+    NAME = "bcq"
+
+
+@dataclass
+class BEARActorConfig(NetConfig):
+    noise_clip: float = positive()
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+
+
+@dataclass
+class BEARConfig(TwinCriticVAEConfig):
+    kernel_sigma: float = positive()
+    num_samples_match: int = at_least(1)
+    mmd_stabiliser: float = non_negative()
+    epsilon: float = non_negative()
+    log_alpha_init: Optional[float] = None
+    log_alpha_min: float = MISSING
+    log_alpha_max: float = MISSING
+    lagrange_lr: float = learning_rate()
+    warm_start_updates: int = at_least(0)
+    actor: BEARActorConfig = MISSING
+
+    NAME = "bear"
+
+    def check(self) -> None:
+        super().check()
+        self._ordered("log_alpha_min", "log_alpha_max")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the top level (conf/config.yaml)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ReturnsConfig(_Checked):
+    gamma: float = discount()
+    horizon: int = at_least(1)
+    augment: str = one_of("gain", "none", "oracle")
+
+
+@dataclass
+class EvalConfig(_Checked):
+    episodes: int = at_least(1, "a positive integer")
+    every_epochs: float = positive("a positive number of epochs")
+    max_steps: int = at_least(1, "a positive integer")
+    final_window: int = at_least(1, "a positive integer")
+
+
+@dataclass
+class LoggerConfig(_Checked):
+    backend: str = one_of("csv", "tensorboard", "wandb", "mlflow")
+    project: str = MISSING
+    group: Optional[str] = MISSING
+    name: Optional[str] = MISSING
+
+
+@dataclass
+class CheckpointConfig(_Checked):
+    enabled: bool = MISSING
+    every_minutes: Optional[float] = _rule(lambda v: v is None or v > 0,  # noqa: UP045 -- read by OmegaConf
+                                           "null or a positive number of minutes")
+
+
+def _device_name(v: str) -> bool:
+    return v in ("cpu", "cuda", "auto") or (v.startswith("cuda:") and v[5:].isdigit())
+
+
+@dataclass
+class Config(_Checked):
+    env: EnvConfig = MISSING
+    batch: Any = MISSING       # one of BATCH_SCHEMAS, chosen by the batch yaml's defaults
+    algo: Any = MISSING        # one of ALGO_SCHEMAS
+    seed: int = non_negative("an integer >= 0")
+    device: str = _rule(_device_name, "cpu | cuda | cuda:N | auto")
+    data_dir: Optional[str] = MISSING
+    dataset: Optional[str] = MISSING
+    progress: bool = MISSING
+    resume: str = MISSING      # auto | true | false | <run_dir> (see torchrl_bail.resume)
+    returns: ReturnsConfig = MISSING
+    samples_per_epoch: int = at_least(1, "a positive integer")
+    eval: EvalConfig = MISSING
+    logger: LoggerConfig = MISSING
+    checkpoint: CheckpointConfig = MISSING
+
+    def check(self) -> None:
+        if self.dataset is not None:
+            if not Path(self.dataset).expanduser().exists():
+                raise ConfigError("dataset", self.dataset, "an existing D4RL .hdf5 file, Minari dataset folder or "
+                                  "native batch folder (relative paths start at the launch directory)")
+        else:
+            if self.batch.recipe == "ddpg" and self.env.name not in DDPG_ENVS:
+                raise ConfigError("batch", self.batch.kind, f"a batch that exists for env={self.env.name}: DDPG "
+                                  f"batches are made for {', '.join(DDPG_ENVS)} only; use sac, med_*, opt_*")
+            if self.returns.augment == "oracle" and not self.batch.oracle.enabled:
+                raise ConfigError("returns.augment", "oracle", "gain | none, or oracle together with "
+                                  "batch.oracle.enabled=true (oracle returns come from an oracle batch's real "
+                                  "continuations)")
+        if self.data_dir is not None and Path(self.data_dir).expanduser().is_file():
+            raise ConfigError("data_dir", self.data_dir, "a directory (or null), not a file")
+        if self.device.startswith("cuda"):
+            import torch  # only for this question
+
+            if not torch.cuda.is_available():
+                raise ConfigError("device", self.device, "a CUDA device, but torch sees none (use device=cpu or auto)")
+        if self.resume.lower() not in ("auto", "true", "false") and not Path(self.resume).expanduser().is_dir():
+            raise ConfigError("resume", self.resume, "auto | true | false | an existing run directory")
+
+
+ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
+                "bcq": BCQConfig, "bear": BEARConfig}
+BATCH_SCHEMAS = {"ddpg": DDPGBatchConfig, "sac": SACBatchConfig, "sac_exec": SACExecBatchConfig}
+
+
+def register_schemas() -> None:
+    """Stores the schemas in Hydra's ConfigStore: ``base_config_schema``, ``algo/base_<name>_schema`` and
+    ``batch/base_<recipe>_schema`` (idempotent; :func:`torchrl_bail.config_dir` calls it)."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="base_config_schema", node=Config)
+    for name, schema in ALGO_SCHEMAS.items():
+        cs.store(group="algo", name=f"base_{name}_schema", node=schema)
+    for recipe, schema in BATCH_SCHEMAS.items():
+        cs.store(group="batch", name=f"base_{recipe}_schema", node=schema)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# validation and the command-line wrapper
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Instantiates every schema node of ``cfg`` (children first): the first failed rule raises
+    :class:`ConfigError` with its full key. Nodes without a schema (plain dicts) are not checked."""
+    from omegaconf.errors import MissingMandatoryValue
+
+    def visit(node: DictConfig) -> None:
+        for key in node.keys():
+            child = node._get_node(key)
+            if isinstance(child, DictConfig) and not child._is_missing() and not child._is_none():
+                visit(child)
+        schema = OmegaConf.get_type(node)
+        if not dataclasses.is_dataclass(schema):
+            return
+        known = [f.name for f in dataclasses.fields(schema)]
+        for key in node.keys():
+            if key not in known and not (node._get_parent() is None and key == "hydra"):
+                path = node._get_full_key(None)
+                raise ConfigError(f"{path}.{key}" if path else str(key), node._get_node(key)._value(),
+                                  f"no such key here; known keys: {', '.join(known)}")
+        try:
+            OmegaConf.to_object(node)
+        except ConfigError as err:
+            raise err.under(node._get_full_key(None)) from None
+        except MissingMandatoryValue as err:
+            raise ConfigError(err.full_key, "???", "a value (it has no default)") from None
+
+    visit(cfg)
+
+
+def describe_error(err: BaseException) -> str:
+    """One line for a configuration error from Hydra, OmegaConf or :func:`validate_config`."""
+    from hydra.errors import MissingConfigException, OverrideParseException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+
+    def one_line(text: str) -> str:
+        return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+    if isinstance(err, OverrideParseException):
+        detail = one_line(err.message).split(" See https://")[0]
+        return f"override {err.override!r} is not valid Hydra override syntax ({detail}); expected key=value"
+    if isinstance(err, MissingConfigException) and err.options is not None and err.missing_cfg_file:
+        group, _, option = err.missing_cfg_file.rpartition("/")
+        choices = sorted(o for o in err.options if not (o.startswith("base_") or o.startswith("_")))
+        return f"{group}={option}: no such option in conf/{group}/; expected one of {', '.join(choices)}"
+    unknown_key = isinstance(err, ConfigKeyError | ConfigAttributeError)
+    if unknown_key and dataclasses.is_dataclass(err.object_type) and getattr(err, "full_key", None):
+        known = ", ".join(f.name for f in dataclasses.fields(err.object_type))
+        return f"config key {err.full_key}: no such key; expected one of {known}"
+    if isinstance(err, OmegaConfBaseException) and getattr(err, "full_key", None):
+        return f"config key {err.full_key}: {one_line(err.msg).split(' full_key:')[0]}"
+    cause = err.__cause__ or err.__context__
+    if isinstance(cause, OmegaConfBaseException | MissingConfigException):
+        return describe_error(cause)
+    return one_line(err)
+
+
+def _config_errors() -> tuple[type[BaseException], ...]:
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    errors: list[type[BaseException]] = [ConfigError, CommandLineError, ResumeError, HydraException,
+                                         OmegaConfBaseException]
+    if "torchrl_bail.data" in sys.modules:  # batch/dataset errors, only possible once the data code is loaded
+        from torchrl_bail.data import BatchValidationError
+
+        errors += [BatchValidationError, FileNotFoundError]
+    if "torchrl_bail.behaviour" in sys.modules:  # recipe errors, only possible once the behaviour code is loaded
+        from torchrl_bail.behaviour import CollectionConfigError
+
+        errors.append(CollectionConfigError)
+    return tuple(errors)
+
+
+def _job_overrides(argv: list[str]) -> list[list[str]]:
+    """The override list of every job the command line launches: one for a run, one per sweep point for ``-m``
+    (the basic sweeper's expansion); none when a flag (``--help``, ``--cfg`` ...) or another sweeper is in play."""
+    flags = [a for a in argv if a.startswith("-")]
+    overrides = [a for a in argv if not a.startswith("-")]
+    if not flags:
+        return [overrides]
+    if not set(flags) <= {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
+        return []
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def _precompose(argv: list[str]) -> None:
+    """Composes and validates the config of every job before Hydra creates a run directory or launches a job."""
+    jobs = _job_overrides(argv)
+    if not jobs:
+        return
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        for overrides in jobs:
+            try:
+                cfg = compose("config", overrides=overrides)
+            except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
+                raise CommandLineError(f"the overrides {' '.join(overrides)!r} do not compose: {err}; expected "
+                                       "key=value items (see --help)") from None
+            validate_config(cfg)
+
+
+@contextlib.contextmanager
+def exit_on_config_error() -> Iterator[None]:
+    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+
+    Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
+    the first bad job without Hydra's multi-line report. Other errors keep their traceback.
+    """
+    try:
+        yield
+    except _config_errors() as err:
+        print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
+        sys.exit(2)
+
+
+def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
+    """Runs a ``@hydra.main`` function after composing and validating every job's config, so that a bad command
+    line ends with one line on stderr and exit code 2 before anything is written or imported."""
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
+    argv = [*sys.argv[1:], *(extra_overrides or [])]
+    with exit_on_config_error():
+        _precompose(argv)
+        sys.argv = [sys.argv[0], *argv]
+        hydra_main()
+
+
+def config_dir() -> Path:
+    """Directory holding the Hydra configs.
+
+    An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
+    them at the repository's top-level ``conf/``. The typed schemas the yaml files name
+    (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way.
+    """
+    register_schemas()
+    register_resolvers()
+    packaged = Path(__file__).resolve().parent / "conf"
+    if packaged.is_dir():
+        return packaged
+    repo = Path(__file__).resolve().parents[2] / "conf"
+    if repo.is_dir():
+        return repo
+    raise FileNotFoundError(
+        f"torchrl_bail configs not found: looked in {packaged} and {repo}. Reinstall the package."
+    )
