@@ -34,6 +34,10 @@ def _compose(overrides: list[str]):
         return compose("config", overrides=list(overrides))
 
 
+def _files(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
 class Crash(Exception):
     """Stands for a kill: raised from the agent's training once a checkpoint exists."""
 
@@ -68,6 +72,7 @@ def test_a_crashed_collection_resumes_to_the_same_bytes(tmp_path, monkeypatch, o
     assert step is not None and 100 <= step <= 400
     for key in reference.data.keys(True, True):
         assert torch.equal(reference.data[key], resumed.data[key]), key
+    assert _files(reference.path / "data") == _files(resumed.path / "data"), "every data file, byte for byte"
     assert list((data_dir / PARTIAL).iterdir()) == [], "the checkpoint is removed once the batch is saved"
 
 
@@ -81,7 +86,7 @@ def test_checkpoints_are_due_by_steps_or_seconds_and_an_incomplete_one_is_ignore
     # a state.pt naming a segment that is not there (or not readable) is not a checkpoint: start over
     broken = tmp_path / "d"
     broken.mkdir()
-    torch.save({"format": 1, "segments": {"batch": ["segments/batch_0_10.pt"]}, "saved_rows": {"batch": 10},
+    torch.save({"format": 2, "segments": {"batch": ["segments/batch_0_10.pt"]}, "saved_rows": {"batch": 10},
                 "loop": {"t": 10}}, broken / "state.pt")
     assert CollectionCheckpoint(broken).load() is None
     (broken / "state.pt").write_bytes(b"half a pickle")

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from torchrl_bail.data.cache import HEARTBEAT, config_value, partial_directory
 from torchrl_bail.io import atomic_path
@@ -52,7 +52,7 @@ __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_r
 log = logging.getLogger("torchrl_bail")
 
 STATE_FILE = "state.pt"
-FORMAT = 1
+FORMAT = 2  # 2: segments are nested dicts (key order kept)
 
 
 def global_rng_state() -> dict[str, Any]:
@@ -84,6 +84,17 @@ class CheckpointableAgent:
         for name in self.OPTIMIZERS:
             getattr(self, name).load_state_dict(state[name])
         self.updates = int(state["updates"])
+
+
+def _nested_copy(td) -> dict[str, Any]:
+    """``td`` as nested dicts of plain tensors (copied out of the memmap), key order kept: a store refilled from
+    it is laid out like the original, down to the batch's ``meta.json``."""
+    return {k: _nested_copy(v) if isinstance(v, TensorDictBase) else torch.as_tensor(v).clone() for k, v in td.items()}
+
+
+def _leading_dim(rows: Mapping[str, Any]) -> int:
+    value = next(iter(rows.values()))
+    return _leading_dim(value) if isinstance(value, Mapping) else value.shape[0]
 
 
 class CollectionCheckpoint:
@@ -145,11 +156,9 @@ class CollectionCheckpoint:
         for name, store in stores.items():
             done, n = self._saved_rows.get(name, 0), len(store)
             if n > done:
-                rows = store.data()[done:n]
-                flat = {k: torch.as_tensor(v).clone() for k, v in rows.flatten_keys("/").items()}
                 fname = f"segments/{name}_{done:012d}_{n:012d}.pt"
                 with atomic_path(self.directory / fname) as tmp:
-                    torch.save(flat, tmp)
+                    torch.save(_nested_copy(store.data()[done:n]), tmp)
                 self._segments.setdefault(name, []).append(fname)
                 self._saved_rows[name] = n
         state = {**state, "format": FORMAT, "segments": {k: list(v) for k, v in self._segments.items()},
@@ -164,9 +173,8 @@ class CollectionCheckpoint:
         """Refills the (empty) ``stores`` from the segments ``state`` names, in order."""
         for name, store in stores.items():
             for fname in state["segments"].get(name, []):
-                flat = torch.load(self.directory / fname, map_location="cpu", weights_only=True)
-                n = next(iter(flat.values())).shape[0]
-                store.extend(TensorDict(flat, batch_size=[n]).unflatten_keys("/"))
+                rows = torch.load(self.directory / fname, map_location="cpu", weights_only=True)
+                store.extend(TensorDict(rows, batch_size=[_leading_dim(rows)]))
             if len(store) != state["saved_rows"].get(name, 0):
                 raise RuntimeError(f"checkpoint {self.directory}: store {name} has {len(store)} rows after restore, "
                                    f"expected {state['saved_rows'].get(name, 0)}")
