@@ -3,7 +3,7 @@ new process, and compare the batch's bytes with an uninterrupted run's.
 
     python benchmarks/_collection_drill.py [--trials 5] [--recipe ddpg|sac] [--seed 0] [--max-delay 8]
 
-Prints one line per trial (killed or finished first, the step it resumed from, match or not) and ``matched k/n``;
+The batch's data files (memmapped tensors and layout) must match byte for byte. Prints one line per trial (killed or finished first, the step it resumed from, match or not) and ``matched k/n``;
 exits 1 unless every trial matched. :func:`collection_trial` is the hook ``kill_drill.py --target collection``
 calls. Every process runs with ``OMP_NUM_THREADS=1`` (bit-identity holds for a fixed thread count).
 """
@@ -75,12 +75,11 @@ def finish_collection(overrides: list[str], data_dir: Path, timeout: float = 600
 
 
 def batch_digest(path: str | os.PathLike) -> dict[str, str]:
-    """SHA-256 of every data tensor of the batch at ``path`` (metadata left out: timestamps and speeds differ)."""
-    from torchrl_bail.data.batch import load_batch
-
-    data = load_batch(Path(path)).data
-    return {str(k): hashlib.sha256(data.get(k).contiguous().numpy().tobytes()).hexdigest()
-            for k in sorted(data.keys(True, True), key=str)}
+    """SHA-256 of every file of the batch's ``data/`` (the memmapped tensors and their layout); ``metadata.json``
+    is left out (timestamps, speeds and ``resumed_from_step`` differ)."""
+    root = Path(path) / "data"
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 def checkpoints(data_dir: Path) -> list[Path]:
