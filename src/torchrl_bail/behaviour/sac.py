@@ -41,7 +41,6 @@ import copy
 import json
 import logging
 import os
-import secrets
 import shutil
 import time
 from collections.abc import Sequence
@@ -79,6 +78,7 @@ from torchrl_bail.data.cache import (
     file_lock,
     liveness_settings,
     oracle_settings,
+    owned_name,
     plain,
     scratch_directory,
     stable_hash,
@@ -392,7 +392,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
 def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
     """Writes the run to a temporary directory beside ``path`` and renames it into place (atomic)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}"
+    tmp = path.parent / f".{owned_name(path.name)}"  # host and pid in the name: clean_stale can tell its owner
     try:
         (tmp / "evals").mkdir(parents=True)
         for fname, state in snapshots.items():
