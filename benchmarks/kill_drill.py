@@ -12,10 +12,10 @@ checkpoint), or after the end (the restart reports the run complete). ``--target
 
 * ``training`` (default): ``python -m torchrl_bail.train`` at a tiny scale (a 1500-step batch, small networks);
   the batch is collected once beforehand so every process trains on the same cached batch.
-* ``collection``: ``python -m torchrl_bail.collect`` into a per-trial data directory, comparing the batch files.
-  Behaviour collection restarts from scratch after a kill until it learns to resume; the drill then checks that a
-  kill never leaves a half-written batch behind and that the final batch is the reference's. Adding collection
-  resume needs no change here beyond, at most, :meth:`CollectionTarget.outputs` (what must match).
+* ``collection``: ``python -m torchrl_bail.collect`` into a per-trial data directory, checkpointing every 150 env
+  steps, comparing the batch files (metadata timings and ``resumed_from_step`` aside): a killed collection resumes
+  from its last checkpoint (``<data_dir>/.partial``) and must give the reference's bytes.
+  ``benchmarks/_collection_drill.py`` runs the same check for the SAC run too.
 
 Extra Hydra overrides follow ``--`` (e.g. ``-- algo.epochs=0.5``). A target is a class with ``command``,
 ``setup``, ``outputs`` and a ``progress_file``; registering another one in :data:`TARGETS` is all the drill needs.
@@ -109,12 +109,13 @@ class CollectionTarget:
     """``python -m torchrl_bail.collect`` into a per-run data directory; outputs: every file of the batch."""
 
     name = "collection"
-    progress_file = "data"
+    progress_file = "data/.partial"  # appears with the first checkpoint
     #: metadata entries that legitimately differ between runs
-    VOLATILE_METADATA = ("created_at", "collection_wall_time_s")
+    VOLATILE_METADATA = ("created_at", "collection_wall_time_s", "env_steps_per_s", "updates_per_s",
+                         "resumed_from_step")
 
     def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
-        self.overrides = [*TINY, *overrides]
+        self.overrides = [*TINY, "batch.checkpoint_every_steps=150", *overrides]
 
     def setup(self) -> None:
         """Nothing: collecting is what is drilled."""
@@ -136,7 +137,11 @@ class CollectionTarget:
         return out
 
     def resumed_from(self, run_dir: Path) -> list[int]:
-        return []
+        steps = []
+        for meta in (run_dir / "data").glob("*/metadata.json"):
+            step = json.loads(meta.read_text()).get("resumed_from_step")
+            steps += [] if step is None else [step]
+        return steps
 
 
 TARGETS = {"training": TrainingTarget, "collection": CollectionTarget}

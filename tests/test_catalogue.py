@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
 from torchrl_bail.behaviour import CollectionConfigError, ensure_batch, validate_recipe
-from torchrl_bail.data.cache import SCRATCH, batch_name, batch_path, clean_stale, list_batches
+from torchrl_bail.data.cache import SCRATCH, batch_name, batch_path, clean_stale, host_name, list_batches
 
 ENVS = ["hopper", "walker", "halfcheetah", "ant", "humanoid"]
 SAC_KINDS = ["sac", "med_det", "med_stoch", "opt_det", "opt_stoch"]
@@ -237,8 +237,8 @@ def test_interrupted_collection_leaves_nothing_loadable_and_recollects(tmp_path,
 
 
 def test_stale_scratch_of_a_live_process_is_kept(tmp_path):
-    live = tmp_path / SCRATCH / f"x.{os.getpid()}.abcd1234"
-    dead = tmp_path / SCRATCH / "y.999999999.abcd1234"
+    live = tmp_path / SCRATCH / f"x.{host_name()}.{os.getpid()}.abcd1234"
+    dead = tmp_path / SCRATCH / f"y.{host_name()}.999999999.abcd1234"
     live.mkdir(parents=True)
     dead.mkdir(parents=True)
     assert clean_stale(tmp_path) == [dead]

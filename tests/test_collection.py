@@ -224,3 +224,21 @@ def test_cli_collects_then_reports_cached_then_lists(tmp_path):
     assert "hopper_ddpg01_b1-" in listing.stdout and "ddpg steps=120" in listing.stdout
     meta = json.loads(next((tmp_path / "data").glob("hopper_ddpg01_b1-*/metadata.json")).read_text())
     assert meta["recipe"]["sigma"] == 0.1
+
+
+def test_collection_env_ends_an_episode_on_a_simulator_instability():
+    """MuJoCo >= 3 only warns and resets; the collection env's SimulatorGuard ends the episode and counts it."""
+    from torchrl_bail.behaviour.loop import BehaviourRun, make_collection_env
+
+    env = make_collection_env("Hopper-v5", max_episode_steps=50, seed=0)
+    try:
+        runner = BehaviourRun(env, lambda obs, t: torch.zeros(3))
+        td = env.reset()
+        td.set("action", torch.zeros(3))
+        assert not bool(env.step(td)["next", "terminated"])  # healthy: goes on
+        env.simulator_guard.unwrapped.data.qvel[:] = 1e20
+        out = env.step(td)
+        assert bool(out["next", "terminated"]) and bool(out["next", "done"])
+        assert runner.unstable_episodes == 1
+    finally:
+        env.close()

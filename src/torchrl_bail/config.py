@@ -169,6 +169,11 @@ class BatchConfig(_Checked):
     seed: Optional[int] = non_negative("null or an integer >= 0")
     steps: int = positive("a positive number of transitions")
     oracle: OracleConfig = MISSING
+    # how a batch is collected, never what it holds (outside the recipe hash): conf/batch/_collection.yaml
+    checkpoint_every_s: Optional[float] = positive("seconds of work between collection checkpoints, or null (never)")
+    checkpoint_every_steps: Optional[int] = at_least(1, "env steps between collection checkpoints, or null")
+    lock_stale_after_s: float = positive("seconds after which another host's lock without heartbeat is stale")
+    heartbeat_every_s: float = positive("seconds between heartbeats of this job's locks and scratch directories")
 
     def check(self) -> None:
         self._registered_as("recipe", BATCH_SCHEMAS, "the recipe of this batch schema")

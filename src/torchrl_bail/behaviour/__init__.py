@@ -7,7 +7,9 @@ Only the entry points (``torchrl_bail.collect``, ``torchrl_bail.train``) do.
 
 Modules: :mod:`~torchrl_bail.behaviour.recipes` (catalogue and validation), :mod:`~torchrl_bail.behaviour.catalogue`
 (``ensure_batch`` / ``collect_batch``), :mod:`~torchrl_bail.behaviour.loop` (the step loop),
-:mod:`~torchrl_bail.behaviour.buffers` (episode store, plain/oracle batch sink), :mod:`~torchrl_bail.behaviour.ddpg`,
+:mod:`~torchrl_bail.behaviour.buffers` (episode store, plain/oracle batch sink),
+:mod:`~torchrl_bail.behaviour.checkpoint` (checkpoints: a killed collection resumes to the same batch),
+:mod:`~torchrl_bail.behaviour.ddpg`,
 :mod:`~torchrl_bail.behaviour.sac` (the shared SAC run), :mod:`~torchrl_bail.behaviour.execution`.
 """
 

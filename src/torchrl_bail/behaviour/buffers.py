@@ -142,10 +142,26 @@ class BehaviourBuffers:
             return self.sink.kept + open_rows >= self.steps
         return self.sink.kept + min(open_rows, int(self.oracle["keep"])) >= self.steps
 
-    def collect(self, runner) -> TensorDictBase:
+    @property
+    def stores(self) -> dict[str, EpisodeStore]:
+        """The distinct stores by name (``batch``, and ``replay`` in oracle mode with an agent): what a checkpoint
+        saves."""
+        stores = {"batch": self.batch_store}
+        if self.replay is not None and self.replay is not self.batch_store:
+            stores["replay"] = self.replay
+        return stores
+
+    def state_dict(self) -> dict[str, int]:
+        return {"kept": self.sink.kept, "episode_id": self.sink.episode_id}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.sink.kept = int(state["kept"])
+        self.sink.episode_id = int(state["episode_id"])
+
+    def collect(self, runner, *, checkpoint=None) -> TensorDictBase:
         """Runs ``runner`` (a :class:`~torchrl_bail.behaviour.loop.BehaviourRun`) until the batch is full; returns
-        the batch (memmapped, no copy)."""
-        runner.run(self.sinks, until=self.until, finish_open_episode=self.oracle is not None)
+        the batch (memmapped, no copy). ``checkpoint``: see :meth:`BehaviourRun.run`."""
+        runner.run(self.sinks, until=self.until, finish_open_episode=self.oracle is not None, checkpoint=checkpoint)
         if self.sink.kept != self.steps:
             raise RuntimeError(f"collected {self.sink.kept} transitions, expected {self.steps}")
         return self.batch_store.data()

@@ -2,8 +2,8 @@
 
 The cache layout, names and hashes are :mod:`torchrl_bail.data.cache`'s; the recipes are listed in
 :mod:`torchrl_bail.behaviour.recipes`. Interruption: the agent's replay buffer lives in a scratch directory removed
-on exit; an interrupted collection restarts from scratch (no agent checkpoints): the cost is the lost run, never
-bad data.
+on exit; the run checkpoints in ``<data_dir>/.partial/`` (:mod:`~torchrl_bail.behaviour.checkpoint`) and a
+killed collection resumes from its last checkpoint, producing the same batch; nothing half-written ever loads.
 """
 
 from __future__ import annotations
@@ -13,12 +13,14 @@ import os
 import time
 from pathlib import Path
 
+from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.ddpg import collect_ddpg
 from torchrl_bail.behaviour.execution import collect_sac_exec
 from torchrl_bail.behaviour.recipes import validate_recipe
-from torchrl_bail.behaviour.sac import collect_sac
+from torchrl_bail.behaviour.sac import collect_sac, run_checkpoint, sac_run_lock
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
+    HEARTBEAT,
     LOCKS,
     batch_metadata,
     batch_name,
@@ -26,6 +28,7 @@ from torchrl_bail.data.cache import (
     clean_stale,
     config_value,
     file_lock,
+    liveness_settings,
     load_cached_batch,
     scratch_directory,
 )
@@ -49,10 +52,13 @@ def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | No
         return batch
     root = path.parent
     root.mkdir(parents=True, exist_ok=True)
-    clean_stale(root)
-    with file_lock(root / LOCKS / f"{path.name}.lock"):
-        batch = load_cached_batch(path)  # another job may have made it while we waited
+    stale, beat = liveness_settings(cfg)
+    clean_stale(root, stale_after_s=stale)
+    with file_lock(root / LOCKS / f"{path.name}.lock", stale_after_s=stale, heartbeat_every_s=beat,
+                   what=path.name):
+        batch = load_cached_batch(path)  # another job (on any host) may have made it while we waited
         if batch is not None:
+            log.info("using batch %s, made by another job meanwhile", path)
             return batch
         if path.exists():  # unreadable leftovers under the final name: move them aside, never delete silently
             aside = path.with_name(f"{path.name}.broken-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -62,20 +68,34 @@ def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | No
 
 
 def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
-    """Runs the behaviour recipe of ``cfg.batch`` and saves the result at ``path`` (atomically)."""
+    """Runs the behaviour recipe of ``cfg.batch`` and saves the result at ``path`` (atomically).
+
+    The run checkpoints as it goes (:mod:`torchrl_bail.behaviour.checkpoint`) and resumes from the last
+    checkpoint of a killed attempt; the checkpoint is removed once the batch is saved. Call it under the batch's
+    lock (:func:`ensure_batch` does).
+    """
     validate_recipe(cfg)
     path = Path(path)
+    root = path.parent
     recipe = config_value(cfg, "batch.recipe")
     start = time.perf_counter()
     log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, config_value(cfg, "batch.steps"), path)
-    with scratch_directory(path.parent, path.name) as scratch:
+    beat = liveness_settings(cfg)[1]
+    checkpoint = run_checkpoint(cfg, root) if recipe == "sac" else CollectionCheckpoint.for_config(cfg, root, path.name)
+    with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
         if recipe == "ddpg":
-            data, extra = collect_ddpg(cfg, scratch=scratch, progress=progress)
+            data, extra = collect_ddpg(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
         elif recipe == "sac":
-            data, extra = collect_sac(cfg, scratch=scratch, progress=progress, data_dir=path.parent)
+            data, extra = collect_sac(cfg, scratch=scratch, progress=progress, data_dir=root, checkpoint=checkpoint)
         else:
-            data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=path.parent)
+            data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=root,
+                                           checkpoint=checkpoint)
         metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
+        HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
         batch = save_batch(data, path, metadata)
+    if recipe == "sac":  # the run's checkpoint is shared with whoever needs the same SAC run: remove it under its lock
+        with sac_run_lock(cfg, root):
+            checkpoint.remove()
+    else:
+        checkpoint.remove()
     return batch
-

@@ -42,6 +42,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, ValueEstimators
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
     BehaviourRun,
     ReturnTracker,
@@ -90,8 +91,10 @@ def make_ddpg_critic(obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 3
     raise ValueError(f"batch.agent.critic_arch must be late_action or concat, got {arch!r}")
 
 
-class DDPGAgent:
+class DDPGAgent(CheckpointableAgent):
     """The BCQ-repo DDPG on TorchRL's :class:`~torchrl.objectives.DDPGLoss` (see the module docstring)."""
+
+    OPTIMIZERS = ("actor_optim", "critic_optim")  # saved with the networks by state_dict()
 
     def __init__(self, obs_dim: int, action_spec, *, actor_hidden: Sequence[int] = (400, 300),
                  critic_hidden: Sequence[int] = (400, 300), actor_lr: float = 1e-4, critic_lr: float = 1e-3,
@@ -151,8 +154,8 @@ def _agent_kwargs(cfg) -> dict[str, Any]:
     }
 
 
-def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
-                 agent_hook=None) -> tuple[TensorDictBase, dict[str, Any]]:
+def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
+                 checkpoint: CollectionCheckpoint | None = None) -> tuple[TensorDictBase, dict[str, Any]]:
     """Runs the DDPG recipe of ``cfg.batch`` on ``cfg.env``; returns (memmapped batch [steps], metadata extras).
 
     Args:
@@ -160,6 +163,8 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
         scratch: a scratch directory for the replay buffer (removed by the caller).
         progress: show a tqdm bar (env steps/s, mean return of the last 10 episodes).
         agent_hook: called with the :class:`DDPGAgent` once built (tests use it to watch the updates).
+        checkpoint: resume from it if it holds a checkpoint, and save checkpoints there (removed by the caller
+            once the batch is saved); ``None``: no checkpoints.
     """
     steps = int(config_value(cfg, "batch.steps"))
     sigma = float(config_value(cfg, "batch.sigma"))
@@ -195,7 +200,14 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
 
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, tracker=tracker)
-        data, wall = collect_timed(buffers, runner)
+        resumable = None
+        if checkpoint is not None:
+            def load(state: dict) -> None:
+                agent.load_state_dict(state["agent"])
+
+            resumable = Resumable(checkpoint, runner, buffers, state=lambda: {"agent": agent.state_dict()},
+                                  load=load)
+        data, wall = collect_timed(buffers, runner, resumable=resumable)
     finally:
         env.close()
     returns = tracker.all_returns
@@ -207,6 +219,8 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True,
         "gradient_steps": agent.updates,
         "env_steps": runner.t,
         "behaviour_episodes": runner.episodes,
+        "simulator_unstable_episodes": runner.unstable_episodes,
+        "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
         "behaviour_final_return_mean10": float(sum(returns[-10:]) / max(1, len(returns[-10:]))),
         "env_steps_per_s": runner.t / max(wall, 1e-9),
         "updates_per_s": agent.updates / max(train_time[0], 1e-9),

@@ -17,6 +17,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
     BehaviourRun,
     ReturnTracker,
@@ -42,9 +43,12 @@ log = logging.getLogger("torchrl_bail")
 EXEC_SEED_OFFSET = 10_000  # execution envs are seeded apart from the SAC run's own env
 
 
-def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
-                     data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
-    """An execution batch: ``batch.steps`` transitions of the mediocre/optimal SAC policy (sigma = 0 or sigma(s))."""
+def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None,
+                     checkpoint: CollectionCheckpoint | None = None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """An execution batch: ``batch.steps`` transitions of the mediocre/optimal SAC policy (sigma = 0 or sigma(s)).
+
+    ``checkpoint``: resumed from and saved to (the loop, the transitions, the RNG states; the policy is frozen),
+    or ``None``."""
     steps = int(config_value(cfg, "batch.steps"))
     stochastic = bool(config_value(cfg, "batch.stochastic"))
     which = config_value(cfg, "batch.policy")
@@ -75,7 +79,8 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
         buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg), replay_batch_size=None)
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, tracker=tracker)
-        data, wall = collect_timed(buffers, runner)
+        resumable = Resumable(checkpoint, runner, buffers) if checkpoint is not None else None
+        data, wall = collect_timed(buffers, runner, resumable=resumable)
     finally:
         env.close()
     extra = {
@@ -96,5 +101,7 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True,
         "behaviour_return": evaluation["return_mean"],
         "env_steps": runner.t,
         "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "simulator_unstable_episodes": runner.unstable_episodes,
+        "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
     }
     return data, extra

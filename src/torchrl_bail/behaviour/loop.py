@@ -27,10 +27,12 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
+from torchrl.envs.utils import step_mdp
 from tqdm.auto import tqdm
 
 from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
+from torchrl_bail.simulator import make_guarded_env
 
 __all__ = ["TRANSITION_KEYS", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker", "BehaviourRun",
            "collect_timed"]
@@ -55,13 +57,19 @@ def seed_all(seed: int) -> None:
 
 
 def make_collection_env(env_id: str, *, max_episode_steps: int | None, seed: int):
-    """One gymnasium env (``GymEnv`` + ``DoubleToFloat``), seeded; never ``num_envs`` (zero terminal obs).
+    """One gymnasium env (``GymWrapper`` + ``DoubleToFloat``), seeded; never ``num_envs`` (zero terminal obs).
 
-    ``GymEnv.set_seed`` resets the env with ``seed``; the first episode starts from the reset after that.
+    The gymnasium env is wrapped in a :class:`~torchrl_bail.simulator.SimulatorGuard`: a step on which MuJoCo
+    flags an instability ends the episode (``terminated``) instead of continuing from MuJoCo's silent reset;
+    ``env.simulator_guard`` keeps it (its ``unstable_episodes`` go into the batch's metadata). Healthy
+    transitions are unchanged. ``set_seed`` resets the env with ``seed``; the first episode starts from the reset
+    after that.
     """
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
-    env = TransformedEnv(GymEnv(env_id, **kwargs), DoubleToFloat())
+    guard = make_guarded_env(env_id, **kwargs)
+    env = TransformedEnv(GymWrapper(guard), DoubleToFloat())
     env.set_seed(int(seed))
+    env.simulator_guard = guard
     return env
 
 
@@ -109,6 +117,19 @@ class ReturnTracker:
             self.postfix.update(kv)
             self.bar.set_postfix(self.postfix, refresh=False)
 
+    def state_dict(self) -> dict[str, Any]:
+        return {"returns": list(self.all_returns), "lengths": list(self.lengths)}
+
+    def load_state_dict(self, state: dict[str, Any], t: int) -> None:
+        """Restores the episode records of a resumed run; the progress bar jumps to env step ``t``."""
+        self.all_returns = [float(r) for r in state["returns"]]
+        self.lengths = [int(n) for n in state["lengths"]]
+        self.returns.clear()
+        self.returns.extend(self.all_returns[-(self.returns.maxlen or 0):])
+        if self.bar is not None:
+            self.bar.update(t)
+            self.note(resumed=t)
+
     @property
     def mean_recent(self) -> float:
         return float(np.mean(self.returns)) if self.returns else float("nan")
@@ -131,6 +152,10 @@ class BehaviourRun:
         on_episode_end: ``f(length, episode_return, t)`` after an episode ends (DDPG/SAC train here).
         on_step: ``f(t)`` after every env step (SAC evaluates here).
         tracker: a :class:`ReturnTracker` (progress bar, recent returns).
+
+    Order at an episode end: the episode goes to the sinks, ``on_episode_end``, ``on_step``, then the checkpoint
+    (:class:`~torchrl_bail.behaviour.checkpoint.Resumable`, when :meth:`run` has one), and only then the env's
+    reset: a checkpoint holds the env's random state from before that reset, so a resumed run resets the same way.
     """
 
     def __init__(self, env, act: Callable[[torch.Tensor, int], torch.Tensor], *,
@@ -144,12 +169,38 @@ class BehaviourRun:
         self.tracker = tracker
         self.t = 0
         self.episodes = 0
+        self._unstable_before = 0  # unstable episodes of earlier (resumed) processes
 
-    def run(self, sinks: list, *, until: Callable[[int], bool], finish_open_episode: bool = False) -> None:
+    @property
+    def _np_random(self):
+        return self.env.simulator_guard.unwrapped.np_random
+
+    @property
+    def unstable_episodes(self) -> int:
+        """Episodes the :class:`~torchrl_bail.simulator.SimulatorGuard` ended on a simulator instability."""
+        return self._unstable_before + self.env.simulator_guard.unstable_episodes
+
+    def state_dict(self) -> dict[str, Any]:
+        """Env steps, episodes, episode records and the env's random state (valid at an episode end)."""
+        return {"t": self.t, "episodes": self.episodes, "unstable_episodes": self.unstable_episodes,
+                "env_rng": self._np_random.bit_generator.state,
+                "tracker": self.tracker.state_dict() if self.tracker is not None else None}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.t = int(state["t"])
+        self.episodes = int(state["episodes"])
+        self._unstable_before = int(state["unstable_episodes"]) - self.env.simulator_guard.unstable_episodes
+        self._np_random.bit_generator.state = state["env_rng"]
+        if self.tracker is not None and state["tracker"] is not None:
+            self.tracker.load_state_dict(state["tracker"], self.t)
+
+    def run(self, sinks: list, *, until: Callable[[int], bool], finish_open_episode: bool = False,
+            checkpoint=None) -> None:
         """Steps until ``until(rows_in_open_episode)`` holds.
 
         When it holds mid-episode the open episode is handed to the sinks unfinished, or, with
         ``finish_open_episode`` (oracle continuation), first run to its end with no more hooks called.
+        ``checkpoint``: a :class:`~torchrl_bail.behaviour.checkpoint.Resumable` offered every episode end.
         """
         env = self.env
         td = env.reset()
@@ -163,13 +214,14 @@ class BehaviourRun:
                 else:
                     break
             td.set("action", self.act(td["observation"], self.t))
-            step_td, td = env.step_and_maybe_reset(td)
+            step_td = env.step(td)
             rows.append(step_td.select(*TRANSITION_KEYS))
             ep_ret += float(step_td["next", "reward"])
             self.t += 1
             if self.tracker is not None:
                 self.tracker.step()
-            if bool(step_td["next", "done"]):
+            done = bool(step_td["next", "done"])
+            if done:
                 length = len(rows)
                 self._flush(rows, sinks)
                 rows = []
@@ -183,6 +235,12 @@ class BehaviourRun:
                 ep_ret = 0.0
             if not finishing and self.on_step is not None:
                 self.on_step(self.t)
+            if done:
+                if checkpoint is not None and not until(0):
+                    checkpoint.maybe_save(self.t)
+                td = env.reset()
+            else:
+                td = step_mdp(step_td, exclude_action=True)
         if rows:
             self._flush(rows, sinks)
 
@@ -197,12 +255,16 @@ class BehaviourRun:
 
 
 def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
-                  after: Callable[[], None] | None = None) -> tuple[TensorDictBase, float]:
+                  after: Callable[[], None] | None = None, resumable=None) -> tuple[TensorDictBase, float]:
     """``buffers.collect(runner)``, then ``after()`` (e.g. a final evaluation), closing the runner's progress bar
-    in every case; returns ``(batch, wall seconds)``."""
+    in every case; returns ``(batch, wall seconds)``. With a ``resumable``
+    (:class:`~torchrl_bail.behaviour.checkpoint.Resumable`) the run first resumes from its last checkpoint, if
+    any, and saves checkpoints as it goes."""
     start = time.perf_counter()
     try:
-        data = buffers.collect(runner)
+        if resumable is not None:
+            resumable.resume()
+        data = buffers.collect(runner, checkpoint=resumable)
         if after is not None:
             after()
     finally:

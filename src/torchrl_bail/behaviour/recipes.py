@@ -70,6 +70,10 @@ def validate_recipe(cfg) -> None:
     need(config_value(cfg, "batch.seed") is None or integer("batch.seed"), "batch.seed", "null or an integer")
     need(integer("batch.steps") and config_value(cfg, "batch.steps") > 0, "batch.steps", "a positive number of transitions")
 
+    for key in ("checkpoint_every_s", "lock_stale_after_s", "heartbeat_every_s", "checkpoint_every_steps"):
+        value = config_value(cfg, f"batch.{key}")
+        need(value is None or (number(f"batch.{key}") and value > 0), f"batch.{key}",
+             "a positive number, or null" + (" (never)" if key.startswith("checkpoint") else " (the default)"))
     oracle = config_value(cfg, "batch.oracle")
     if oracle is not None:
         need(isinstance(oracle, dict) and isinstance(oracle.get("enabled", False), bool), "batch.oracle.enabled",

@@ -41,7 +41,6 @@ import copy
 import json
 import logging
 import os
-import secrets
 import shutil
 import time
 from collections.abc import Sequence
@@ -56,6 +55,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SACLoss, ValueEstimators
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
+from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
     BehaviourRun,
     ReturnTracker,
@@ -67,6 +67,7 @@ from torchrl_bail.behaviour.loop import (
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     LOCKS,
+    OPERATIONAL_KEYS,
     batch_metadata,
     batch_path,
     behaviour_seed,
@@ -75,12 +76,15 @@ from torchrl_bail.data.cache import (
     data_dir_of,
     episode_limit,
     file_lock,
+    liveness_settings,
     oracle_settings,
+    owned_name,
     plain,
     scratch_directory,
     stable_hash,
 )
 from torchrl_bail.evaluation import Evaluator
+from torchrl_bail.io import atomic_path
 from torchrl_bail.modules import action_spec_from_bounds, fused_soft_update, make_qvalue_network, make_sac_actor
 
 __all__ = [
@@ -90,6 +94,8 @@ __all__ = [
     "sac_run_dir",
     "train_sac",
     "ensure_sac_run",
+    "run_checkpoint",
+    "sac_run_lock",
     "load_sac_run",
     "collect_sac",
 ]
@@ -117,8 +123,10 @@ def _sac_kwargs(sac: dict) -> dict[str, Any]:
     }
 
 
-class SACAgent:
+class SACAgent(CheckpointableAgent):
     """sac_adapt's SAC on TorchRL's :class:`~torchrl.objectives.SACLoss` (see the module docstring)."""
+
+    OPTIMIZERS = ("actor_optim", "critic_optim", "alpha_optim")  # saved with the networks by state_dict()
 
     def __init__(self, obs_dim: int, action_spec, *, actor_hidden: Sequence[int] = (256, 256),
                  critic_hidden: Sequence[int] = (256, 256), actor_lr: float = 3e-4, critic_lr: float = 3e-4,
@@ -255,8 +263,20 @@ def load_sac_run(path: Path) -> SACRun | None:
     return SACRun(path, record)
 
 
-def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
+def run_checkpoint(cfg, data_dir=None) -> CollectionCheckpoint:
+    """Where the SAC run of ``cfg`` checkpoints: ``<data_dir>/.partial/<run name>[_oracle]`` (shared by the
+    ``sac``, ``med_*`` and ``opt_*`` batches that need the same run; written under the run's lock)."""
+    root = data_dir_of(cfg, data_dir)
+    oracle = config_value(cfg, "batch.recipe") == "sac" and oracle_settings(cfg) is not None
+    return CollectionCheckpoint.for_config(cfg, root, sac_run_dir(cfg, root).name + ("_oracle" if oracle else ""))
+
+
+def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
+              checkpoint: CollectionCheckpoint | None = None):
     """Runs the SAC behaviour run of ``cfg`` (``batch.sac``) on ``cfg.env``.
+
+    With a ``checkpoint`` (:func:`run_checkpoint`) the run resumes from it and saves checkpoints there, with its
+    evaluations and the policy weights saved at each (``evals/``); the caller removes it once all is saved.
 
     Returns:
         ``(data, record, snapshots)``: the memmapped transitions of the run ([train_steps], oracle-cut in oracle
@@ -321,7 +341,27 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
                 evaluate(runner.t)
 
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
-        data, wall = collect_timed(buffers, runner, after=evaluate_final)
+        resumable = None
+        if checkpoint is not None:
+            def state() -> dict:
+                for fname, weights in snapshots.items():  # each policy snapshot is written once, before state.pt
+                    if not (checkpoint.directory / fname).is_file():
+                        with atomic_path(checkpoint.directory / fname) as tmp:
+                            torch.save(weights, tmp)
+                return {"agent": agent.state_dict(), "evaluations": copy.deepcopy(evaluations),
+                        "timers": dict(timers)}
+
+            def load(saved: dict) -> None:
+                agent.load_state_dict(saved["agent"])
+                evaluations[:] = saved["evaluations"]
+                timers.update(saved["timers"])
+                for ev in evaluations:
+                    snapshots[ev["file"]] = torch.load(checkpoint.directory / ev["file"], map_location="cpu",
+                                                       weights_only=True)
+                evaluator.evaluations = len(evaluations)  # the k-th evaluation's reset seeds depend on k
+
+            resumable = Resumable(checkpoint, runner, buffers, state=state, load=load)
+        data, wall = collect_timed(buffers, runner, after=evaluate_final, resumable=resumable)
     finally:
         env.close()
         evaluator.close()
@@ -342,6 +382,8 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
         "env_steps_per_s": runner.t / max(wall, 1e-9),
         "updates_per_s": agent.updates / max(timers["train"], 1e-9),
         "final_alpha": float(agent.loss.log_alpha.detach().exp()),
+        "simulator_unstable_episodes": runner.unstable_episodes,
+        "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
         "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     return data, record, snapshots
@@ -350,7 +392,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None):
 def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
     """Writes the run to a temporary directory beside ``path`` and renames it into place (atomic)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}"
+    tmp = path.parent / f".{owned_name(path.name)}"  # host and pid in the name: clean_stale can tell its owner
     try:
         (tmp / "evals").mkdir(parents=True)
         for fname, state in snapshots.items():
@@ -372,6 +414,8 @@ def _run_cfg(cfg):
     sac = _sac_block(cfg)
     batch = {"kind": "sac", "recipe": "sac", "index": int(config_value(cfg, "batch.index")),
              "seed": config_value(cfg, "batch.seed"), "steps": int(sac["train_steps"]), "sac": sac}
+    batch.update({k: config_value(cfg, f"batch.{k}") for k in OPERATIONAL_KEYS  # how, not what: same hash
+                  if config_value(cfg, f"batch.{k}") is not None})
     if OmegaConf.is_config(run_cfg):
         with open_dict(run_cfg):
             run_cfg.batch = OmegaConf.create(batch)
@@ -380,19 +424,30 @@ def _run_cfg(cfg):
     return run_cfg
 
 
+def sac_run_lock(cfg, data_dir=None):
+    """The lock of ``cfg``'s SAC run (held while it trains, checkpoints or is saved)."""
+    root = data_dir_of(cfg, data_dir)
+    stale, beat = liveness_settings(cfg)
+    name = sac_run_dir(cfg, root).name
+    return file_lock(root / LOCKS / f"policies-{name}.lock", stale_after_s=stale, heartbeat_every_s=beat,
+                     what=f"SAC run {name}")
+
+
 def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
     """The SAC run behind ``cfg``'s execution batch: loaded from ``policies/``, or trained once and saved.
 
     When it has to be trained, the ``sac`` training batch it produces (its first ``train_steps`` transitions) is
     saved as well, under the name and hash a ``batch=sac`` config with ``batch.steps = sac.train_steps`` gives.
+    Training resumes from the run's checkpoint (:func:`run_checkpoint`) when an earlier attempt was killed.
     """
     path = sac_run_dir(cfg, data_dir)
     run = load_sac_run(path)
     if run is not None:
         return run
     root = data_dir_of(cfg, data_dir)
-    clean_stale(root)
-    with file_lock(root / LOCKS / f"policies-{path.name}.lock"):
+    stale, beat = liveness_settings(cfg)
+    clean_stale(root, stale_after_s=stale)
+    with sac_run_lock(cfg, root):
         run = load_sac_run(path)
         if run is not None:
             return run
@@ -400,9 +455,10 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
             aside = path.with_name(f"{path.name}.broken-{time.strftime('%Y%m%d-%H%M%S')}")
             os.replace(path, aside)
         run_cfg = _run_cfg(cfg)
-        with scratch_directory(root, path.name) as scratch:
+        checkpoint = run_checkpoint(run_cfg, root)
+        with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
             start = time.perf_counter()
-            data, record, snapshots = train_sac(run_cfg, scratch=scratch, progress=progress)
+            data, record, snapshots = train_sac(run_cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
             run = _save_run(path, record, snapshots)
             by_product = batch_path(run_cfg, root)
             if not by_product.exists():
@@ -413,6 +469,7 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
                     log.info("saved the SAC training batch of this run as %s", by_product)
                 except (FileExistsError, OSError) as err:  # a concurrent job saved it first
                     log.info("SAC training batch %s not saved (%s)", by_product, err)
+        checkpoint.remove()
     return run
 
 
@@ -432,17 +489,23 @@ def _sac_batch_extra(run: SACRun, steps: int) -> dict[str, Any]:
         "behaviour_final_eval_return": final["return_mean"],
         "env_steps_per_s": rec["env_steps_per_s"],
         "updates_per_s": rec["updates_per_s"],
+        "simulator_unstable_episodes": rec.get("simulator_unstable_episodes", 0),
+        "resumed_from_step": rec.get("resumed_from_step"),
     }
 
 
-def collect_sac(cfg, *, scratch: Path, progress: bool = True,
-                data_dir=None) -> tuple[TensorDictBase, dict[str, Any]]:
-    """The ``sac`` recipe: trains the SAC run (saving its policies) and returns its first ``batch.steps`` rows."""
+def collect_sac(cfg, *, scratch: Path, progress: bool = True, data_dir=None,
+                checkpoint: CollectionCheckpoint | None = None) -> tuple[TensorDictBase, dict[str, Any]]:
+    """The ``sac`` recipe: trains the SAC run (saving its policies) and returns its first ``batch.steps`` rows.
+
+    ``checkpoint``: :func:`run_checkpoint` of ``cfg`` (resumed from, saved to; the caller removes it, under
+    :func:`sac_run_lock`, once the batch is saved), or ``None``.
+    """
     steps = int(config_value(cfg, "batch.steps"))
     root = data_dir_of(cfg, data_dir)
     path = sac_run_dir(cfg, root)
-    with file_lock(root / LOCKS / f"policies-{path.name}.lock"):
-        data, record, snapshots = train_sac(cfg, scratch=scratch, progress=progress)
+    with sac_run_lock(cfg, root):
+        data, record, snapshots = train_sac(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
         run = load_sac_run(path)
         if run is None:
             if path.exists():
