@@ -3,7 +3,7 @@
 
     python benchmarks/bench_bcq_bear.py [--updates 30] [--repeats 5] [--threads 1] [--json PATH]
 
-Paper sizes (spec 8.3, 8.4): VAE 750-750 (latent 2 |A|), actor and critics 400-300, batch 100, Hopper shapes
+Paper sizes (supp. C.2, BCQ, 8.4): VAE 750-750 (latent 2 |A|), actor and critics 400-300, batch 100, Hopper shapes
 (obs 11, act 3), 10 next-state samples, BEAR with 5 MMD samples and its warm start over (the full objective).
 
 The library side is exactly what a run executes per iteration (:func:`torchrl_bail.trainer.train`):

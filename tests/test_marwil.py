@@ -43,7 +43,7 @@ def _batch(values=VALUES, returns=RETURNS, predicted=PREDICTED, actions=ACTIONS)
 
 
 def _expected(beta: float, c2_init: float, rate: float, max_exponent: float = 20.0):
-    """The spec's formulas in plain Python floats."""
+    """MARWIL's formulas in plain Python floats."""
     adv = [g - v for g, v in zip(RETURNS, VALUES)]
     c2 = c2_init + rate * (sum(a * a for a in adv) / len(adv) - c2_init)
     exponents = [beta * a / (math.sqrt(c2) + 1e-8) for a in adv]

@@ -1,4 +1,4 @@
-"""Monte-Carlo returns and the authors' "gain" augmentation (spec 2), against hand values and brute force."""
+"""Monte-Carlo returns and the authors' "gain" augmentation (paper Sec. 4, augmented returns), against hand values and brute force."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ def _td(obs, rewards, episode) -> TensorDict:
 
 
 def _brute_force(td, gamma, horizon):
-    """Direct transcription of spec 2.3: T real-or-borrowed rewards for episodes with L >= T."""
+    """Direct transcription of paper Sec. 4, augmented returns: T real-or-borrowed rewards for episodes with L >= T."""
     obs = td["observation"].double()
     r = td["next", "reward"].reshape(-1).double().tolist()
     ep = td["episode"].tolist()

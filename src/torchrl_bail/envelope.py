@@ -1,4 +1,4 @@
-"""Fitting BAIL's upper envelope ``V(s)`` to the returns ``G`` (spec 3.4-3.7), and looking at the result.
+"""Fitting BAIL's upper envelope ``V(s)`` to the returns ``G`` (supp. B.1-B.2, Alg. 1), and looking at the result.
 
 :func:`fit_upper_envelope` is the authors' static-BAIL procedure: Adam with *coupled* weight decay on every
 parameter, a train/validation split that forces the highest return into training, epochs of sequential
@@ -121,7 +121,7 @@ class EnvelopeFit:
 def envelope_split(
     returns: torch.Tensor, val_fraction: float = 0.2, *, generator: torch.Generator | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The authors' train/validation split (spec 3.5).
+    """The authors' train/validation split (supp. B.1).
 
     The index of the largest return is forced into training; the other ``N - 1`` indices are shuffled and the
     first ``floor((1 - val_fraction) * N)`` of them join it (so training holds ``floor(0.8 N) + 1`` points);
@@ -413,7 +413,7 @@ def fit_upper_envelope(
     progress: bool = True,
     callback: Callable[[int, dict[str, Any]], Any] | None = None,
 ) -> EnvelopeFit:
-    """Fits the upper envelope ``V_phi`` to the returns as the authors do (spec 3.4-3.7).
+    """Fits the upper envelope ``V_phi`` to the returns as the authors do (supp. B.1-B.2, Alg. 1).
 
     BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
 

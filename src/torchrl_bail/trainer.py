@@ -62,7 +62,7 @@ class TrainHistory:
     wall_time_s: float = 0.0
 
     def final_return(self, window: int = 10) -> float:
-        """Mean of the last ``window`` evaluations (our per-seed score; spec 7)."""
+        """Mean of the last ``window`` evaluations (our per-seed score; supp. C.4)."""
         last = self.evaluations[-window:]
         return float(sum(e.mean_return for e in last) / len(last)) if last else float("nan")
 

@@ -1,4 +1,4 @@
-"""BAIL (static, spec 3-5): upper envelope -> best-action selection -> behaviour cloning.
+"""BAIL (static, supp. Alg. 1, B.2): upper envelope -> best-action selection -> behaviour cloning.
 
 :meth:`BAIL.prepare` fits the upper envelope ``V`` to the returns ``G`` with
 :func:`~torchrl_bail.envelope.fit_upper_envelope`, then a

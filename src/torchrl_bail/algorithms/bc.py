@@ -1,4 +1,4 @@
-"""Behaviour cloning (spec 8.1): MSE imitation of the batch's actions with a deterministic tanh actor.
+"""Behaviour cloning (supp. C.3): MSE imitation of the batch's actions with a deterministic tanh actor.
 
 It is also BAIL's imitation step: :class:`~torchrl_bail.algorithms.bail.BAIL` is this class with a
 :meth:`prepare` that keeps only the best actions.
@@ -34,7 +34,7 @@ def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
     """TorchRL's :class:`~torchrl.objectives.BCLoss` with MSE on a deterministic actor.
 
     With ``reduction="mean"`` its mean runs over batch x action dimensions, exactly the authors' imitation
-    loss (spec 5); ``"none"`` gives the per-element squared errors ``[B, |A|]``. Several losses built on one
+    loss (supp. B.2, C.3); ``"none"`` gives the per-element squared errors ``[B, |A|]``. Several losses built on one
     actor share its parameters.
     """
     with warnings.catch_warnings():  # BCLoss lacks a target-params annotation and warns on construction

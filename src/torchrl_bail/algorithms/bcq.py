@@ -1,4 +1,4 @@
-"""BCQ (spec 8.3), the 2019 version the BAIL authors ran: one update = VAE step, critic step, actor step, targets.
+"""BCQ (supp. C.2, BCQ), the 2019 version the BAIL authors ran: one update = VAE step, critic step, actor step, targets.
 
 The evaluation policy draws ``num_samples`` (10) VAE candidates per state, perturbs them with the actor and
 plays the one the first critic values most. With batch 100, one epoch (10^6 samples) is 10^4 updates.

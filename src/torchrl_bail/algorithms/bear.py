@@ -1,4 +1,4 @@
-"""BEAR (spec 8.4), version 0 with the Laplacian kernel: one update = VAE step, critic step, actor and Lagrange
+"""BEAR (supp. C.2, BEAR), version 0 with the Laplacian kernel: one update = VAE step, critic step, actor and Lagrange
 multiplier steps (from the same samples), ``log alpha`` clamp, warm-start clock, targets.
 
 The actor is TorchRL's tanh-Gaussian :class:`~torchrl.modules.ProbabilisticActor` (the SAC actor of

@@ -1,4 +1,4 @@
-"""MARWIL (spec 8.2): advantage-weighted imitation with a value net fitted to BAIL's augmented returns.
+"""MARWIL (supp. C.2, MARWIL): advantage-weighted imitation with a value net fitted to BAIL's augmented returns.
 
 Each update samples a mini-batch from the whole batch, computes :class:`~torchrl_bail.objectives.MARWILLoss`
 once (one pass of each network) and steps the deterministic actor and the value net with their own Adam

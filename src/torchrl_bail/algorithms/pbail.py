@@ -1,4 +1,4 @@
-"""Progressive BAIL (spec 6): envelope, in-batch selection and imitation advance together, every iteration.
+"""Progressive BAIL (supp. Alg. 2): envelope, in-batch selection and imitation advance together, every iteration.
 
 Each update samples a mini-batch from the whole batch, takes one envelope step on its non-validation rows,
 selects the top ``percentile`` of the mini-batch by ``G / V`` under the *selection* envelope, and takes one
@@ -6,7 +6,7 @@ imitation step whose MSE is normalised by the full mini-batch (selected rows wei
 authors' code does. Every ``validate_every`` iterations the envelope's validation loss decides what the
 selection envelope is.
 
-Switches where the authors' code and the paper differ (spec 11):
+Switches where the authors' code and the paper differ (where the paper and the authors' code differ):
 
 * ``best_envelope="paper"`` (the yaml's default): ``phi'`` is a real copy of the lowest-validation weights, and the
   training envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule

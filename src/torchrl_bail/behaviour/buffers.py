@@ -1,7 +1,7 @@
-"""Where a behaviour run's transitions go: a memmap episode store, the batch sink (plain or oracle cut, spec 2.5)
+"""Where a behaviour run's transitions go: a memmap episode store, the batch sink (plain or oracle cut, supp. D.1)
 and the pair of them every recipe uses (:class:`BehaviourBuffers`).
 
-Oracle mode (``batch.oracle.enabled=true``, spec 2.5): episodes run for ``oracle.horizon`` (2000) steps, the batch
+Oracle mode (``batch.oracle.enabled=true``, supp. D.1): episodes run for ``oracle.horizon`` (2000) steps, the batch
 keeps the first ``oracle.keep`` (1000) steps of each with ``truncated=True`` at ``t = keep - 1``, and stores
 ``oracle_return`` [N], the plain discounted return over the *real* continuation of the episode.
 """
@@ -54,7 +54,7 @@ class EpisodeStore:
 
 
 class BatchSink:
-    """Where finished episodes go: every transition (plain mode) or the oracle cut (spec 2.5).
+    """Where finished episodes go: every transition (plain mode) or the oracle cut (supp. D.1).
 
     Plain mode: the store holds exactly ``steps`` transitions; the final episode may be unfinished.
 

@@ -1,4 +1,4 @@
-"""SAC execution batches (spec 9.3): ``batch.steps`` transitions of a frozen SAC policy, mediocre or optimal,
+"""SAC execution batches (paper Sec. 5; supp. E): ``batch.steps`` transitions of a frozen SAC policy, mediocre or optimal,
 deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``).
 
 The policy comes from the shared SAC run (:func:`~torchrl_bail.behaviour.sac.ensure_sac_run`: trained once, reused

@@ -3,12 +3,12 @@
 Recipes (``cfg.batch.recipe``):
 
 * ``ddpg`` -- :mod:`torchrl_bail.behaviour.ddpg`: the whole replay buffer of an online DDPG run with N(0, sigma^2)
-  exploration noise (spec section 9.1).
-* ``sac`` -- :mod:`torchrl_bail.behaviour.sac`: the first ``steps`` transitions of an online SAC run (spec 9.2).
+  exploration noise (supp. C.2, final buffer).
+* ``sac`` -- :mod:`torchrl_bail.behaviour.sac`: the first ``steps`` transitions of an online SAC run (paper Sec. 5; supp. E).
 * ``sac_exec`` -- :mod:`torchrl_bail.behaviour.execution`: ``steps`` transitions of a frozen SAC policy (mediocre or
-  optimal, deterministic or stochastic; spec 9.3). The SAC run behind it is shared with the ``sac`` batch.
+  optimal, deterministic or stochastic; paper Sec. 5; supp. E). The SAC run behind it is shared with the ``sac`` batch.
 
-Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, spec 2.5): see
+Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, supp. D.1): see
 :class:`~torchrl_bail.behaviour.buffers.BatchSink`. Names, hashes and cache paths are those of
 :mod:`torchrl_bail.data.cache`.
 

@@ -1,4 +1,4 @@
-"""Monte-Carlo returns ``G_i`` of an offline batch (spec section 2).
+"""Monte-Carlo returns ``G_i`` of an offline batch (paper Sec. 4, augmented returns).
 
 ``augment="none"`` gives the plain discounted return of each episode (no bootstrapping; a true terminal simply
 ends the sum). ``augment="gain"`` is the authors' final heuristic for time-limit episodes: every state of an
@@ -11,7 +11,7 @@ prefix window ``{0, ..., L - t}``::
 
 The decision uses the episode length only; episodes shorter than ``horizon`` — falls, and the unfinished
 episode at the end of the batch — keep their plain returns. ``augment="oracle"`` returns the batch's stored
-``oracle_return`` (collected from the real continuation, spec 2.5).
+``oracle_return`` (collected from the real continuation, supp. D.1).
 
 Examples:
     >>> import torch

@@ -1,4 +1,4 @@
-"""Batch-Constrained deep Q-learning (BCQ), the 2019 version the BAIL authors ran as a baseline (spec 8.3)."""
+"""Batch-Constrained deep Q-learning (BCQ), the 2019 version the BAIL authors ran as a baseline (supp. C.2, BCQ)."""
 
 from __future__ import annotations
 
@@ -60,13 +60,13 @@ class BCQLoss(TwinCriticVAELoss):
         deactivate_vmap (bool): run the two critics in a Python loop instead of ``torch.vmap``.
             Defaults to ``False``.
 
-    Choices where the spec is silent (recorded here and in the BAIL spec's spirit):
+    Choices where the paper is silent:
 
     * **gamma is a constructor argument** (a buffer), not a TorchRL value estimator: the target is a one-step
       maximum over sampled actions of a soft clipped double-Q, which no TD estimator computes, so
       ``default_value_estimator`` is ``None``.
     * **Bootstrap mask** = ``("next", "terminated")``; a missing entry raises instead of falling back on ``done``.
-    * **Action bounds.** ``max_action * tanh`` of the authors is ``loc + scale * tanh`` over the spec's bounds,
+    * **Action bounds.** ``max_action * tanh`` of the authors is ``loc + scale * tanh`` over the action spec's bounds,
       identical for the symmetric MuJoCo bounds; the perturbation is ``phi * scale`` and the clamp uses the bounds.
     * **The next-state candidates** come from the *current* VAE (it has no target), as in the authors' code.
     * **Random numbers** (latents, reparameterisation) come from torch's global generator, so a run's seed fixes

@@ -1,5 +1,5 @@
 """Bootstrapping Error Accumulation Reduction (BEAR), version 0 with the Laplacian kernel, as the BAIL authors ran
-it (spec 8.4)."""
+it (supp. C.2, BEAR)."""
 
 from __future__ import annotations
 
@@ -107,7 +107,7 @@ class BEARLoss(TwinCriticVAELoss):
         log_alpha_max (float): upper clamp of ``log_alpha`` (``lagrange_thresh``). Defaults to ``10.0``.
         lmbda, gamma, kl_weight, reduction, deactivate_vmap: as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
 
-    Choices where the spec is silent:
+    Choices where the paper is silent:
 
     * **Warm-start clock.** A buffer ``update_count`` (in the ``state_dict``) advanced by :meth:`count_update`;
       the actor objective switches with ``torch.where`` (no data-dependent branch) once

@@ -1,7 +1,7 @@
 """What BCQ and BEAR share, written once: the soft clipped double-Q target, the VAE + twin-critic loss base
 class, and the best-of-N evaluation policy.
 
-Both algorithms (spec 8.3, 8.4) train a conditional VAE on the batch's actions, two critics with a target copy,
+Both algorithms (supp. C.2, BCQ, 8.4) train a conditional VAE on the batch's actions, two critics with a target copy,
 and an actor with a target copy; their critic target draws ``N`` candidate actions at the next state and takes
 
     Q'(s') = max_n [ lambda * min_j Q'_j(s', a_n) + (1 - lambda) * max_j Q'_j(s', a_n) ]

@@ -1,4 +1,4 @@
-"""MARWIL, monotonic advantage re-weighted imitation learning (spec 8.2), as the BAIL authors ran it.
+"""MARWIL, monotonic advantage re-weighted imitation learning (supp. C.2, MARWIL), as the BAIL authors ran it.
 
 A value net ``V_psi(s)`` regresses the Monte-Carlo returns ``G`` (the same augmented returns BAIL uses); the
 policy imitates the batch's actions with per-sample weights ``exp(beta * A / c)`` where ``A = G - V(s)`` is the
@@ -72,7 +72,7 @@ class MARWILLoss(LazyInKeysLoss):
     ``advantage_mean``, ``value_mean``, ``weight_mean``, ``weight_max``, ``clamped_fraction`` (share of points
     whose exponent hit ``max_exponent``) and ``c2`` (the normaliser the weights used).
 
-    Choices made where the spec (8.2) is silent:
+    Choices made where the paper (supp. C.2) is silent:
 
     * **When c^2 moves.** Only in training mode (``loss.train()``, the default), under ``torch.no_grad``,
       once per call of :meth:`forward` or :meth:`actor_loss`, *before* the weights are computed, so a call
@@ -92,12 +92,12 @@ class MARWILLoss(LazyInKeysLoss):
       the diagnostics.
     * **Keys.** The predicted action is read from the actor's output under ``tensor_keys.action``, the key
       that also holds the batch's action (the TD3+BC convention).
-    * **Training (:class:`~torchrl_bail.algorithms.marwil.MARWIL`).** The spec allows one total loss or two
+    * **Training (:class:`~torchrl_bail.algorithms.marwil.MARWIL`).** The paper allows one total loss or two
       separately optimised networks; the algorithm does both at once: one forward, one ``backward`` of
       ``loss_actor + loss_value`` (the gradients do not mix), then one Adam step each (``algo.policy.lr``,
       ``algo.value.lr``). The value net is the upper envelope's architecture and init
       (:func:`~torchrl_bail.modules.make_value_network`: 128-128 ReLU, output layer default init x 0.1, bias 0),
-      the spec leaving both open. Checkpoints carry this loss' buffers (``c^2`` included) beside the networks.
+      the paper leaving both open. Checkpoints carry this loss' buffers (``c^2`` included) beside the networks.
 
     Examples:
         >>> import torch

@@ -1,4 +1,4 @@
-"""The upper-envelope penalty loss of BAIL (spec 3.1, 3.3).
+"""The upper-envelope penalty loss of BAIL (paper Sec. 4; supp. Alg. 1, 3.3).
 
 The envelope ``V`` is fitted to Monte-Carlo returns ``G`` with an asymmetric squared error: a point where the
 envelope lies *below* its return costs ``K`` times more than the same gap above it. With ``K = 1000`` (the
@@ -23,7 +23,7 @@ __all__ = ["UpperEnvelopeLoss", "envelope_penalty"]
 def envelope_penalty(value: torch.Tensor, target: torch.Tensor, penalty: torch.Tensor | float) -> torch.Tensor:
     """The elementwise upper-envelope penalty ``w * (V - G)^2``, ``w = 1 if V >= G else K``.
 
-    The weight-1 branch includes ``V == G`` as in the authors' code (spec 3.3); the paper writes ``V > G``,
+    The weight-1 branch includes ``V == G`` as in the authors' code (supp. Alg. 1); the paper writes ``V > G``,
     which makes no difference to the value (the gap is zero there) nor to the gradient.
 
     Args:

@@ -1,4 +1,4 @@
-"""The conditional-VAE loss of BCQ and BEAR (spec 8.3, 8.4): reconstruction MSE plus a weighted KL term.
+"""The conditional-VAE loss of BCQ and BEAR (supp. C.2, BCQ, 8.4): reconstruction MSE plus a weighted KL term.
 
 The VAE (:class:`~torchrl_bail.modules.ConditionalVAE`) models the batch's actions given the state. BCQ samples
 its candidate actions from it; BEAR compares the policy's actions with its samples (MMD). Both train it with

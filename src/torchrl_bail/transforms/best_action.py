@@ -1,4 +1,4 @@
-"""Best-action selection (spec 4): keep the pairs whose return is closest to the upper envelope.
+"""Best-action selection (supp. Alg. 1): keep the pairs whose return is closest to the upper envelope.
 
 For every state-action pair ``i`` BAIL forms the ratio ``G_i / V(s_i)`` of its return to the envelope, takes as
 border ``x`` the ``floor(p N)``-th largest ratio and keeps every pair with ``G_i / V(s_i) >= x`` (ties at the
@@ -77,7 +77,7 @@ def best_action_mask(
     nonpositive_value: NonPositiveValue = "raw",
     return_border: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Which pairs BAIL keeps: ``G / V >= x`` with ``x`` the ``floor(p B)``-th largest ratio (spec 4).
+    """Which pairs BAIL keeps: ``G / V >= x`` with ``x`` the ``floor(p B)``-th largest ratio (supp. Alg. 1).
 
     The selection runs along the last dimension: ``[B]`` gives one selection, ``[S, B]`` one per row (e.g.
     per seed). At least one pair per row is kept (``floor(p B)`` is raised to 1). Ties at the border are all
@@ -147,7 +147,7 @@ def best_action_mask(
 
 
 class BestActionFilter(Transform):
-    """BAIL's best-action selection as a write-time replay-buffer transform (spec 4).
+    """BAIL's best-action selection as a write-time replay-buffer transform (supp. Alg. 1).
 
     BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
 
