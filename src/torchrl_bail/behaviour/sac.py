@@ -4,13 +4,18 @@
 (v2: no state-value net):
 
 * tanh-Gaussian policy (:func:`~torchrl_bail.modules.make_sac_actor`) ``obs -> 256 -> 256 -> (mu, log sigma)``, ``log sigma`` clamped to [-20, 2], action
-  ``max_action * tanh(mu + sigma * eps)`` (TorchRL :class:`~torchrl.modules.TanhNormal` on the action bounds);
+  ``max_action * tanh(mu + sigma * eps)``; its log-probability is that of the *unscaled* tanh output in [-1, 1], as
+  in sac_adapt (``sac.log_prob_on: tanh``, :class:`~torchrl_bail.modules.TanhNormalScoredOnTanh`), in the actor
+  loss, the alpha loss and the soft-Q target alike; the critics see the scaled action;
 * twin critics ``(s, a) -> 256 -> 256 -> 1`` with target copies, squared TD error summed over the two critics,
   a TD(0) target with gamma 0.99 that bootstraps on ``terminated``, Polyak averaging 0.995
   (``SoftUpdate(eps=0.995)``);
-* automatic entropy tuning, ``log alpha`` initialised to 0, target entropy ``-|A|`` measured on the tanh output in
-  [-1, 1] as in sac_adapt. TorchRL's log-probabilities are on the *scaled* action, so for Humanoid (bound 0.4) the
-  same target is ``-|A| + sum(log max_action)`` there; ``target_entropy: auto`` applies that shift;
+* automatic entropy tuning, ``log alpha`` initialised to 0, target entropy ``-|A|`` (``target_entropy: auto``) on the
+  tanh output. With ``log_prob_on: action`` (TorchRL's density of the scaled action) ``auto`` becomes
+  ``-|A| + sum(log max_action)``, which re-centres alpha's tuning but leaves ``-alpha * sum(log max_action)`` in
+  every soft-Q target (about ``+15.6 alpha`` per step on Humanoid, bound 0.4): not the authors' agent. With bound 1
+  (Hopper, Walker2d, HalfCheetah, Ant) both settings are the same numbers, so ``log_prob_on`` enters the run's
+  identity (and the batch hash) only when a bound differs from 1 (:func:`~torchrl_bail.data.cache.sac_identity`);
 * Adam 3e-4 for the actor, the critics and alpha; batch 256 drawn uniformly from everything stored;
 * ``start_steps`` (10^4) uniformly random actions, then actions sampled from the policy; at the end of every episode
   ``episode_length`` gradient steps; every ``eval_every`` (5000) env steps an evaluation of ``eval_episodes`` (10)
@@ -77,6 +82,7 @@ from torchrl_bail.data.cache import (
     file_lock,
     oracle_settings,
     plain,
+    sac_identity,
     scratch_directory,
     stable_hash,
 )
@@ -114,6 +120,7 @@ def _sac_kwargs(sac: dict) -> dict[str, Any]:
         "log_std_max": float(sac["log_std_max"]),
         "batch_size": int(sac["batch_size"]),
         "loss_function": sac.get("loss_function", "l2"),
+        "log_prob_on": sac.get("log_prob_on", "tanh"),
     }
 
 
@@ -124,17 +131,19 @@ class SACAgent:
                  critic_hidden: Sequence[int] = (256, 256), actor_lr: float = 3e-4, critic_lr: float = 3e-4,
                  alpha_lr: float = 3e-4, gamma: float = 0.99, polyak: float = 0.995, alpha_init: float = 1.0,
                  target_entropy: float | str = "auto", log_std_min: float = -20.0, log_std_max: float = 2.0,
-                 batch_size: int = 256, loss_function: str = "l2"):
+                 batch_size: int = 256, loss_function: str = "l2", log_prob_on: str = "tanh"):
         act_dim = action_spec.shape[-1]
         self.batch_size = int(batch_size)
         self.actor_hidden = list(actor_hidden)
         self.log_std_bounds = (float(log_std_min), float(log_std_max))
+        self.log_prob_on = log_prob_on
         self.actor = make_sac_actor(obs_dim, action_spec, actor_hidden, log_std_min=log_std_min,
-                                    log_std_max=log_std_max)
+                                    log_std_max=log_std_max, log_prob_on=log_prob_on)
         self.qvalue = make_qvalue_network(obs_dim, act_dim, critic_hidden)
-        if target_entropy == "auto":
+        if target_entropy == "auto":  # -|A| on the tanh output, wherever the log-probabilities are measured
             half_range = (action_spec.space.high - action_spec.space.low) / 2
-            target_entropy = -float(act_dim) + float(torch.log(half_range).sum())
+            shift = float(torch.log(half_range).sum()) if log_prob_on == "action" else 0.0
+            target_entropy = -float(act_dim) + shift
         self.target_entropy = float(target_entropy)
         self.loss = SACLoss(self.actor, self.qvalue, num_qvalue_nets=2, loss_function=loss_function,
                             alpha_init=alpha_init, target_entropy=self.target_entropy, delay_actor=False,
@@ -201,7 +210,7 @@ def sac_run_identity(cfg) -> dict:
         limit = config_value(cfg, "env.max_episode_steps")
         limit = 1000 if limit is None else int(limit)
     return {"env_id": config_value(cfg, "env.id"), "max_episode_steps": limit, "seed": behaviour_seed(cfg),
-            "sac": _sac_block(cfg)}
+            "sac": sac_identity(_sac_block(cfg), config_value(cfg, "env.id"))}
 
 
 def sac_run_dir(cfg, data_dir=None) -> Path:
