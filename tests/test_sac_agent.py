@@ -70,7 +70,7 @@ def test_bound_one_agent_gives_the_same_numbers_either_way():
     outs = []
     for agent in agents:
         torch.manual_seed(3)
-        outs.append([agent.update(_batch(1.0, seed=k)) for k in range(3)])
+        outs.append([{k: float(v) for k, v in agent.update(_batch(1.0, seed=j)).items()} for j in range(3)])
     assert outs[0] == outs[1]
     for (k, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items()):
         assert torch.equal(a, b), k
@@ -134,3 +134,38 @@ def test_log_prob_on_is_hashed_only_where_the_bound_is_not_one():
 def test_unknown_log_prob_on_is_one_clear_error():
     with pytest.raises(ValueError, match="log_prob_on"):
         make_sac_actor(OBS, _spec(0.4), (16, 16), log_prob_on="scaled")
+
+
+@pytest.mark.parametrize("bound", [1.0, 0.4])
+def test_fast_losses_are_sac_loss_numbers_and_gradients(bound):
+    """``SACAgent.losses`` (the update's plain-tensor path) == TorchRL's ``SACLoss`` forward, values and gradients."""
+    agent = _agent(bound)
+    with torch.no_grad():
+        agent.loss.log_alpha.fill_(math.log(0.7))
+    batch = _batch(bound)
+    results = []
+    for compute in (agent.losses, agent.loss):
+        torch.manual_seed(5)
+        out = compute(batch.clone())
+        agent.loss.zero_grad(set_to_none=True)
+        (out["loss_qvalue"] + out["loss_actor"] + out["loss_alpha"]).backward()
+        grads = [p.grad.clone() for p in agent.loss.parameters() if p.grad is not None]
+        results.append(([out[k].detach() for k in ("loss_qvalue", "loss_actor", "loss_alpha", "alpha")], grads))
+    (fast, fast_grads), (ref, ref_grads) = results
+    assert len(fast_grads) == len(ref_grads) > 0
+    for a, b in zip(fast + fast_grads, ref + ref_grads):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_update_steps_match_a_sac_loss_update():
+    """Five updates of the agent == five updates driven by ``SACLoss`` itself (same optimizers and target step)."""
+    agents = [_agent(0.4), _agent(0.4)]
+    reference = agents[1]
+    reference.losses = reference.loss  # the plain TorchRL forward
+    for agent in agents:
+        torch.manual_seed(9)
+        for k in range(5):
+            out = agent.update(_batch(0.4, seed=k))
+        assert set(out) == {"loss_qvalue", "loss_actor", "alpha"} and all(v.dim() == 0 for v in out.values())
+    for (key, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=key)
