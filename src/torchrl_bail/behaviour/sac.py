@@ -172,7 +172,7 @@ class SACAgent:
         """``loss_qvalue``, ``loss_actor``, ``loss_alpha`` and ``alpha`` of ``self.loss`` (TorchRL's SACLoss v2) on
         ``batch``, computed without its TensorDict plumbing: the same networks, weights, draws (next-state action
         first, then the actor's) and formulas, about 20 % faster on CPU (benchmarks/bench_collection.py).
-        ``tests/test_sac_agent.py`` checks it against ``self.loss(batch)``."""
+        ``tests/test_behaviour_agents.py`` checks it against ``self.loss(batch)``."""
         return self._fast(batch)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

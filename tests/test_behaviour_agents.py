@@ -1,5 +1,6 @@
-"""The SAC behaviour agent: log-probabilities on the unscaled tanh output (as sac_adapt), bound-1 envs unchanged,
-the soft-Q target, the actor and alpha losses with hand-computed values, and the recipe hashes."""
+"""The behaviour agents. SAC: log-probabilities on the unscaled tanh output (as sac_adapt), bound-1 envs unchanged,
+the soft-Q target, the actor and alpha losses with hand-computed values, the recipe hashes. SAC and DDPG: the
+updates' plain-tensor losses are TorchRL's SACLoss / DDPGLoss numbers."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from torch.distributions import Normal
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import TanhNormal
 
+from torchrl_bail.behaviour.ddpg import DDPGAgent
 from torchrl_bail.behaviour.sac import SACAgent
 from torchrl_bail.data.cache import sac_identity
 from torchrl_bail.modules import action_spec_from_bounds, make_sac_actor
@@ -169,3 +171,27 @@ def test_update_steps_match_a_sac_loss_update():
         assert set(out) == {"loss_qvalue", "loss_actor", "alpha"} and all(v.dim() == 0 for v in out.values())
     for (key, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=key)
+
+
+@pytest.mark.parametrize("bound,arch", [(1.0, "late_action"), (0.4, "concat")])
+def test_ddpg_updates_are_ddpg_loss_updates(bound, arch):
+    """``DDPGAgent.update`` (plain-tensor losses) == the same steps on TorchRL's ``DDPGLoss``, over several updates
+    (so the target copies follow the soft updates)."""
+
+    def agent():
+        torch.manual_seed(0)
+        return DDPGAgent(OBS, _spec(bound), actor_hidden=(16, 16), critic_hidden=(16, 12), critic_arch=arch)
+
+    fast, reference = agent(), agent()
+    reference.loss_value = lambda batch: reference.loss.loss_value(batch)[0]
+    reference.loss_actor = lambda batch: reference.loss.loss_actor(batch)[0]
+    outs = []
+    for a in (fast, reference):
+        outs.append([a.update(_batch(bound, seed=k)) for k in range(4)])
+    for x, y in zip(outs[0], outs[1]):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    for (key, a), (_, b) in zip(fast.loss.state_dict().items(), reference.loss.state_dict().items()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=key)
+    assert not torch.equal(fast.loss.target_value_network_params["module", "l3" if arch == "late_action" else "4",
+                                                                   "weight"],
+                           fast.critic.module.state_dict()["l3.weight" if arch == "late_action" else "4.weight"])
