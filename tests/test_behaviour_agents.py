@@ -195,3 +195,26 @@ def test_ddpg_updates_are_ddpg_loss_updates(bound, arch):
     assert not torch.equal(fast.loss.target_value_network_params["module", "l3" if arch == "late_action" else "4",
                                                                    "weight"],
                            fast.critic.module.state_dict()["l3.weight" if arch == "late_action" else "4.weight"])
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_sac_act_is_the_actor_module_action(deterministic):
+    agent = _agent(0.4)
+    obs = torch.randn(OBS)
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    torch.manual_seed(2)
+    action = agent.act(obs, deterministic=deterministic)
+    torch.manual_seed(2)
+    with torch.no_grad(), set_exploration_type(mode):
+        expected = agent.actor(TensorDict({"observation": obs}, []))["action"]
+    assert torch.equal(action, expected) and action.abs().max() <= 0.4
+
+
+@pytest.mark.parametrize("bound", [1.0, 0.4])
+def test_ddpg_act_is_the_actor_module_action(bound):
+    torch.manual_seed(0)
+    agent = DDPGAgent(OBS, _spec(bound), actor_hidden=(16, 16), critic_hidden=(16, 12))
+    obs = torch.randn(4, OBS)
+    with torch.no_grad():
+        expected = agent.actor(TensorDict({"observation": obs}, [4]))["action"]
+    assert torch.equal(agent.act(obs), expected)

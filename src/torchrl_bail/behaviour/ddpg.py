@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, ValueEstimators
@@ -116,8 +116,8 @@ class DDPGAgent:
 
     @torch.no_grad()
     def act(self, observation: torch.Tensor) -> torch.Tensor:
-        """The deterministic action ``mu(s)`` (within the bounds)."""
-        return self.actor(TensorDict({"observation": observation}, batch_size=observation.shape[:-1]))["action"]
+        """The deterministic action ``mu(s)`` (within the bounds): ``self.actor``'s output, without TensorDicts."""
+        return self._fast.act(observation)
 
     def loss_value(self, batch: TensorDictBase) -> torch.Tensor:
         """``DDPGLoss.loss_value`` (squared TD(0) error on the target networks), without TensorDict plumbing."""
@@ -180,6 +180,9 @@ class _FastDDPGTerms:
             feature = feature.clamp(-1 + eps, 1 - eps)
         low, high = head.action_low, head.action_high
         return low + (high - low) * (feature + 1) / 2
+
+    def act(self, observation: torch.Tensor) -> torch.Tensor:
+        return self._act(self.body, self.head, observation)
 
     def loss_value(self, batch: TensorDictBase) -> torch.Tensor:
         loss = self.loss

@@ -163,8 +163,11 @@ class SACAgent:
 
     @torch.no_grad()
     def act(self, observation: torch.Tensor, *, deterministic: bool = False) -> torch.Tensor:
-        mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-        with set_exploration_type(mode):
+        """An action of the policy: sampled (the same draw ``self.actor`` makes under ``RANDOM``, without its
+        TensorDict plumbing), or with ``deterministic`` the mean action ``max_action * tanh(mu)``."""
+        if not deterministic:
+            return self._fast.distribution_at(observation).rsample()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
             td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
             return self.actor(td)["action"]
 
@@ -243,10 +246,13 @@ class _FastSACTerms:
             values.append(x)
         return torch.stack(values).squeeze(-1)
 
-    def _sample(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def distribution_at(self, observation: torch.Tensor):
+        """The policy's action distribution at ``observation``."""
         loc, scale = self.params_net(observation)
-        dist = self.distribution(loc, scale, low=self.low, high=self.high, tanh_loc=False)
-        return dist.rsample_and_log_prob()
+        return self.distribution(loc, scale, low=self.low, high=self.high, tanh_loc=False)
+
+    def _sample(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.distribution_at(observation).rsample_and_log_prob()
 
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self.loss
