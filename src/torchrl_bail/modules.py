@@ -378,7 +378,8 @@ def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256)
     ``log_prob_on`` says what its log-probabilities score: ``"action"`` (TorchRL's :class:`TanhNormal`, the density
     of the action on ``[low, high]``) or ``"tanh"`` (:class:`TanhNormalScoredOnTanh`, the density of the unscaled
     tanh output in ``[-1, 1]``, as the authors' SAC). Both sample the same actions, and with bounds ``+-1`` they are
-    the same distribution.
+    the same distribution. The SAC behaviour agent uses ``"tanh"``; BEAR's actor only samples (its losses never
+    score log pi), so it keeps the default.
     """
     distributions = {"action": TanhNormal, "tanh": TanhNormalScoredOnTanh}
     if log_prob_on not in distributions:
