@@ -1,11 +1,14 @@
 """Behaviour-data collection throughput: env steps/s of the DDPG and SAC recipes, agent updates/s, and the same
-updates written in bare PyTorch (same networks, same mini-batch, same optimizers) in the same process.
+updates written in bare PyTorch (same networks, same mini-batch, same optimizers) in the same process; then the
+whole collection loop (the real ``collect_ddpg`` / ``train_sac`` recipes: env steps, replay writes, one update per
+env step at episode ends) against a bare gymnasium + PyTorch loop doing the same work, interleaved.
 
-    python benchmarks/bench_collection.py [--env Hopper-v5] [--steps 3000] [--updates 300]
+    python benchmarks/bench_collection.py [--env Hopper-v5] [--steps 3000] [--updates 300] \
+        [--loop-steps 1500 --loop-start 300 --loop-repeats 3]
 
 Prints env steps/s per acting policy, the steady-state collection rate (one update per env step) with the hours a
-10^6-step collection takes, and a table of updates/s with ``ratio`` = torchrl_bail / bare (1.0 = no overhead).
-With ``--json PATH`` the numbers are also written as JSON.
+10^6-step collection takes, and tables of updates/s and loop steps/s with ``ratio`` = torchrl_bail / bare (1.0 = no
+overhead). ``--loop-steps 0`` skips the whole-loop comparison. With ``--json PATH`` the numbers are also written.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import argparse
 import copy
 import json
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -21,15 +25,18 @@ from pathlib import Path
 
 os.environ.setdefault("RL_WARNINGS", "0")
 
+import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402
 from _bench import bare_mlp, compare, print_table  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 
 from torchrl_bail.behaviour.buffers import EpisodeStore  # noqa: E402
-from torchrl_bail.behaviour.ddpg import DDPGAgent  # noqa: E402
+from torchrl_bail import config_dir  # noqa: E402
+from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg  # noqa: E402
 from torchrl_bail.behaviour.loop import BehaviourRun, make_collection_env  # noqa: E402
-from torchrl_bail.behaviour.sac import SACAgent  # noqa: E402
+from torchrl_bail.behaviour.sac import SACAgent, train_sac  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 
@@ -173,11 +180,99 @@ def bench_env(env_id: str, steps: int, obs_dim: int, act_dim: int) -> dict:
     return out
 
 
+ENV_NAMES = {"Hopper-v5": "hopper", "Walker2d-v5": "walker", "HalfCheetah-v5": "halfcheetah", "Ant-v5": "ant",
+             "Humanoid-v5": "humanoid"}
+
+
+def _recipe_cfg(env_id: str, batch: str, steps: int, start: int):
+    overrides = [f"env={ENV_NAMES[env_id]}", f"batch={batch}", f"batch.steps={steps}"]
+    if batch == "sac":  # no evaluation inside the loop; the one final evaluation is timed and subtracted
+        overrides += [f"batch.sac.start_steps={start}", "batch.sac.eval_every=1000000000",
+                      "batch.sac.eval_episodes=1"]
+    else:
+        overrides += [f"batch.start_steps={start}"]
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def bare_loop(env_id: str, steps: int, start: int, algo: str, seed: int, *, sigma: float = 0.5) -> float:
+    """Seconds for ``steps`` env steps of a plain gymnasium loop + bare PyTorch agent doing the recipe's work:
+    ``start`` random steps, then the policy (DDPG: ``mu(s)`` + N(0, sigma) clipped; SAC: a sample), transitions
+    stored in preallocated tensors, ``length`` updates at the end of every episode (as the recipes)."""
+    torch.manual_seed(seed)
+    env = gym.make(env_id, max_episode_steps=1000)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    low = torch.as_tensor(env.action_space.low, dtype=torch.float32)
+    high = torch.as_tensor(env.action_space.high, dtype=torch.float32)
+    agent, batch = (BareDDPG(obs_dim, act_dim), 100) if algo == "ddpg" else (BareSAC(obs_dim, act_dim), 256)
+    store = {"observation": torch.zeros(steps, obs_dim), "action": torch.zeros(steps, act_dim),
+             ("next", "observation"): torch.zeros(steps, obs_dim), ("next", "reward"): torch.zeros(steps, 1),
+             ("next", "terminated"): torch.zeros(steps, 1, dtype=torch.bool)}
+    start_time = time.perf_counter()
+    obs = torch.as_tensor(env.reset(seed=seed)[0], dtype=torch.float32)
+    length = 0
+    for t in range(steps):
+        if t < start:
+            action = low + (high - low) * torch.rand(act_dim)
+        else:
+            with torch.no_grad():
+                if algo == "ddpg":
+                    action = torch.tanh(agent.actor(obs)) * high + sigma * torch.randn(act_dim)
+                    action = torch.maximum(torch.minimum(action, high), low)
+                else:
+                    action = agent.pi(obs)[0] * high
+        next_obs, reward, terminated, truncated, _ = env.step(action.numpy())
+        next_obs = torch.as_tensor(next_obs, dtype=torch.float32)
+        for key, value in (("observation", obs), ("action", action), (("next", "observation"), next_obs),
+                           (("next", "reward"), reward), (("next", "terminated"), terminated)):
+            store[key][t] = value if isinstance(value, torch.Tensor) else torch.as_tensor(value)
+        length += 1
+        obs = next_obs
+        if terminated or truncated:
+            if t + 1 < steps:  # the recipes train at every episode end until the batch is full
+                data = TensorDict({k: v[: t + 1] for k, v in store.items()}, [t + 1])
+                for _ in range(length):
+                    agent.update(data[torch.randint(0, t + 1, (batch,))])
+            obs = torch.as_tensor(env.reset()[0], dtype=torch.float32)
+            length = 0
+    env.close()
+    return time.perf_counter() - start_time
+
+
+def library_loop(env_id: str, steps: int, start: int, algo: str, scratch: Path) -> float:
+    """Seconds of the real recipe for ``steps`` env steps (SAC: minus its one final evaluation)."""
+    cfg = _recipe_cfg(env_id, "ddpg05" if algo == "ddpg" else "sac", steps, start)
+    run_dir = Path(tempfile.mkdtemp(dir=scratch))
+    start_time = time.perf_counter()
+    if algo == "ddpg":
+        collect_ddpg(cfg, scratch=run_dir, progress=False)
+        return time.perf_counter() - start_time
+    _, record, _ = train_sac(cfg, scratch=run_dir, progress=False)
+    return time.perf_counter() - start_time - record["eval_time_s"]
+
+
+def bench_loops(env_id: str, steps: int, start: int, repeats: int, scratch: Path) -> list[dict]:
+    """Whole collection loops, torchrl_bail vs bare, alternating rounds; medians of env steps/s."""
+    rows = []
+    for algo, name in (("ddpg", "DDPG collection loop"), ("sac", "SAC collection loop")):
+        lib, bare = [], []
+        for r in range(repeats):
+            lib.append(steps / library_loop(env_id, steps, start, algo, scratch))
+            bare.append(steps / bare_loop(env_id, steps, start, algo, seed=r))
+        lib_rate, bare_rate = statistics.median(lib), statistics.median(bare)
+        rows.append({"name": f"{name} ({steps} steps, {start} random)", "unit": "env steps/s",
+                     "torchrl_bail": lib_rate, "bare": bare_rate, "ratio": lib_rate / bare_rate})
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", default="Hopper-v5")
     p.add_argument("--steps", type=int, default=3000, help="env steps per loop measurement")
     p.add_argument("--updates", type=int, default=300, help="updates per update measurement")
+    p.add_argument("--loop-steps", type=int, default=1500, help="env steps per whole-loop run (0: skip)")
+    p.add_argument("--loop-start", type=int, default=300, help="random steps before learning in the loop runs")
+    p.add_argument("--loop-repeats", type=int, default=3)
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     torch.manual_seed(0)
@@ -189,6 +284,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as d:
         res.update(bench_env(args.env, args.steps, obs_dim, act_dim))
         rows = bench_updates(obs_dim, act_dim, args.updates, Path(d))
+        loops = bench_loops(args.env, args.loop_steps, args.loop_start, args.loop_repeats, Path(d)) \
+            if args.loop_steps > 0 else []
     for algo, row in zip(("ddpg", "sac"), rows):
         res[f"{algo}_updates_per_s"] = row["torchrl_bail"]
         res[f"{algo}_ratio_torchrl_bail_over_bare"] = row["ratio"]
@@ -200,6 +297,10 @@ def main(argv=None) -> int:
     for k, v in res.items():
         print(f"{k:<{width}}  {v:.2f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
     print_table(rows, "Behaviour-agent updates/s: torchrl_bail vs bare PyTorch (ratio = torchrl_bail / bare)")
+    for row in loops:
+        res[f"{row['name'].split()[0].lower()}_loop_ratio_torchrl_bail_over_bare"] = row["ratio"]
+    if loops:
+        print_table(loops, "Whole collection loop, env steps/s: the recipe vs a bare gymnasium + PyTorch loop")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
     return 0

@@ -214,6 +214,7 @@ class SACAgentConfig(_Checked):
     log_std_max: float = MISSING
     batch_size: int = at_least(1)
     loss_function: str = one_of("l2", "smooth_l1", "l1")
+    log_prob_on: str = one_of("tanh", "action")
     start_steps: int = at_least(0)
     train_steps: int = at_least(1)
     eval_every: int = at_least(1)

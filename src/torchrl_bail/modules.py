@@ -26,6 +26,8 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded, TensorSpec
 from torchrl.envs.utils import ExplorationType
+from torch.distributions import ComposeTransform
+from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 
@@ -42,6 +44,7 @@ __all__ = [
     "PerturbationActor",
     "make_perturbation_actor",
     "TanhGaussianParams",
+    "TanhNormalScoredOnTanh",
     "make_sac_actor",
     "FusedSoftUpdate",
     "fused_soft_update",
@@ -306,12 +309,81 @@ class TanhGaussianParams(nn.Module):
         return loc, log_std.clamp(self.log_std_min, self.log_std_max).exp()
 
 
+class TanhNormalScoredOnTanh(TanhNormal):
+    """A :class:`~torchrl.modules.TanhNormal` on ``[low, high]`` whose log-probability is that of the *unscaled*
+    tanh output ``y = tanh(u)`` in ``[-1, 1]``, as in the authors' SAC (sac_adapt), not that of the action.
+
+    The action is unchanged, ``a = (high + low) / 2 + (high - low) / 2 * tanh(u)``; only its score drops the affine
+    Jacobian: ``log pi(y) = log N(u) - sum log(1 - tanh(u)^2)``, i.e. ``log pi(a) + sum log((high - low) / 2)``.
+    With the default bounds ``[-1, 1]`` it is exactly :class:`~torchrl.modules.TanhNormal`. TorchRL's
+    :class:`~torchrl.objectives.SACLoss` scores its samples through :meth:`rsample_and_log_prob` (actor loss,
+    alpha loss and the soft-Q target alike), so all three see the unscaled log-probability.
+
+    Examples:
+        >>> import math, torch
+        >>> loc, scale = torch.zeros(2, 3), torch.ones(2, 3)
+        >>> dist = TanhNormalScoredOnTanh(loc, scale, low=-0.4, high=0.4)
+        >>> a, lp = dist.rsample_and_log_prob()
+        >>> bool(a.abs().max() <= 0.4)
+        True
+        >>> unscaled = TanhNormal(loc, scale)
+        >>> torch.allclose(lp, unscaled.log_prob(a / 0.4), atol=1e-5)
+        True
+        >>> torch.allclose(lp, TanhNormal(loc, scale, low=-0.4, high=0.4).log_prob(a) + 3 * math.log(0.4))
+        True
+    """
+
+    def _tanh_and_affine(self):
+        """``(tanh transform, affine transform or None)``: the parts of the action map."""
+        transform = self.transforms[0]
+        if isinstance(transform, ComposeTransform):
+            return transform.parts[0], transform.parts[1]
+        return transform, None
+
+    def _score_preimage(self, preimage: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        tanh, affine = self._tanh_and_affine()
+        unit = tanh(preimage)
+        jacobian = _sum_rightmost(tanh.log_abs_det_jacobian(preimage, unit), len(self.event_shape))
+        log_prob = self.base_dist.log_prob(preimage) - jacobian
+        return (unit if affine is None else affine(unit)), log_prob
+
+    def rsample_and_log_prob(self, sample_shape=()) -> tuple[torch.Tensor, torch.Tensor]:
+        """A reparameterised action and the log-probability of its tanh output (same draw)."""
+        if self._tanh_and_affine()[1] is None:  # bounds +-1: TorchRL's own code path, bit for bit
+            return super().rsample_and_log_prob(sample_shape)
+        return self._score_preimage(self.base_dist.rsample(torch.Size(sample_shape)))
+
+    def sample_and_log_prob(self, sample_shape=()) -> tuple[torch.Tensor, torch.Tensor]:
+        """A detached action and the (differentiable) log-probability of its tanh output (same draw)."""
+        if self._tanh_and_affine()[1] is None:
+            return super().sample_and_log_prob(sample_shape)
+        action, log_prob = self._score_preimage(self.base_dist.sample(torch.Size(sample_shape)))
+        return action.detach(), log_prob
+
+    def log_prob(self, value: torch.Tensor, **kwargs) -> torch.Tensor:
+        """The log-probability of the tanh output ``y`` that gives the action ``value``."""
+        log_prob = super().log_prob(value, **kwargs)
+        _, affine = self._tanh_and_affine()
+        if affine is None:
+            return log_prob
+        log_half_range = torch.log(torch.as_tensor(affine.scale, dtype=log_prob.dtype)).expand(value.shape)
+        return log_prob + _sum_rightmost(log_half_range, len(self.event_shape))
+
+
 def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256), *, log_std_min: float = -20.0,
-                   log_std_max: float = 2.0) -> ProbabilisticActor:
+                   log_std_max: float = 2.0, log_prob_on: str = "action") -> ProbabilisticActor:
     """The SAC tanh-Gaussian policy as a TorchRL :class:`~torchrl.modules.ProbabilisticActor`.
 
     Under ``ExplorationType.DETERMINISTIC`` it outputs ``max_action * tanh(mu)``; under ``RANDOM`` a sample.
+    ``log_prob_on`` says what its log-probabilities score: ``"action"`` (TorchRL's :class:`TanhNormal`, the density
+    of the action on ``[low, high]``) or ``"tanh"`` (:class:`TanhNormalScoredOnTanh`, the density of the unscaled
+    tanh output in ``[-1, 1]``, as the authors' SAC). Both sample the same actions, and with bounds ``+-1`` they are
+    the same distribution. The SAC behaviour agent uses ``"tanh"``; BEAR's actor only samples (its losses never
+    score log pi), so it keeps the default.
     """
+    distributions = {"action": TanhNormal, "tanh": TanhNormalScoredOnTanh}
+    if log_prob_on not in distributions:
+        raise ValueError(f"log_prob_on: expected one of {sorted(distributions)}, got {log_prob_on!r}")
     act_dim = action_spec.shape[-1]
     params = TensorDictModule(
         TanhGaussianParams(obs_dim, act_dim, hidden, log_std_min=log_std_min, log_std_max=log_std_max),
@@ -319,7 +391,7 @@ def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256)
     )
     low, high = action_spec.space.low, action_spec.space.high
     return ProbabilisticActor(
-        params, in_keys=["loc", "scale"], spec=action_spec, distribution_class=TanhNormal,
+        params, in_keys=["loc", "scale"], spec=action_spec, distribution_class=distributions[log_prob_on],
         distribution_kwargs={"low": low, "high": high, "tanh_loc": False}, return_log_prob=False,
         default_interaction_type=ExplorationType.RANDOM,
     )

@@ -29,6 +29,7 @@ Examples:
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections.abc import Sequence
@@ -36,10 +37,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, ValueEstimators
+from torchrl.objectives.utils import distance_loss
+from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
@@ -107,36 +110,105 @@ class DDPGAgent(CheckpointableAgent):
         self.loss = DDPGLoss(self.actor, self.critic, delay_actor=True, delay_value=True, loss_function="l2")
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)  # bootstraps on ~terminated
         self.target_updater = fused_soft_update(self.loss, tau=tau)  # a SoftUpdate; built before the first forward
-        self.actor_optim = torch.optim.Adam(self.loss.actor_network_params.values(True, True), lr=actor_lr)
+        self.actor_optim = torch.optim.Adam(self.loss.actor_network_params.values(True, True), lr=actor_lr,
+                                            foreach=True)
         self.critic_optim = torch.optim.Adam(self.loss.value_network_params.values(True, True), lr=critic_lr,
-                                             weight_decay=critic_weight_decay)
+                                             weight_decay=critic_weight_decay, foreach=True)
         self.updates = 0
+        self._fast = _FastDDPGTerms(self)
 
     @torch.no_grad()
     def act(self, observation: torch.Tensor) -> torch.Tensor:
-        """The deterministic action ``mu(s)`` (within the bounds)."""
-        return self.actor(TensorDict({"observation": observation}, batch_size=observation.shape[:-1]))["action"]
+        """The deterministic action ``mu(s)`` (within the bounds): ``self.actor``'s output, without TensorDicts."""
+        return self._fast.act(observation)
 
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """One gradient step: critic, then actor against the updated critic, then the soft target update."""
-        loss_value, _ = self.loss.loss_value(batch)
+    def loss_value(self, batch: TensorDictBase) -> torch.Tensor:
+        """``DDPGLoss.loss_value`` (squared TD(0) error on the target networks), without TensorDict plumbing."""
+        return self._fast.loss_value(batch)
+
+    def loss_actor(self, batch: TensorDictBase) -> torch.Tensor:
+        """``DDPGLoss.loss_actor`` (``-Q(s, mu(s))``, critic weights frozen), without TensorDict plumbing."""
+        return self._fast.loss_actor(batch)
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """One gradient step: critic, then actor against the updated critic, then the soft target update.
+
+        The losses are TorchRL's :class:`~torchrl.objectives.DDPGLoss` numbers (``tests/test_behaviour_agents.py`` checks
+        them against it); returned detached as 0-d tensors (no sync per update).
+        """
+        loss_value = self.loss_value(batch)
         self.critic_optim.zero_grad(set_to_none=True)
         loss_value.backward()
         self.critic_optim.step()
-        loss_actor, _ = self.loss.loss_actor(batch)
+        loss_actor = self.loss_actor(batch)
         self.actor_optim.zero_grad(set_to_none=True)
         loss_actor.backward()
         self.actor_optim.step()
         self.target_updater.step()
         self.updates += 1
-        return {"loss_value": loss_value.item(), "loss_actor": loss_actor.item()}
+        return {"loss_value": loss_value.detach(), "loss_actor": loss_actor.detach()}
 
     def train(self, replay, num_updates: int) -> dict[str, float] | None:
-        """``num_updates`` gradient steps on mini-batches drawn uniformly (with replacement) from ``replay``."""
+        """``num_updates`` gradient steps on mini-batches drawn uniformly (with replacement) from ``replay``;
+        the last one's losses as floats."""
         out = None
         for _ in range(int(num_updates)):
             out = self.update(replay.sample())
-        return out
+        return None if out is None else {k: float(v) for k, v in out.items()}
+
+
+class _FastDDPGTerms:
+    """DDPGLoss's two losses as plain tensor code: the online networks called directly, the targets as copies of
+    them bound once to the loss's target tensors (which :class:`~torchrl_bail.modules.FusedSoftUpdate` updates in
+    place), the critic's weights frozen (not detached copies) while the actor loss runs."""
+
+    def __init__(self, agent: DDPGAgent):
+        loss = agent.loss
+        self.loss = loss
+        self.body, self.head = agent.actor[0].module, agent.actor[1]
+        self.critic = agent.critic.module
+        target_actor, target_critic = copy.deepcopy(agent.actor), copy.deepcopy(agent.critic)
+        loss.target_actor_network_params.to_module(target_actor)
+        loss.target_value_network_params.to_module(target_critic)
+        self.target_body, self.target_head = target_actor[0].module, target_actor[1]
+        self.target_critic = target_critic.module
+        self.critic_params = list(self.critic.parameters())
+
+    @staticmethod
+    def _act(body: nn.Module, head, observation: torch.Tensor) -> torch.Tensor:
+        """:class:`~torchrl.modules.TanhModule`'s map ``low + (high - low) * (tanh(x) + 1) / 2`` on the body."""
+        feature = body(observation).tanh()
+        if head.clamp:
+            eps = torch.finfo(feature.dtype).resolution
+            feature = feature.clamp(-1 + eps, 1 - eps)
+        low, high = head.action_low, head.action_high
+        return low + (high - low) * (feature + 1) / 2
+
+    def act(self, observation: torch.Tensor) -> torch.Tensor:
+        return self._act(self.body, self.head, observation)
+
+    def loss_value(self, batch: TensorDictBase) -> torch.Tensor:
+        loss = self.loss
+        observation, action = batch["observation"], batch["action"]
+        predicted = self.critic(observation, action).squeeze(-1)
+        with torch.no_grad():
+            next_observation = batch["next", "observation"]
+            next_action = self._act(self.target_body, self.target_head, next_observation)
+            next_value = self.target_critic(next_observation, next_action)
+            target = td0_return_estimate(loss.value_estimator.gamma, next_value, batch["next", "reward"],
+                                         batch["next", "terminated"]).squeeze(-1)
+        return distance_loss(predicted, target, loss_function=loss.loss_function).mean()
+
+    def loss_actor(self, batch: TensorDictBase) -> torch.Tensor:
+        observation = batch["observation"]
+        for p in self.critic_params:
+            p.requires_grad_(False)
+        try:
+            value = self.critic(observation, self._act(self.body, self.head, observation))
+        finally:
+            for p in self.critic_params:
+                p.requires_grad_(True)
+        return (-value.squeeze(-1)).mean()
 
 
 def _agent_kwargs(cfg) -> dict[str, Any]:

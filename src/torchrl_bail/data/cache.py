@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import hashlib
 import json
 import logging
@@ -74,6 +75,7 @@ __all__ = [
     "batch_name",
     "episode_limit",
     "recipe_identity",
+    "sac_identity",
     "stable_hash",
     "recipe_hash",
     "batch_path",
@@ -187,10 +189,48 @@ def recipe_identity(cfg) -> dict:
     if not (batch.get("oracle") or {}).get("enabled", False):
         batch.pop("oracle", None)  # off == absent, so adding the block never changes existing hashes
     batch["seed"] = behaviour_seed(cfg)
+    if isinstance(batch.get("sac"), Mapping):
+        batch["sac"] = sac_identity(batch["sac"], config_value(cfg, "env.id"))
     identity = {"env_id": config_value(cfg, "env.id"), "max_episode_steps": episode_limit(cfg), "batch": batch}
     if batch.get("recipe") == "sac_exec" and batch.get("policy") == "mediocre":
         identity["mediocre_threshold"] = config_value(cfg, "env.mediocre_threshold")
     return identity
+
+
+@functools.lru_cache(maxsize=None)
+def unit_action_bounds(env_id: str) -> bool:
+    """Whether every action dimension of ``env_id`` lies in ``[-1, 1]`` (the env is made once per process to look)."""
+    try:
+        import gymnasium
+
+        env = gymnasium.make(env_id)
+    except Exception:  # an unknown id: treat the bounds as unknown (not unit)
+        return False
+    try:
+        space = env.action_space
+        return bool((space.low == -1).all() and (space.high == 1).all())
+    finally:
+        env.close()
+
+
+def sac_identity(sac: Mapping, env_id: str) -> dict:
+    """The ``batch.sac`` block as hashed: ``log_prob_on`` counts only when ``env_id``'s action bound is not 1.
+
+    With bounds ``+-1`` the unscaled and the scaled log-probabilities are the same numbers, so Hopper, Walker2d,
+    HalfCheetah and Ant keep the hashes they had before the key existed; Humanoid (bound 0.4) hashes it (absent
+    means ``tanh``, the default).
+
+    Examples:
+        >>> sac_identity({"gamma": 0.99, "log_prob_on": "tanh"}, "Hopper-v5")
+        {'gamma': 0.99}
+        >>> sac_identity({"gamma": 0.99}, "Humanoid-v5")
+        {'gamma': 0.99, 'log_prob_on': 'tanh'}
+    """
+    sac = dict(sac)
+    log_prob_on = sac.pop("log_prob_on", "tanh")
+    if env_id is None or not unit_action_bounds(str(env_id)):
+        sac["log_prob_on"] = log_prob_on
+    return sac
 
 
 def stable_hash(obj: Any) -> str:
