@@ -80,7 +80,7 @@ def make_deterministic_actor(
     observation_key="observation",
     action_key="action",
 ) -> TensorDictSequential:
-    """Deterministic policy ``obs -> 400 -> 300 -> |A| -> tanh`` scaled to the spec bounds (BAIL §5).
+    """Deterministic policy ``obs -> 400 -> 300 -> |A| -> tanh`` scaled to the action bounds (supp. C.3).
 
     For Humanoid (bound 0.4) the output is ``0.4 * tanh(.)``.
     """
@@ -98,7 +98,7 @@ def make_value_network(
     observation_key="observation",
     out_key="state_value",
 ) -> ValueOperator:
-    """State-value net ``obs -> 128 -> 128 -> 1`` (BAIL §3.2).
+    """State-value net ``obs -> 128 -> 128 -> 1`` (supp. B.2, Table 1).
 
     Hidden layers keep PyTorch's default init; the output layer's weight is the default init times
     ``head_scale`` and its bias is zero, as in the authors' upper envelope.
@@ -132,7 +132,7 @@ def _bounds_affine(low: torch.Tensor, high: torch.Tensor) -> tuple[torch.Tensor,
 
 
 class ConditionalVAE(nn.Module):
-    """The conditional VAE of BCQ and BEAR: a generative model of the batch's actions given the state (spec 8.3).
+    """The conditional VAE of BCQ and BEAR: a generative model of the batch's actions given the state (supp. C.2, BCQ).
 
     * encoder ``(s, a) -> hidden -> (mu, log sigma)`` with ``log sigma`` clamped to ``[log_std_min, log_std_max]``;
     * decoder ``(s, z) -> hidden -> |A|``, squashed by ``tanh`` and scaled to the action bounds
@@ -250,7 +250,7 @@ def make_vae(
 
 
 class PerturbationActor(nn.Module):
-    """BCQ's perturbation model: ``a' = clamp(a + phi * max_action * tanh(f(s, a)), low, high)`` (spec 8.3).
+    """BCQ's perturbation model: ``a' = clamp(a + phi * max_action * tanh(f(s, a)), low, high)`` (supp. C.2, BCQ).
 
     ``f`` is ``(s, a) -> hidden -> |A|``; ``max_action`` is the half-width of the bounds (their upper bound when
     they are symmetric, as in every MuJoCo task).

@@ -1,4 +1,4 @@
-"""DDPG training batches (spec 9.1): the whole replay buffer of an online DDPG run, as in the BCQ repository.
+"""DDPG training batches (supp. C.2, final buffer): the whole replay buffer of an online DDPG run, as in the BCQ repository.
 
 The behaviour agent is the BCQ-repo DDPG (Fujimoto et al. 2018/2019, the "final buffer" of the BCQ paper):
 
@@ -46,14 +46,8 @@ from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
-from torchrl_bail.behaviour.loop import (
-    BehaviourRun,
-    ReturnTracker,
-    collect_timed,
-    env_bounds,
-    make_collection_env,
-    seed_all,
-)
+from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
+                                         make_collection_env, seed_all)
 from torchrl_bail.data.cache import batch_name, behaviour_seed, config_value, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
@@ -211,20 +205,6 @@ class _FastDDPGTerms:
         return (-value.squeeze(-1)).mean()
 
 
-def _agent_kwargs(cfg) -> dict[str, Any]:
-    a = config_value(cfg, "batch.agent")
-    return {
-        "actor_hidden": list(a["actor_hidden"]),
-        "critic_hidden": list(a["critic_hidden"]),
-        "actor_lr": float(a["actor_lr"]),
-        "critic_lr": float(a["critic_lr"]),
-        "critic_weight_decay": float(a["critic_weight_decay"]),
-        "gamma": float(a["gamma"]),
-        "tau": float(a["tau"]),
-        "batch_size": int(a["batch_size"]),
-        "critic_arch": a.get("critic_arch", "late_action"),
-    }
-
 
 def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
                  checkpoint: CollectionCheckpoint | None = None) -> tuple[TensorDictBase, dict[str, Any]]:
@@ -248,7 +228,8 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         low, high = env_bounds(env)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim = low.shape[-1]
-        agent = DDPGAgent(obs_dim, action_spec_from_bounds(low, high), **_agent_kwargs(cfg))
+        agent = DDPGAgent(obs_dim, action_spec_from_bounds(low, high),
+                          **agent_kwargs(DDPGAgent, config_value(cfg, "batch.agent")))
         if agent_hook is not None:
             agent_hook(agent)
         buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg),

@@ -18,6 +18,7 @@ Examples:
 
 from __future__ import annotations
 
+import inspect
 import random
 import time
 from collections import deque
@@ -32,10 +33,11 @@ from torchrl.envs.utils import step_mdp
 from tqdm.auto import tqdm
 
 from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
+from torchrl_bail.data.cache import plain
 from torchrl_bail.simulator import make_guarded_env
 
-__all__ = ["TRANSITION_KEYS", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker", "BehaviourRun",
-           "collect_timed"]
+__all__ = ["TRANSITION_KEYS", "agent_kwargs", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker",
+           "BehaviourRun", "collect_timed"]
 
 #: the keys one stored transition carries (TED layout); ``episode`` (and ``oracle_return``) are added per episode
 TRANSITION_KEYS = (
@@ -48,6 +50,14 @@ TRANSITION_KEYS = (
     ("next", "truncated"),
 )
 
+
+
+def agent_kwargs(agent_cls: type, block: Any) -> dict[str, Any]:
+    """The keyword-only arguments of ``agent_cls`` that the config ``block`` (``batch.agent``, ``batch.sac``) sets,
+    as plain Python values; the agent's own defaults stand for the keys the block leaves out."""
+    names = [p.name for p in inspect.signature(agent_cls).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    block = plain(block)
+    return {name: block[name] for name in names if name in block}
 
 def seed_all(seed: int) -> None:
     """Seeds Python, NumPy and torch from the behaviour seed."""

@@ -1,4 +1,4 @@
-"""SAC training batches (spec 9.2) and the shared SAC behaviour run that execution batches (spec 9.3) reuse.
+"""SAC training batches (paper Sec. 5; supp. E) and the shared SAC behaviour run that execution batches (paper Sec. 5; supp. E) reuse.
 
 **The SAC agent** ("sac_adapt", the authors' data generator) on TorchRL's :class:`~torchrl.objectives.SACLoss`
 (v2: no state-value net):
@@ -29,7 +29,7 @@ weights at every evaluation (``evals/step_<t>.pt``). From it:
 * the ``sac`` batch = the first ``batch.steps`` transitions of the run (the whole run with the defaults);
 * the *optimal* behaviour policy = the weights at the final evaluation;
 * the *mediocre* behaviour policy = the weights at the first evaluation whose mean return reaches
-  ``env.mediocre_threshold`` (spec 9.3; the threshold is applied when the policy is chosen, so changing it needs no
+  ``env.mediocre_threshold`` (paper Sec. 5; supp. E; the threshold is applied when the policy is chosen, so changing it needs no
   retraining). If no evaluation reaches it, the best evaluation is used and the batch's metadata says so.
 
 Whichever of the ``sac``/``med_*``/``opt_*`` batches is asked for first trains the run; the others reuse it. When an
@@ -63,14 +63,8 @@ from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
-from torchrl_bail.behaviour.loop import (
-    BehaviourRun,
-    ReturnTracker,
-    collect_timed,
-    env_bounds,
-    make_collection_env,
-    seed_all,
-)
+from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
+                                         make_collection_env, seed_all)
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     LOCKS,
@@ -112,24 +106,6 @@ log = logging.getLogger("torchrl_bail")
 
 EVAL_SEED_OFFSET = 20_000  # evaluation envs too
 
-
-def _sac_kwargs(sac: dict) -> dict[str, Any]:
-    return {
-        "actor_hidden": list(sac["actor_hidden"]),
-        "critic_hidden": list(sac["critic_hidden"]),
-        "actor_lr": float(sac["actor_lr"]),
-        "critic_lr": float(sac["critic_lr"]),
-        "alpha_lr": float(sac["alpha_lr"]),
-        "gamma": float(sac["gamma"]),
-        "polyak": float(sac["polyak"]),
-        "alpha_init": float(sac["alpha_init"]),
-        "target_entropy": sac["target_entropy"],
-        "log_std_min": float(sac["log_std_min"]),
-        "log_std_max": float(sac["log_std_max"]),
-        "batch_size": int(sac["batch_size"]),
-        "loss_function": sac.get("loss_function", "l2"),
-        "log_prob_on": sac.get("log_prob_on", "tanh"),
-    }
 
 
 class SACAgent(CheckpointableAgent):
@@ -393,7 +369,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         low, high = env_bounds(env)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim = low.shape[-1]
-        agent = SACAgent(obs_dim, action_spec_from_bounds(low, high), **_sac_kwargs(sac))
+        agent = SACAgent(obs_dim, action_spec_from_bounds(low, high), **agent_kwargs(SACAgent, sac))
         if agent_hook is not None:
             agent_hook(agent)
         buffers = BehaviourBuffers(train_steps, Path(scratch), oracle=oracle, replay_batch_size=agent.batch_size)
