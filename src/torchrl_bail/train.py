@@ -10,7 +10,6 @@ continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import sys
@@ -54,47 +53,12 @@ def seed_everything(seed: int):
     return torch.Generator().manual_seed(seed)
 
 
-@contextlib.contextmanager
-def preserved_rng_state():
-    """Runs the body without touching the global torch / NumPy / ``random`` generators.
-
-    Collecting a batch re-seeds them with the behaviour seed; wrapped in this, the training seed's streams
-    (network init, mini-batch sampling, BCQ/BEAR action sampling) are the same whether the batch was collected
-    in this run or loaded from the cache.
-
-    Examples:
-        >>> import random, numpy as np, torch
-        >>> _ = torch.manual_seed(0); expected = torch.rand(1)
-        >>> _ = torch.manual_seed(0)
-        >>> with preserved_rng_state():
-        ...     _ = torch.manual_seed(123); _ = np.random.seed(5); random.seed(7)
-        >>> bool(torch.rand(1) == expected)
-        True
-    """
-    import random
-
-    import numpy as np
-    import torch
-
-    np_state, py_state = np.random.get_state(), random.getstate()
-    with torch.random.fork_rng(devices=range(torch.cuda.device_count())):
-        try:
-            yield
-        finally:
-            np.random.set_state(np_state)
-            random.setstate(py_state)
-
-
 def load_training_batch(cfg: DictConfig):
     """The batch to train on: ``dataset=<path>`` (imported/native) or the generated one for env x batch.
 
-    The global random generators are left as they were (see :func:`preserved_rng_state`).
+    Collecting a batch re-seeds the global generators with the behaviour seed: :func:`run` seeds training only
+    after this returns, so the training streams are the same whether the batch was collected or cached.
     """
-    with preserved_rng_state():
-        return _load_training_batch(cfg)
-
-
-def _load_training_batch(cfg: DictConfig):
     if cfg.get("dataset"):
         from torchrl_bail.data.importers import import_dataset
 
@@ -183,7 +147,7 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     device = _device(cfg.device)
     batch = load_training_batch(cfg)
     # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later run,
-    # resumed ones included) must leave the training streams the same
+    # resumed ones included) leaves the training streams the same
     generator = seed_everything(int(cfg.seed))
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
                           max_episode_steps=cfg.env.get("max_episode_steps"), device="cpu")

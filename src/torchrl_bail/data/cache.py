@@ -600,14 +600,15 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
                 os.unlink(path)
 
 
-def load_cached_batch(path: Path):
-    """The cached batch at ``path``, or ``None`` when there is none (a broken one is reported and ignored)."""
+def load_cached_batch(path: Path, *, remedy: str = "it will be collected again"):
+    """The cached batch at ``path``, or ``None`` when there is none (a broken one is reported, with what happens
+    instead, ``remedy``, and ignored)."""
     if not path.exists():
         return None
     try:
         return load_batch(path)
     except (BatchValidationError, OSError, ValueError, KeyError) as err:
-        log.warning("ignoring unreadable cached batch %s (%s); it will be collected again", path, err)
+        log.warning("ignoring unreadable cached batch %s (%s); %s", path, err, remedy)
         return None
 
 

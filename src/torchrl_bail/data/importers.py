@@ -96,7 +96,7 @@ from torchrl_bail.data.batch import (
     load_batch,
     save_batch,
 )
-from torchrl_bail.data.cache import LOCKS, data_dir_of, file_lock, stable_hash
+from torchrl_bail.data.cache import LOCKS, data_dir_of, file_lock, load_cached_batch, stable_hash
 
 __all__ = [
     "D4RL_KEYS",
@@ -685,16 +685,6 @@ def _check_loaded_sizes(batch: OfflineBatch, source: Path, obs_dim: int | None, 
     check.sizes("observations", batch.obs_dim, "actions", batch.act_dim)
 
 
-def _try_cached(path: Path) -> OfflineBatch | None:
-    if not path.exists():
-        return None
-    try:
-        return load_batch(path)
-    except (BatchValidationError, OSError, ValueError, KeyError) as err:
-        log.warning("ignoring unreadable cached import %s (%s); converting again", path, err)
-        return None
-
-
 def import_dataset(path: str | os.PathLike, *, env_id: str | None = None,
                    data_dir: str | os.PathLike | None = None) -> OfflineBatch:
     """Imports a D4RL HDF5 file, a local Minari dataset or a native batch directory (see the module doc).
@@ -731,11 +721,12 @@ def import_dataset(path: str | os.PathLike, *, env_id: str | None = None,
         return batch
 
     cache = import_cache_path(location, data_dir)
-    batch = _try_cached(cache)
+    batch = load_cached_batch(cache, remedy="converting again")
     if batch is None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         with file_lock(cache.parent / LOCKS / f"{cache.name}.lock"):
-            batch = _try_cached(cache)  # another job may have converted it while we waited
+            # another job may have converted it while we waited
+            batch = load_cached_batch(cache, remedy="converting again")
             if batch is None:
                 batch = _convert_and_save(fmt, location, cache, env_id, obs_dim, act_dim, low, high)
                 log.info("imported %s -> %s (%d transitions, %d episodes)", location, cache,
