@@ -1,0 +1,173 @@
+"""Reruns the results study of the README ("Results"), or any row of it, from scratch.
+
+    python results/run_study.py                              # everything: batches, 153 runs, reports (hours)
+    python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
+    python results/run_study.py --list                       # the jobs, in the order they run
+
+Every job is one ``python -m torchrl_bail.train ... preset=study`` command (or ``torchrl_bail.collect`` for a
+batch), run in ``--workdir`` (its ``outputs/`` holds the run directories) with ``threads=1``, ``--jobs`` at a
+time. Jobs resume: a finished run is reported, not trained again, and a killed one continues from its
+checkpoint, so rerunning this script after an interruption only does what is left. The batches are cached in
+``--data-dir`` (default: ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``); a fresh directory reproduces
+a row from scratch, collection included.
+
+When the runs are done, ``--results`` (default: ``results/study`` beside this script) receives each finished
+run's ``summary.json``, resolved ``config.yaml`` and ``logs/`` (evaluation and training scalars; never checkpoints,
+policies or batches), ``timings.json`` (wall time of every job) and the two reports of ``torchrl_bail.report``:
+``study.*`` (every batch x algorithm) and ``ablations.*`` (supp. D.1-D.3 on Hopper DDPG sigma=0.5), each as
+``.md``, ``.csv``, ``.json`` and figures.
+
+The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
+opt_det (B1, 50k transitions); BAIL, Progressive BAIL, BC and MARWIL with seeds 1-3 on each; BCQ and BEAR with
+seeds 1-3 on the two Hopper DDPG batches; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
+returns, on the oracle batch of 2000-step episodes), D.2 (selection by return, no envelope) and D.3 (ordinary
+regression, penalty K = 1), seeds 1-3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+SEEDS = (1, 2, 3)
+ENVS = ("hopper", "walker")
+KINDS = ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det")
+IMITATION = ("bail", "pbail", "bc", "marwil")
+#: supp. D.1-D.3 on Hopper ddpg05: name -> overrides (D.1 runs on the oracle batch, with both kinds of returns)
+ABLATIONS = {
+    "D1_oracle": ["batch.oracle.enabled=true", "returns.augment=oracle"],
+    "D1_augmented": ["batch.oracle.enabled=true"],
+    "D2_select_by_return": ["algo.selection.by=return"],
+    "D3_regression": ["algo.envelope.penalty=1"],
+}
+
+
+@dataclass
+class Job:
+    name: str                                   # <env>_<kind>/<algo>[/<ablation>]/seed<s>, or collect/<env>_<kind>...
+    args: list[str] = field(default_factory=list)
+    module: str = "torchrl_bail.train"
+
+    @property
+    def row(self) -> str:
+        return self.name.rsplit("/seed", 1)[0]
+
+
+def study_jobs() -> list[Job]:
+    """Every job in the order it runs: batches first, then Hopper, the ablations, BCQ/BEAR, Walker2d."""
+    batches = [(env, kind, []) for kind in ("sac", "ddpg05", "ddpg01", "med_stoch", "opt_det") for env in ENVS]
+    batches.append(("hopper", "ddpg05", ABLATIONS["D1_oracle"][:1]))
+    jobs = [Job(f"collect/{env}_{kind}" + ("_oracle" if extra else ""), [f"+exp={env}_{kind}", "preset=study", *extra],
+                "torchrl_bail.collect") for env, kind, extra in batches]
+
+    def train(env, kind, algo, extra=(), tag=""):
+        return [Job(f"{env}_{kind}/{algo}{tag}/seed{s}", [f"+exp={env}_{kind}", f"algo={algo}", f"seed={s}",
+                                                           "preset=study", *extra]) for s in SEEDS]
+
+    for env in ENVS:
+        if env == "hopper":
+            jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
+            jobs += [j for name, extra in ABLATIONS.items() for j in train("hopper", "ddpg05", "bail", extra, "/" + name)]
+            jobs += [j for kind in ("ddpg01", "ddpg05") for algo in ("bcq", "bear") for j in train(env, kind, algo)]
+        else:
+            jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
+    return jobs
+
+
+def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int, float]:
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    if data_dir is not None:
+        env["TORCHRL_BAIL_DATA_DIR"] = str(data_dir)
+    log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
+    log.parent.mkdir(parents=True, exist_ok=True)
+    extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
+    start = time.perf_counter()
+    with open(log, "a") as out:
+        rc = subprocess.call([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
+                             stdout=out, stderr=subprocess.STDOUT)
+    return job, rc, time.perf_counter() - start
+
+
+def gather(workdir: Path, results: Path) -> list[Path]:
+    """Copies every finished run's summary, config and logs from ``workdir/outputs`` into ``results/runs``."""
+    copied = []
+    for summary in sorted((workdir / "outputs").glob("*/*/*/summary.json")):
+        run = summary.parent
+        target = results / "runs" / run.relative_to(workdir / "outputs")
+        target.mkdir(parents=True, exist_ok=True)
+        for name in ("summary.json", "config.yaml"):
+            shutil.copy2(run / name, target / name)
+        if (run / "logs").is_dir():
+            shutil.copytree(run / "logs", target / "logs", dirs_exist_ok=True)
+        copied.append(target)
+    return copied
+
+
+def report(results: Path) -> None:
+    runs = results / "runs"
+    ablation = re.compile(r"selection\.by=|envelope\.penalty=|oracle|augment")
+    main_runs = [p for p in sorted(runs.glob("*/*/*")) if not ablation.search(p.name)]
+    bail_ddpg05 = sorted(runs.glob("hopper_ddpg05_b1/bail/*")) + sorted(runs.glob("hopper_ddpg05_oracle*/bail/*"))
+    for prefix, paths in (("study", main_runs), ("ablations", bail_ddpg05)):
+        if paths:
+            subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(str, paths),
+                                   "--out", str(results / prefix), "--plot"], stdout=subprocess.DEVNULL)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
+    parser.add_argument("--workdir", type=Path, default=Path("study_work"), help="where outputs/ and logs/ go")
+    parser.add_argument("--data-dir", type=Path, help="batch cache (default: TORCHRL_BAIL_DATA_DIR or ~/.cache)")
+    parser.add_argument("--results", type=Path, default=HERE / "study", help="where the kept files and reports go")
+    parser.add_argument("--list", action="store_true", help="print the jobs and exit")
+    parser.add_argument("--report-only", action="store_true", help="only gather the finished runs and report")
+    args = parser.parse_args(argv)
+
+    jobs = study_jobs()
+    if args.only:  # a row's batch is collected by its first training job (the others wait on its lock)
+        jobs = [j for j in jobs if re.search(args.only, j.name)]
+    if args.list:
+        print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
+        return 0
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    args.results.mkdir(parents=True, exist_ok=True)
+    timings_path = args.results / "timings.json"
+    timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
+    failed = []
+    if not args.report_only:
+        # one queue, batches first: training starts while the last batches are still being collected (a job
+        # whose batch another job is collecting waits on the batch's lock, then reuses it)
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            futures = [pool.submit(run_job, j, args.workdir.resolve(), args.data_dir) for j in jobs]
+            for done, future in enumerate(as_completed(futures), 1):
+                job, rc, seconds = future.result()
+                timings.setdefault(job.name, seconds)  # the first (uninterrupted) wall time is kept
+                print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
+                      f"in {seconds:.0f} s", flush=True)
+                if rc != 0:
+                    failed.append(job.name)
+                tmp = timings_path.with_suffix(".tmp")
+                tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
+                tmp.replace(timings_path)
+    copied = gather(args.workdir, args.results)
+    report(args.results)
+    print(f"{len(copied)} runs in {args.results / 'runs'}; reports: {args.results}/study.md, ablations.md")
+    if failed:
+        print("failed (see their logs in " f"{args.workdir / 'logs'}): " + ", ".join(failed), file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
