@@ -218,3 +218,26 @@ def test_ddpg_act_is_the_actor_module_action(bound):
     with torch.no_grad():
         expected = agent.actor(TensorDict({"observation": obs}, [4]))["action"]
     assert torch.equal(agent.act(obs), expected)
+
+
+def test_episode_store_sample_is_the_replay_buffer_sample(tmp_path):
+    """The agents' fast mini-batches: the rows TorchRL's RandomSampler would give, the same RNG draws after."""
+    from torchrl_bail.behaviour.buffers import EpisodeStore
+
+    store = EpisodeStore(64, tmp_path, batch_size=7)
+    with pytest.raises(RuntimeError, match="empty"):
+        store.sample()
+    data = _batch(1.0).set("episode", torch.zeros(N, dtype=torch.int64))
+    store.extend(data)
+    store.extend(_batch(1.0, seed=1).set("episode", torch.ones(N, dtype=torch.int64)))
+    for size in (None, 11):
+        torch.manual_seed(5)
+        expected = store.rb.sample() if size is None else store.rb.sample(size)
+        after_expected = torch.rand(3)
+        torch.manual_seed(5)
+        got = store.sample(size)
+        assert torch.equal(torch.rand(3), after_expected)
+        assert got.batch_size == expected.batch_size == torch.Size([size or 7])
+        assert set(got.keys(True, True)) == set(expected.exclude("index").keys(True, True))
+        assert (got == expected.exclude("index")).all()
+        assert type(got["next", "observation"]) is torch.Tensor  # gathered from views, not memmap tensors
