@@ -374,6 +374,10 @@ def _json_safe(value: Any) -> Any:
 # ---------------------------------------------------------------------------------------------------------------
 
 
+#: panels per row of the learning-curve figure (one panel per batch)
+CURVE_COLUMNS = 3
+
+
 def _plot_curves(groups, path: Path) -> Path | None:
     batches = sorted({g.batch for g in groups}, key=str)
     panels = []
@@ -387,9 +391,13 @@ def _plot_curves(groups, path: Path) -> Path | None:
             panels.append((batch, lines))
     if not panels:
         return None
-    fig = new_figure(figsize=(5.0 * len(panels), 3.8))
-    axes = fig.subplots(1, len(panels), squeeze=False)
-    for ax, (batch, lines) in zip(axes[0], panels):
+    cols = min(len(panels), CURVE_COLUMNS)
+    rows = math.ceil(len(panels) / cols)
+    fig = new_figure(figsize=(5.0 * cols, 3.8 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[len(panels):]:
+        ax.set_visible(False)
+    for ax, (batch, lines) in zip(axes, panels):
         for label, n, x, mean, half in lines:
             ax.plot(x, mean, label=f"{label} ({n} seeds)")
             ax.fill_between(x, mean - half, mean + half, alpha=0.2)
