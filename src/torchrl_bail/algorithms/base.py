@@ -131,7 +131,8 @@ class Algorithm(ABC):
             >>> from torchrl_bail.algorithms.bc import BehaviourCloning
             >>> from torchrl_bail.config import algo_config
             >>> from torchrl_bail.modules import action_spec_from_bounds
-            >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), algo_config("bc", policy={"hidden": [8]}))
+            >>> config = algo_config("bc", policy={"hidden": [8]})
+            >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
             >>> algo.compile(backend="eager")
             >>> sorted(algo.state_dict()["modules"]["actor"])[:1]  # the modules themselves are untouched
             ['module.0.module.0.bias']
