@@ -146,6 +146,28 @@ def test_compile_setting_is_checked():
     assert "update" not in vars(algo)  # compile=false leaves the eager update in place
 
 
+def test_compile_key_is_checked_and_names_its_own_run():
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_bail import config_dir
+    from torchrl_bail.config import ConfigError, validate_config
+    from torchrl_bail.resume import RUN_ONLY_KEYS, comparable_config, diff_configs
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=hopper_ddpg05", "compile=true"], return_hydra_config=True)
+        eager = compose("config", overrides=["+exp=hopper_ddpg05"])
+        compiled = compose("config", overrides=["+exp=hopper_ddpg05", "compile=true"])
+        for setting in ("reduce-overhead", "max-autotune"):
+            validate_config(compose("config", overrides=["+exp=hopper_ddpg05", f"compile={setting}"]))
+        bad = compose("config", overrides=["+exp=hopper_ddpg05", "compile=fast"])
+    assert cfg.compile is True and eager.compile is False
+    # compiled kernels round differently: another run directory, and a checkpoint of the other setting is refused
+    assert "compile" not in RUN_ONLY_KEYS and "compile" not in cfg.hydra.job.config.override_dirname.exclude_keys
+    assert diff_configs(comparable_config(eager), comparable_config(compiled)) == ["compile: (absent) -> True"]
+    with pytest.raises(ConfigError, match="compile"):
+        validate_config(bad)
+
+
 class _HostReads:
     """Counts the calls that read a tensor back to the host, except the optimizers' step counters (non-fused Adam
     keeps them on the host on every device, so reading them moves nothing)."""
