@@ -31,7 +31,8 @@ from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
 from torchrl_bail.trainer import train
 
-DEVICE = torch.device(os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu"))
+#: the device under test, with its index (``cuda:0``): the device a tensor made there reports
+DEVICE = torch.empty(0, device=os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu")).device
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
 SMALL = {"hidden": [8]}
 POLICY = {"policy": SMALL, "batch_size": 16, "epochs": 1}
@@ -86,12 +87,12 @@ def _leaves(state, prefix: str = "") -> dict:
     return {prefix: state}
 
 
-def _assert_close(a, b, atol: float = 1e-5) -> None:
+def _assert_close(a, b, atol: float = 1e-5, rtol: float = 1e-4) -> None:
     la, lb = _leaves(a), _leaves(b)
     assert la.keys() == lb.keys()
     for key in la:
         if torch.is_tensor(la[key]) and la[key].is_floating_point():
-            torch.testing.assert_close(la[key], lb[key], rtol=1e-4, atol=atol, msg=lambda m, key=key: f"{key}: {m}")
+            torch.testing.assert_close(la[key], lb[key], rtol=rtol, atol=atol, msg=lambda m, key=key: f"{key}: {m}")
         elif torch.is_tensor(la[key]):
             assert torch.equal(la[key], lb[key]), key
 
@@ -119,8 +120,8 @@ def test_whole_update_cuda_graph_agrees_with_eager(name):
     """``compile=true`` on a GPU: inductor plus one CUDA graph of the whole update (optimizer steps included).
 
     BEAR draws random numbers inside the graph, where the generator advances by graph replays rather than by
-    kernel launches, so their draws are not eager's: for them the graph must run and stay finite and the weights
-    remain checkpointable; the deterministic ones (Progressive BAIL, MARWIL) must agree with eager.
+    kernel launches, so its draws are not eager's: its graph must run and stay finite and its weights remain
+    checkpointable; the deterministic updates (Progressive BAIL, MARWIL) must agree with eager.
     """
     eager, data = _prepared(name)
     compiled, _ = _prepared(name)
@@ -130,9 +131,9 @@ def test_whole_update_cuda_graph_agrees_with_eager(name):
     assert not any("_orig_mod" in key for key in _leaves(state))
     if name == "bear":
         assert all(torch.isfinite(v).all() for metrics in out for v in metrics.values())
-    else:
-        _assert_close(out, _updates(eager, data, 8, seed=2))
-        _assert_close(state["modules"], eager.state_dict()["modules"])
+    else:  # GPU kernels (inductor's and cuBLAS's) sum in other orders than the eager ones
+        _assert_close(out, _updates(eager, data, 8, seed=2), atol=1e-4, rtol=1e-3)
+        _assert_close(state["modules"], eager.state_dict()["modules"], atol=1e-4, rtol=1e-3)
 
 
 def test_compile_setting_is_checked():
