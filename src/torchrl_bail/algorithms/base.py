@@ -26,7 +26,7 @@ from torchrl.data import TensorSpec
 
 from torchrl_bail.config import COMPILE_MODES, checked_algo_config, is_compile_setting
 
-__all__ = ["COMPILE_MODES", "Algorithm", "PrepareContext"]
+__all__ = ["Algorithm", "PrepareContext"]
 
 
 class PrepareContext:
@@ -120,7 +120,8 @@ class Algorithm(ABC):
 
         Args:
             mode: ``False`` (nothing to do), ``True`` (inductor's default mode) or a :func:`torch.compile` mode
-                (:data:`COMPILE_MODES`); ``"reduce-overhead"`` replays CUDA graphs of the compiled pieces on a GPU.
+                (:data:`torchrl_bail.config.COMPILE_MODES`); ``"reduce-overhead"`` replays CUDA graphs of the
+                compiled pieces on a GPU.
             backend (str): the :func:`torch.compile` backend (``mode`` is inductor's only). Defaults to
                 ``"inductor"``.
             cudagraphs (bool, optional): capture the whole compiled update, optimizer steps included, in one CUDA
@@ -145,6 +146,7 @@ class Algorithm(ABC):
             cudagraphs = mode is True and self.device.type == "cuda"
         if cudagraphs and self.device.type != "cuda":
             raise ValueError(f"CUDA graphs need a CUDA device; this algorithm runs on {self.device}")
+        import torch._dynamo.config
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True  # the eager random streams: same draws compiled or not
