@@ -148,10 +148,14 @@ def test_update_runs_in_the_authors_order():
         method = getattr(algo.loss, name)
         setattr(algo.loss, name, lambda *a, _m=method, _n=name: calls.append(_n) or _m(*a))
     step, target_step = algo._step, algo.target_updater.step
-    algo._step = lambda name, loss: calls.append(f"step {name}") or step(name, loss)
+    def logged_step(names, loss):
+        calls.append(f"step {'+'.join([names] if isinstance(names, str) else names)}")
+        return step(names, loss)
+
+    algo._step = logged_step
     algo.target_updater.step = lambda: calls.append("targets") or target_step()
     algo.update(batch())
     assert calls == ["vae_loss", "step vae", "qvalue_loss", "step critic", "policy_terms", "actor_loss",
-                     "alpha_loss", "step actor", "step alpha", "clamp_log_alpha_", "count_update", "targets"]
+                     "alpha_loss", "step actor+alpha", "clamp_log_alpha_", "count_update", "targets"]
     assert sorted(algo.optimizers) == ["actor", "alpha", "critic", "vae"]
     assert algo.optimizers["alpha"].param_groups[0]["params"] == [algo.loss.log_alpha]

@@ -42,9 +42,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from torchrl_bail.resume import ResumeError, register_resolvers
 
-__all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "DDPG_ENVS",
-           "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error", "register_schemas",
-           "run_cli", "validate_config"]
+__all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
+           "DDPG_ENVS", "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error",
+           "is_compile_setting", "register_schemas", "run_cli", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -425,6 +425,16 @@ class CheckpointConfig(_Checked):
                                            "null or a positive number of minutes")
 
 
+#: the ``compile`` key's values besides ``false``: ``true`` (inductor's default mode; on a GPU the whole update is
+#: also captured in one CUDA graph) or a :func:`torch.compile` mode (:meth:`torchrl_bail.algorithms.Algorithm.compile`)
+COMPILE_MODES = (True, "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def is_compile_setting(v: Any) -> bool:
+    """Whether ``v`` is a value of the ``compile`` key: ``False``, ``True`` or one of :data:`COMPILE_MODES`."""
+    return isinstance(v, bool) or (isinstance(v, str) and v in COMPILE_MODES[1:])
+
+
 def _device_name(v: str) -> bool:
     return v in ("cpu", "cuda", "auto") or (v.startswith("cuda:") and v[5:].isdigit())
 
@@ -436,6 +446,8 @@ class Config(_Checked):
     algo: Any = MISSING        # one of ALGO_SCHEMAS
     seed: int = non_negative("an integer >= 0")
     device: str = _rule(_device_name, "cpu | cuda | cuda:N | auto")
+    # not a run-only key: compiled kernels round differently, so compile=true is another run (README)
+    compile: Any = _rule(is_compile_setting, "false | true | " + " | ".join(COMPILE_MODES[1:]))
     data_dir: Optional[str] = MISSING
     dataset: Optional[str] = MISSING
     progress: bool = MISSING

@@ -75,9 +75,11 @@ def register_resolvers() -> None:
 
 
 def comparable_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config without :data:`RUN_ONLY_KEYS`: what a checkpoint's numbers depend on."""
+    """The resolved config without :data:`RUN_ONLY_KEYS`: what a checkpoint's numbers depend on (``compile=false``
+    is left out too: checkpoints written before the key existed are eager runs and still resume)."""
     container = OmegaConf.to_container(cfg, resolve=True)
-    return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"}
+    return {k: v for k, v in container.items()
+            if k not in RUN_ONLY_KEYS and k != "hydra" and not (k == "compile" and v is False)}
 
 
 def diff_configs(old: Any, new: Any, prefix: str = "") -> list[str]:

@@ -150,7 +150,7 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     # resumed ones included) leaves the training streams the same
     generator = seed_everything(int(cfg.seed))
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
-                          max_episode_steps=cfg.env.get("max_episode_steps"), device="cpu")
+                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device)
     try:
         obs_dim, act_dim = evaluator.obs_dim, evaluator.action_spec.shape[-1]
         if (batch.obs_dim, batch.act_dim) != (obs_dim, act_dim):
@@ -175,6 +175,7 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
         else:
             ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
             train_data = algorithm.prepare(data, ctx)
+        algorithm.compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
 
         def keep_best(point, index: int) -> None:  # policy_best.pt: the best-evaluated policy so far
             save_policy(run_dir / "policy_best.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,

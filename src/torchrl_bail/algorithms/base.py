@@ -24,7 +24,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import TensorSpec
 
-from torchrl_bail.config import checked_algo_config
+from torchrl_bail.config import COMPILE_MODES, checked_algo_config, is_compile_setting
 
 __all__ = ["Algorithm", "PrepareContext"]
 
@@ -97,7 +97,68 @@ class Algorithm(ABC):
 
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        """One update on a mini-batch; returns detached scalars to log."""
+        """One update on a mini-batch; returns detached scalars to log.
+
+        It reads nothing back to the host (no ``.item()``, ``float(tensor)``, ``.cpu()``) and creates every tensor on
+        :attr:`device`, so a GPU update never waits for the host (``tests/test_compile.py``).
+        """
+
+    # -- compiled updates ------------------------------------------------------------------------------
+    #: the method :meth:`compile` compiles: the tensor work of one update, with no Python state that changes from
+    #: one update to the next (an algorithm with such state keeps it in :meth:`update` around this method)
+    compiled_method: str = "update"
+
+    def compile(self, mode: bool | str = True, *, backend: str = "inductor", cudagraphs: bool | None = None) -> None:
+        """Runs every later update through :func:`torch.compile` (the ``compile`` config key).
+
+        Only the update is compiled; the modules and optimizers stay what they were, so :meth:`state_dict` keeps its
+        keys and a compiled run checkpoints and resumes like an eager one (call this after
+        :meth:`load_state_dict`). Random draws stay torch's own (inductor's ``fallback_random``): a compiled update
+        consumes the same random streams as an eager one and agrees with it to float rounding
+        (``tests/test_compile.py``). Compiled kernels round differently, so ``compile`` is part of a run's identity
+        (its run directory and the config a checkpoint must match), not a run-only key.
+
+        Args:
+            mode: ``False`` (nothing to do), ``True`` (inductor's default mode) or a :func:`torch.compile` mode
+                (:data:`torchrl_bail.config.COMPILE_MODES`); ``"reduce-overhead"`` replays CUDA graphs of the
+                compiled pieces on a GPU.
+            backend (str): the :func:`torch.compile` backend (``mode`` is inductor's only). Defaults to
+                ``"inductor"``.
+            cudagraphs (bool, optional): capture the whole compiled update, optimizer steps included, in one CUDA
+                graph (:class:`tensordict.nn.CudaGraphModule`; CUDA only). Defaults to ``mode is True`` on a CUDA
+                device.
+
+        Examples:
+            >>> from torchrl_bail.algorithms.bc import BehaviourCloning
+            >>> from torchrl_bail.config import algo_config
+            >>> from torchrl_bail.modules import action_spec_from_bounds
+            >>> config = algo_config("bc", policy={"hidden": [8]})
+            >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
+            >>> algo.compile(backend="eager")
+            >>> sorted(algo.state_dict()["modules"]["actor"])[:1]  # the modules themselves are untouched
+            ['module.0.module.0.bias']
+        """
+        if mode is False:
+            return
+        if not is_compile_setting(mode):
+            raise ValueError(f"compile must be false, true or one of {list(COMPILE_MODES[1:])}, got {mode!r}")
+        if cudagraphs is None:
+            cudagraphs = mode is True and self.device.type == "cuda"
+        if cudagraphs and self.device.type != "cuda":
+            raise ValueError(f"CUDA graphs need a CUDA device; this algorithm runs on {self.device}")
+        import torch._dynamo.config
+        import torch._inductor.config
+
+        torch._inductor.config.fallback_random = True  # the eager random streams: same draws compiled or not
+        # each optimizer's step() is one more compiled version of Optimizer.step's code (BEAR alone has four)
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+        torch._dynamo.config.accumulated_recompile_limit = max(torch._dynamo.config.accumulated_recompile_limit, 1024)
+        options = {"mode": None if mode is True else mode} if backend == "inductor" else {}
+        step = torch.compile(getattr(self, self.compiled_method), backend=backend, dynamic=False, **options)
+        if cudagraphs:
+            self._make_optimizers_capturable()
+            step = _whole_update_graph(step, self.device)
+        setattr(self, self.compiled_method, step)
 
     @property
     @abstractmethod
@@ -126,9 +187,32 @@ class Algorithm(ABC):
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Loads :meth:`state_dict` into this algorithm's modules and optimizers, in place."""
         for k, m in self.modules.items():
             m.load_state_dict(state["modules"][k])
         for k, o in self.optimizers.items():
             o.load_state_dict(state["optimizers"][k])
         for k, v in state.get("attributes", {}).items():
             setattr(self, k, copy.deepcopy(v))
+
+    def _make_optimizers_capturable(self) -> None:
+        """Step counters on the device (``capturable``): a CUDA graph replays device kernels only, so an optimizer
+        that kept its step count on the host would never count a replayed update."""
+        for optimizer in self.optimizers.values():
+            for group in optimizer.param_groups:
+                group["capturable"] = True
+            for state in optimizer.state.values():
+                if torch.is_tensor(state.get("step")):
+                    state["step"] = state["step"].to(self.device, torch.float32)
+
+
+def _whole_update_graph(step, device: torch.device):
+    """``step`` (``batch -> {name: scalar}``) captured in one CUDA graph by :class:`~tensordict.nn.CudaGraphModule`
+    (after a few warm-up calls that compile it); each call copies the batch into the graph's input buffers and
+    replays every kernel of the update, optimizer steps included, with no Python in between."""
+    from tensordict import TensorDict
+    from tensordict.nn import CudaGraphModule
+
+    graph = CudaGraphModule(lambda batch: TensorDict(step(batch), batch_size=[]), in_keys=[], out_keys=[],
+                            warmup=5, device=device)
+    return lambda batch: dict(graph(batch).items())

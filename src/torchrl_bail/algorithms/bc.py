@@ -39,7 +39,9 @@ def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:
     """
     with warnings.catch_warnings():  # BCLoss lacks a target-params annotation and warns on construction
         warnings.filterwarnings("ignore", message=".*target_actor_network_params.*")
-        return BCLoss(actor, loss_function="l2", reduction=reduction)
+        loss = BCLoss(actor, loss_function="l2", reduction=reduction)
+    _ = loss.in_keys  # resolved now, not lazily at the first call (a compiled update would recompile after it)
+    return loss
 
 
 class DeterministicActorAlgorithm(Algorithm):

@@ -69,8 +69,9 @@ class BEAR(TwinCriticVAEAlgorithm):
         terms = self.loss.policy_terms(batch)
         loss_actor, meta_actor = self.loss.actor_loss(batch, terms)
         loss_alpha, meta_alpha = self.loss.alpha_loss(batch, terms)
-        self._step("actor", loss_actor)
-        self._step("alpha", loss_alpha)
+        # one backward for both: each loss reaches only its own parameters (alpha is detached in the actor's loss,
+        # MMD and Q in the multiplier's), and a compiled update computes both in one graph that backpropagates once
+        self._step(("actor", "alpha"), loss_actor + loss_alpha)
         self.loss.clamp_log_alpha_()
         self.loss.count_update()
         self._finish_update()

@@ -118,10 +118,17 @@ class ProgressiveBAIL(BehaviourCloning):
         elif self.best_envelope == "as_coded" and event == "worse":
             best.load_into(self.selection_network)  # the aliased record: the current weights
 
+    #: the validation clock and the early-stopping decisions stay in Python; the three steps are compiled
+    compiled_method = "_steps"
+
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self._iteration % self.validate_every == 0:
-            self._track_validation()
+            self._track_validation()  # reads the validation loss back to the host: once every validate_every
         self._iteration += 1
+        return self._steps(batch)
+
+    def _steps(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """The envelope step, the selection and the imitation step of one update (tensor work only)."""
         # 1. envelope step on the non-validation rows
         train_rows = (~batch[VALIDATION_KEY]).to(torch.float32)
         per_row = self.envelope_loss(batch)["loss_envelope"].reshape(-1)

@@ -86,11 +86,14 @@ class TwinCriticVAEAlgorithm(Algorithm):
     def policy(self) -> BestOfNPolicy:
         return self._policy
 
-    def _step(self, name: str, loss: torch.Tensor) -> None:
-        optimizer = self.optimizers[name]
-        optimizer.zero_grad(set_to_none=True)
+    def _step(self, names: str | tuple[str, ...], loss: torch.Tensor) -> None:
+        """Backpropagates ``loss`` and steps the optimizer(s) ``names`` (whose gradients it fills)."""
+        optimizers = [self.optimizers[name] for name in ((names,) if isinstance(names, str) else names)]
+        for optimizer in optimizers:
+            optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        optimizer.step()
+        for optimizer in optimizers:
+            optimizer.step()
 
     def _update_vae_and_critics(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_vae, meta_vae = self.loss.vae_loss(batch)

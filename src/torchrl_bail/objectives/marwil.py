@@ -248,9 +248,10 @@ class MARWILLoss(LazyInKeysLoss):
         """``vf_coeff * 0.5 * A^2`` per point (the coefficient is folded first: one graph node, not two)."""
         return advantage.square() * (0.5 * self.vf_coeff)
 
+    @torch.compiler.disable  # torch 2.13's AOT autograd drops in-place updates of 0-dim float64 inputs
     @torch.no_grad()
     def _update_c2(self, advantage: torch.Tensor, mask: torch.Tensor | None) -> None:
-        """``c^2 <- c^2 + rate * (mean(A^2) - c^2)``, per seed; in float64."""
+        """``c^2 <- c^2 + rate * (mean(A^2) - c^2)``, per seed; in float64 (run eagerly in a compiled update)."""
         squared_mean = self._mean_last(advantage.square(), mask).to(self.c2.dtype)
         if self.c2.shape != squared_mean.shape:
             if self.c2.ndim != 0:

@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# The GPU checks of device=cuda and compile=true, for a session that has a CUDA GPU (at most 8 minutes: the
+# steps' time limits add up to 480 s). Run from the repository root:   bash benchmarks/gpu_check.sh
+# Results land in $OUT (default ./gpu_check_out): one log per step, bench_compile.json, the tiny run's summary.
+#   1. tests/test_compile.py on cuda: no host reads between log points (and torch.cuda.set_sync_debug_mode("error")),
+#      tensors made on the device, one transfer each way per evaluation step, compiled == eager, and the whole-update
+#      CUDA graph (compile=true) against eager;
+#   2. a tiny end-to-end run with device=cuda compile=true (batch generation, training, evaluation, checkpoint);
+#   3. benchmarks/bench_compile.py --device cuda: compile=true (one CUDA graph per update) vs eager updates/s for every
+#      algorithm, and BC under reduce-overhead and default;
+#   4. benchmarks/bench_seed_stack.py --device cuda, when that benchmark exists.
+# Each step has its own time limit and a failing step does not stop the later ones; the exit code is the number
+# of failed steps.
+set -u
+OUT="${OUT:-$PWD/gpu_check_out}"
+mkdir -p "$OUT"
+export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" RL_WARNINGS=0 TORCHRL_BAIL_TEST_DEVICE=cuda
+failed=0
+step() {  # step NAME SECONDS COMMAND...: runs COMMAND with a time limit, output to $OUT/NAME.log
+  local name=$1 limit=$2
+  shift 2
+  echo "== $name (limit ${limit}s): $*" | tee -a "$OUT/gpu_check.log"
+  local start=$SECONDS
+  timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
+  local rc=$?
+  echo "   rc=$rc in $((SECONDS - start))s" | tee -a "$OUT/gpu_check.log"
+  tail -n 25 "$OUT/$name.log"
+  [ "$rc" -eq 0 ] || failed=$((failed + 1))
+}
+
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$OUT/gpu.txt" 2>&1
+python -c "import torch; print(torch.__version__, torch.cuda.get_device_name(0))" | tee -a "$OUT/gpu.txt"
+
+step tests_cuda 150 python -m pytest -q -p no:cacheprovider tests/test_compile.py
+step tiny_run_cuda 90 python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick algo=bcq device=cuda compile=true \
+  progress=false batch.steps=1000 batch.start_steps=200 batch.agent.actor_hidden=[32,32] \
+  batch.agent.critic_hidden=[32,32] env.max_episode_steps=50 eval.episodes=2 eval.max_steps=50 returns.horizon=50 \
+  algo.epochs=0.004 eval.every_epochs=0.002 "data_dir=$OUT/data" "hydra.run.dir=$OUT/tiny_run"
+step bench_compile_cuda 150 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc,pbail,marwil,bcq,bear \
+  --modes true --updates 100 --repeats 3 --json "$OUT/bench_compile.json"
+step bench_compile_reduce_overhead_cuda 45 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc \
+  --modes reduce-overhead,default --updates 100 --repeats 3 --json "$OUT/bench_compile_reduce_overhead.json"
+if [ -f benchmarks/bench_seed_stack.py ]; then
+  step bench_seed_stack_cuda 45 python benchmarks/bench_seed_stack.py --device cuda
+fi
+echo "failed steps: $failed" | tee -a "$OUT/gpu_check.log"
+exit "$failed"
