@@ -76,10 +76,12 @@ def test_report_writes_three_files_with_rliable_iqm(tree, tmp_path, capsys):
         assert g["final_return_iqm_ci_low"] < g["final_return_iqm"] < g["final_return_iqm_ci_high"]
     md = (tmp_path / "results.md").read_text()
     # batches as rows, algorithms as columns, the ablation in its own row, best per row in bold
-    assert md.splitlines()[0] == "| batch | bail | bc | bcq |"
-    rows = {line.split(" | ")[0].lstrip("| "): line for line in md.splitlines()[2:] if line.startswith("| ")}
+    assert md.splitlines()[0] == "| batch | data | bail | bc | bcq |"
+    first, iqm_table = md.split("\n\n")[0], md.split("\n\n")[2]
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in first.splitlines()[2:]}
+    assert iqm_table.splitlines()[0] == "| batch | data | bail | bc | bcq |" and len(iqm_table.splitlines()) == 2 + 4
     assert set(rows) == {*BATCHES, "hopper_ddpg05_b1 [algo.selection.by=return]"}
-    assert rows["hopper_sac_b1"].split(" | ")[1].startswith("**")  # BAIL best on the default rows
+    assert rows["hopper_sac_b1"].split(" | ")[2].startswith("**")  # BAIL best on the default rows
     assert "algo.selection.by" in md and "seed" not in json.loads((tmp_path / "results.json").read_text())[
         "separating_keys"]["bail"]
     assert json.loads((tmp_path / "results.json").read_text())["separating_keys"] == {

@@ -316,8 +316,31 @@ def _cell(row: dict) -> str:
     return f"{row['final_return_mean']:.1f}{std}"
 
 
+def _iqm_cell(row: dict) -> str:
+    low, high = row["final_return_iqm_ci_low"], row["final_return_iqm_ci_high"]
+    return f"{row['final_return_iqm']:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def _table(table: dict[str, dict[str, dict]], algos: list[str], cell, key: str) -> list[str]:
+    """Rows of ``table`` (name -> algo -> row), the batch's mean episode return, one column per algorithm; the
+    best ``key`` per row in bold."""
+    lines = ["| batch | data | " + " | ".join(algos) + " |", "|---|---|" + "---|" * len(algos)]
+    for name, cells in table.items():
+        best = max(c[key] for c in cells.values())
+        data = next((c["dataset_mean_episode_return"] for c in cells.values()
+                     if c.get("dataset_mean_episode_return") is not None), None)
+        out = [""] * len(algos)
+        for i, a in enumerate(algos):
+            c = cells.get(a)
+            if c is not None:
+                out[i] = f"**{cell(c)}**" if c[key] == best else cell(c)
+        lines.append(f"| {name} | {'' if data is None else f'{data:.1f}'} | " + " | ".join(out) + " |")
+    return lines
+
+
 def format_markdown(rows: list[dict], separating: dict[str, list[str]] | None = None) -> str:
-    """Batches (and variants) as rows, algorithms as columns, ``final_return`` mean ± std, best mean in bold."""
+    """Batches (and variants) as rows, algorithms as columns: ``final_return`` mean ± std, then its IQM with the
+    95 % bootstrap CI; the best per row in bold; ``data`` is the batch's mean episode return."""
     order = {a: i for i, a in enumerate(ALGO_ORDER)}
     algos = sorted({r["algo"] for r in rows}, key=lambda a: (order.get(a, len(order)), a))
     names: dict[str, set] = defaultdict(set)
@@ -327,21 +350,16 @@ def format_markdown(rows: list[dict], separating: dict[str, list[str]] | None = 
     for r in rows:
         name = _batch_name(r, names) + (f" [{r['variant']}]" if r["variant"] else "")
         table[name][r["algo"]] = r
-    lines = ["| batch | " + " | ".join(algos) + " |", "|---|" + "---|" * len(algos)]
-    for name, cells in table.items():
-        best = max(c["final_return_mean"] for c in cells.values())
-        out = []
-        for a in algos:
-            c = cells.get(a)
-            text = "" if c is None else _cell(c)
-            out.append(f"**{text}**" if c is not None and c["final_return_mean"] == best else text)
-        lines.append(f"| {name} | " + " | ".join(out) + " |")
     seeds = sorted({r["seeds"] for r in rows})
+    lines = _table(table, algos, _cell, "final_return_mean")
     lines += ["", f"final_return: mean ± sample std (ddof=1) over {'/'.join(map(str, seeds))} seeds; "
-                  f"best mean per row in bold."]
+                  f"best mean per row in bold; data: the batch's mean episode return."]
     used = {a: k for a, k in (separating or {}).items() if k}
     if used:
         lines.append("Groups separated by overrides: " + "; ".join(f"{a}: {', '.join(k)}" for a, k in used.items()))
+    lines += ["", *_table(table, algos, _iqm_cell, "final_return_iqm"), "",
+              "final_return: interquartile mean over seeds [95 % stratified-bootstrap confidence interval] (rliable); "
+              "best IQM per row in bold."]
     return "\n".join(lines)
 
 
