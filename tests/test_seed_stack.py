@@ -1,0 +1,151 @@
+"""Many seeds in one process (torchrl_bail.stacking): seed s of a stacked run is the single-seed run with seed s."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from _contract import ALGO_BATCH, ALGO_CASES, OBS, TINY_RUN, loss_batch, row_noise, row_noise_like
+from hydra import compose, initialize_config_dir
+
+from torchrl_bail import config_dir
+from torchrl_bail.algorithms import PrepareContext
+from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
+from torchrl_bail.trainer import train
+
+SEEDS = (3, 7, 11)
+#: the stacked run computes each seed's numbers with batched matrix products: equal up to float rounding
+TOL = {"rtol": 1e-4, "atol": 1e-5}
+
+
+def _built(case, seed: int):
+    torch.manual_seed(seed)
+    return case.build()
+
+
+def _context(seed: int) -> PrepareContext:
+    return PrepareContext(generator=torch.Generator().manual_seed(seed))
+
+
+def _parameters(algorithm) -> dict[str, torch.Tensor]:
+    return {f"{key}.{name}": p.detach() for key, module in algorithm.modules.items()
+            for name, p in module.named_parameters()}
+
+
+def _actions(algorithm_or_stack, seeds: int | None = None) -> torch.Tensor:
+    from tensordict import TensorDict
+
+    observation = torch.randn(4, OBS, generator=torch.Generator().manual_seed(5))
+    if seeds is not None:
+        observation = observation.expand(seeds, 4, OBS)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        return algorithm_or_stack.policy(TensorDict({"observation": observation}, observation.shape[:-1]))["action"]
+
+
+def _assert_close_per_seed(singles, stack) -> None:
+    stack.unstack()
+    for seed, single, stacked in zip(SEEDS, singles, stack.algorithms):
+        expected, got = _parameters(single), _parameters(stacked)
+        assert expected.keys() == got.keys()
+        for name in expected:
+            torch.testing.assert_close(got[name], expected[name], **TOL, msg=lambda m: f"seed {seed} {name}: {m}")
+
+
+@pytest.mark.parametrize("case", [ALGO_CASES[name] for name in ("bc",)], ids=repr)
+def test_stacked_seeds_start_and_update_as_their_single_seed_runs(case, monkeypatch):
+    """Same initialisation, same prepared data, same mini-batches -> per seed the same losses and weights over the
+    first updates (stochastic losses draw ``row_noise``, the same numbers for every seed's rows)."""
+    monkeypatch.setattr(torch, "randn", row_noise)
+    monkeypatch.setattr(torch, "randn_like", row_noise_like)
+    data = loss_batch((120,), seed=0)
+    singles = [_built(case, seed) for seed in SEEDS]
+    single_data = [a.prepare(data, _context(seed)) for a, seed in zip(singles, SEEDS)]
+    algorithms = [_built(case, seed) for seed in SEEDS]
+    stack = SeedStack(algorithms)
+    for single, stacked in zip(singles, stack.algorithms):  # the stack leaves the seeds' own objects untouched
+        assert _parameters(single).keys() == _parameters(stacked).keys()
+    stacked_data = prepare_seeds(algorithms, data, [_context(seed) for seed in SEEDS])
+    stack.restack()  # what prepare fitted (BAIL's envelope) into the stack
+    torch.testing.assert_close(_actions(stack, len(SEEDS)), torch.stack([_actions(a) for a in singles]), **TOL)
+    draws = [torch.Generator().manual_seed(100 + seed) for seed in SEEDS]
+    for _ in range(4):
+        index = [torch.randint(len(d), (ALGO_BATCH,), generator=g) for d, g in zip(single_data, draws)]
+        single_metrics = [a.update(d[i]) for a, d, i in zip(singles, single_data, index)]
+        metrics = stack.update(torch.stack([d[i] for d, i in zip(stacked_data, index)]))
+        for key, value in metrics.items():
+            expected = torch.stack([torch.as_tensor(m[key], dtype=value.dtype) for m in single_metrics])
+            # per-seed diagnostics come back [S]; the losses' values are their means over the seeds
+            torch.testing.assert_close(value, expected if value.ndim else expected.mean(), **TOL, msg=key)
+    _assert_close_per_seed(singles, stack)
+    torch.testing.assert_close(_actions(stack, len(SEEDS)), torch.stack([_actions(a) for a in singles]), **TOL)
+
+
+def test_training_loop_draws_each_seeds_single_seed_stream():
+    """Through :func:`train`: each seed's mini-batches come from a copy of the global stream its single-seed run
+    samples from, so the stacked run ends where the three single-seed runs end."""
+    case = ALGO_CASES["bc"]
+    data = loss_batch((200,), seed=1)
+    singles = []
+    for seed in SEEDS:
+        algorithm = _built(case, seed)
+        train(algorithm, data, samples_per_epoch=ALGO_BATCH * 6, progress=False)
+        singles.append(algorithm)
+    algorithms, streams = [], []
+    for seed in SEEDS:
+        algorithms.append(_built(case, seed))
+        streams.append(torch.Generator())
+        streams[-1].set_state(torch.get_rng_state())
+    stack = SeedStack(algorithms)
+    sampler = SeedBatchSampler([data] * len(SEEDS), ALGO_BATCH, streams)
+    assert len(sampler) == len(data)  # one storage for seeds that share their data
+    scores = iter(range(100))
+    histories = train(stack, sampler, evaluate=lambda policy: [float(next(scores)) for _ in SEEDS],
+                      samples_per_epoch=ALGO_BATCH * 6, eval_every_epochs=0.5, progress=False)
+    assert [h.iterations for h in histories] == [6] * len(SEEDS)
+    assert [[e.mean_return for e in h.evaluations] for h in histories] == [[0, 3], [1, 4], [2, 5]]
+    _assert_close_per_seed(singles, stack)
+
+
+def test_seed_batch_sampler_rows_and_checkpoint_state():
+    a = loss_batch((10,), seed=0)
+    b = loss_batch((4,), seed=1)
+    sampler = SeedBatchSampler([a, b], 6, [torch.Generator().manual_seed(0), torch.Generator().manual_seed(1)])
+    state = sampler.state_dict()
+    batch = sampler.sample()
+    assert batch.batch_size == (2, 6)
+    torch.testing.assert_close(batch[0]["return"], a["return"][torch.randint(10, (6,), generator=torch.Generator()
+                                                                             .manual_seed(0))])
+    torch.testing.assert_close(batch[1]["return"], b["return"][torch.randint(4, (6,), generator=torch.Generator()
+                                                                            .manual_seed(1))])
+    sampler.load_state_dict(state)
+    assert (sampler.sample() == batch).all()
+
+
+def _tiny_config(*overrides):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=[*TINY_RUN, *overrides])
+
+
+def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir, tmp_path):
+    """``seeds=[1,2]``: one run directory and summary.json per seed, equal (wall time and paths aside, numbers to
+    float tolerance) to what ``seed=2`` alone writes; a second call reports the finished seeds."""
+    from torchrl_bail.train import run
+
+    common = ("algo=bc", *ALGO_CASES["bc"].cli, f"data_dir={tiny_run_data_dir}")
+    stacked = run(_tiny_config(*common, "seeds=[1,2]"), tmp_path / "stacked")
+    single = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
+    assert [s["seed"] for s in stacked] == [1, 2]
+    for name in ("summary.json", "policy.pt", "policy_best.pt", "config.yaml", "learning_curve.png"):
+        assert (tmp_path / "stacked" / "seed2" / name).stat().st_size > 0, name
+    assert (tmp_path / "stacked" / "seed2" / "config.yaml").read_text() == (tmp_path / "single" / "config.yaml").read_text()
+    got, expected = stacked[1], single
+    assert got.keys() == expected.keys()
+    for key in expected.keys() - {"wall_time_s", "run_dir"}:
+        if isinstance(expected[key], float):
+            assert math.isclose(got[key], expected[key], rel_tol=1e-4, abs_tol=1e-4), key
+        elif key != "best_policy":
+            assert got[key] == expected[key], key
+    again = run(_tiny_config(*common, "seeds=2", "seed=1"), tmp_path / "stacked")  # a count: seeds 1, 2
+    assert again == stacked
