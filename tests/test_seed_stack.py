@@ -44,16 +44,33 @@ def _actions(algorithm_or_stack, seeds: int | None = None) -> torch.Tensor:
         return algorithm_or_stack.policy(TensorDict({"observation": observation}, observation.shape[:-1]))["action"]
 
 
+def _assert_close_trees(got, expected, path: str) -> None:
+    """Nested state dicts equal, tensors and floats to :data:`TOL`."""
+    if isinstance(expected, dict):
+        assert isinstance(got, dict) and got.keys() == expected.keys(), path
+        for key in expected:
+            _assert_close_trees(got[key], expected[key], f"{path}[{key!r}]")
+    elif isinstance(expected, (list, tuple)):
+        assert len(got) == len(expected), path
+        for i, (g, e) in enumerate(zip(got, expected)):
+            _assert_close_trees(g, e, f"{path}[{i}]")
+    elif torch.is_tensor(expected):
+        torch.testing.assert_close(got, expected, **TOL, msg=lambda m: f"{path}: {m}")
+    elif isinstance(expected, float):
+        assert math.isclose(got, expected, rel_tol=TOL["rtol"], abs_tol=TOL["atol"]), path
+    else:
+        assert got == expected, path
+
+
 def _assert_close_per_seed(singles, stack) -> None:
+    """After :meth:`SeedStack.unstack`, each seed's algorithm holds its single-seed twin's whole state: weights,
+    targets, buffers, optimizer moments and the algorithm's own attributes (early stopping...)."""
     stack.unstack()
     for seed, single, stacked in zip(SEEDS, singles, stack.algorithms):
-        expected, got = _parameters(single), _parameters(stacked)
-        assert expected.keys() == got.keys()
-        for name in expected:
-            torch.testing.assert_close(got[name], expected[name], **TOL, msg=lambda m: f"seed {seed} {name}: {m}")
+        _assert_close_trees(stacked.state_dict(), single.state_dict(), f"seed {seed}")
 
 
-@pytest.mark.parametrize("case", [ALGO_CASES[name] for name in ("bc",)], ids=repr)
+@pytest.mark.parametrize("case", [ALGO_CASES[name] for name in ("bc", "bail", "pbail", "marwil", "bcq", "bear")], ids=repr)
 def test_stacked_seeds_start_and_update_as_their_single_seed_runs(case, monkeypatch):
     """Same initialisation, same prepared data, same mini-batches -> per seed the same losses and weights over the
     first updates (stochastic losses draw ``row_noise``, the same numbers for every seed's rows)."""
@@ -68,6 +85,9 @@ def test_stacked_seeds_start_and_update_as_their_single_seed_runs(case, monkeypa
         assert _parameters(single).keys() == _parameters(stacked).keys()
     stacked_data = prepare_seeds(algorithms, data, [_context(seed) for seed in SEEDS])
     stack.restack()  # what prepare fitted (BAIL's envelope) into the stack
+    for single, stacked in zip(single_data, stacked_data):  # BAIL: each seed's envelope selected the same actions
+        assert single.batch_size == stacked.batch_size
+        torch.testing.assert_close(stacked["return"], single["return"])
     torch.testing.assert_close(_actions(stack, len(SEEDS)), torch.stack([_actions(a) for a in singles]), **TOL)
     draws = [torch.Generator().manual_seed(100 + seed) for seed in SEEDS]
     for _ in range(4):
@@ -149,3 +169,37 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
             assert got[key] == expected[key], key
     again = run(_tiny_config(*common, "seeds=2", "seed=1"), tmp_path / "stacked")  # a count: seeds 1, 2
     assert again == stacked
+
+
+@pytest.mark.parametrize("early_stopping", ["paper", "as_coded"])
+def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
+    """BAIL's envelope, S seeds in one fit: own split, shuffles, validation losses, patience counts, reverts and
+    returned weights per seed (a high learning rate makes the validation loss wander, so reverts happen)."""
+    from torchrl_bail.envelope import fit_upper_envelope
+    from torchrl_bail.modules import make_value_network
+    from torchrl_bail.stacking import stack_modules, unstack_modules
+
+    observations = torch.randn(300, OBS, generator=torch.Generator().manual_seed(0))
+    returns = observations[:, 0] * 3 + torch.randn(300, generator=torch.Generator().manual_seed(1))
+    kwargs = dict(epochs=14, patience=2, batch_size=32, lr=0.05, early_stopping=early_stopping, progress=False)
+
+    def network(seed):
+        torch.manual_seed(seed)
+        return make_value_network(OBS, (16, 16))
+
+    singles = [fit_upper_envelope(network(seed), observations, returns,
+                                  generator=torch.Generator().manual_seed(seed), **kwargs) for seed in SEEDS]
+    networks = [network(seed) for seed in SEEDS]
+    stacked = stack_modules(networks)
+    fits = fit_upper_envelope(stacked, observations, returns,
+                              generator=[torch.Generator().manual_seed(seed) for seed in SEEDS], **kwargs)
+    unstack_modules(stacked, networks)
+    assert any(fit.revert_epochs for fit in singles) or early_stopping == "as_coded"
+    for single, fit, net in zip(singles, fits, networks):
+        assert torch.equal(fit.train_index, single.train_index) and torch.equal(fit.val_index, single.val_index)
+        assert (fit.best_epoch, fit.revert_epochs, fit.returned) == (single.best_epoch, single.revert_epochs,
+                                                                      single.returned)
+        # 14 epochs at a high learning rate let the rounding of batched products grow a little
+        torch.testing.assert_close(torch.tensor(fit.val_loss), torch.tensor(single.val_loss), rtol=1e-3, atol=1e-4)
+        for (name, p), q in zip(net.named_parameters(), single.value_network.parameters()):
+            torch.testing.assert_close(p, q, rtol=1e-3, atol=1e-4, msg=name)

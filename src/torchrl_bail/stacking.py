@@ -39,6 +39,7 @@ Examples:
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from typing import Any
 
@@ -46,7 +47,8 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-__all__ = ["SeedBatchSampler", "SeedStack", "SeedStackedLinear", "linear", "prepare_seeds"]
+__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "linear", "prepare_seeds", "stack_modules",
+           "unstack_modules"]
 
 _TARGET = "target_"
 
@@ -78,6 +80,68 @@ class SeedStackedLinear(nn.Linear):
         return linear(input, self.weight, self.bias)
 
 
+def stack_modules(modules: Sequence[nn.Module]) -> nn.Module:
+    """One module of ``modules[0]``'s architecture holding the ``S`` modules' parameters stacked along a leading seed
+    dimension (its ``nn.Linear`` layers become :class:`SeedStackedLinear`): inputs ``[S, *B, in]``, row ``s``
+    through ``modules[s]``. Buffers are taken from ``modules[0]`` (constants). :func:`unstack_modules` writes the
+    slices back.
+
+    Examples:
+        >>> nets = [nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 1)) for _ in range(2)]
+        >>> x = torch.randn(2, 5, 3)
+        >>> torch.allclose(stack_modules(nets)(x)[1], nets[1](x[1]), atol=1e-6)
+        True
+    """
+    stacked = copy.deepcopy(modules[0])
+    for layer in stacked.modules():
+        if type(layer) is nn.Linear:
+            layer.__class__ = SeedStackedLinear
+    with torch.no_grad():
+        for name, param in stacked.named_parameters():
+            param.data = torch.stack([m.get_parameter(name).detach() for m in modules]).clone()
+    return stacked
+
+
+def unstack_modules(stacked: nn.Module, modules: Sequence[nn.Module]) -> None:
+    """Copies seed ``s``'s slice of ``stacked`` (see :func:`stack_modules`) into ``modules[s]``'s parameters."""
+    with torch.no_grad():
+        for name, param in stacked.named_parameters():
+            for s, module in enumerate(modules):
+                module.get_parameter(name).copy_(param[s])
+
+
+class SeedSlice:
+    """Seed ``s``'s view of a seed-stacked module, as far as saving and loading weights goes: ``state_dict()`` holds
+    views of its slices of the parameters (the buffers as they are) under the single module's keys, and
+    ``load_state_dict`` writes into those slices. What per-seed early stopping
+    (:class:`~torchrl_bail.envelope.EarlyStoppingTracker`, :class:`~torchrl_bail.envelope.BestWeights`) records and
+    restores.
+
+    Examples:
+        >>> net = stack_modules([nn.Linear(2, 1), nn.Linear(2, 1)])
+        >>> one = SeedSlice(net, 1)
+        >>> one.state_dict()["weight"].shape
+        torch.Size([1, 2])
+        >>> one.load_state_dict({"weight": torch.zeros(1, 2), "bias": torch.zeros(1)})
+        >>> float(net.weight[1].abs().sum()), bool(net.weight[0].abs().sum() > 0)
+        (0.0, True)
+    """
+
+    def __init__(self, module: nn.Module, seed_index: int) -> None:
+        self.module = module
+        self.seed_index = int(seed_index)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        params = dict(self.module.named_parameters())
+        return {name: (params[name].detach()[self.seed_index] if name in params else value)
+                for name, value in self.module.state_dict().items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        with torch.no_grad():
+            for name, target in self.state_dict().items():
+                target.copy_(state[name])
+
+
 def _entries(algorithm) -> list[tuple[str, torch.Tensor, int]]:
     """``(name, tensor, seed dim)`` of everything a seed owns: every parameter of the algorithm's modules and every
     target-network copy of one (``target_<name>`` buffers of TorchRL losses), in a fixed order. The seed dimension
@@ -101,10 +165,43 @@ def _entries(algorithm) -> list[tuple[str, torch.Tensor, int]]:
     return out
 
 
-def _other_buffers(algorithm, stacked_ids: set[int]) -> list[tuple[str, torch.Tensor]]:
-    """The buffers :func:`_entries` leaves unstacked (constants, and state a loss keeps per seed itself)."""
-    return [(f"{key}.{name}", b) for key, module in algorithm.modules.items() for name, b in module.named_buffers()
-            if id(b) not in stacked_ids]
+def _reachable_modules(algorithm) -> dict[str, nn.Module]:
+    """Every ``nn.Module`` the algorithm reaches through attributes (its registered modules and the networks TorchRL
+    losses keep outside their module tree), under the first attribute path that reaches it, the attributes
+    visited in name order (so that two algorithms built alike give the same paths, whatever ran since)."""
+    found: dict[int, tuple[str, nn.Module]] = {}
+
+    def visit(obj: Any, path: str) -> None:
+        if isinstance(obj, nn.Module):
+            if id(obj) in found:
+                return
+            found[id(obj)] = (path, obj)
+            items = {**vars(obj), **obj._modules}.items()
+        elif isinstance(obj, (list, tuple)):
+            items = [(str(i), v) for i, v in enumerate(obj)]
+        elif isinstance(obj, dict):
+            items = [(str(k), v) for k, v in obj.items()]
+        else:
+            return
+        for name, child in sorted(items, key=lambda kv: kv[0]):
+            if isinstance(child, (nn.Module, list, tuple, dict)):
+                visit(child, f"{path}.{name}" if path else name)
+
+    visit(vars(algorithm), "")
+    return {path: module for path, module in found.values()}
+
+
+def _other_buffers(algorithm, stacked_ids: set[int]) -> dict[str, torch.Tensor]:
+    """The buffers :func:`_entries` leaves unstacked, of every reachable module, by path (constants, counters such
+    as BEAR's warm-start clock, and state a loss keeps per seed itself such as MARWIL's ``c^2``)."""
+    found: dict[str, torch.Tensor] = {}
+    seen: set[int] = set(stacked_ids)
+    for path, module in _reachable_modules(algorithm).items():
+        for name, b in module.named_buffers(recurse=False):
+            if id(b) not in seen:
+                seen.add(id(b))
+                found[f"{path}.{name}"] = b
+    return found
 
 
 class SeedStack:
@@ -137,17 +234,14 @@ class SeedStack:
                 raise ValueError(f"algorithm {s} is not built like algorithm 0: SeedStack needs one config")
         self._seed_tensors = [[t for _, t, _ in entries] for entries in per_seed]
         self._stacked_ids = {id(t) for _, t, _ in self._entries}
-        for modules in host.modules.values():
-            for layer in modules.modules():
-                if type(layer) is nn.Linear:
-                    layer.__class__ = SeedStackedLinear
+        for layer in _reachable_modules(host).values():
+            if type(layer) is nn.Linear:
+                layer.__class__ = SeedStackedLinear
         self.restack()
         scale = float(self.seeds_count)
         for _, tensor, _ in self._entries:
             if isinstance(tensor, nn.Parameter) and tensor.requires_grad:
                 tensor.register_hook(lambda grad: grad * scale)
-        if hasattr(host, "stack_attributes"):
-            host.stack_attributes(self.algorithms)
 
     # -- what the training loop calls -------------------------------------------------------------------------------
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -161,12 +255,19 @@ class SeedStack:
 
     # -- moving state between the stack and the seeds' own algorithms ---------------------------------------------
     def restack(self) -> None:
-        """Copies the seeds' current state (weights, target networks, optimizer moments) into the stack."""
+        """Copies the seeds' current state (weights, target networks, optimizer moments, the algorithm's own
+        per-seed attributes through its ``stack_attributes`` hook) into the stack."""
         with torch.no_grad():
             for i, (_, tensor, dim) in enumerate(self._entries):
-                tensor.data = torch.stack([seed[i].detach() for seed in self._seed_tensors], dim=dim).clone()
+                stacked = torch.stack([seed[i].detach() for seed in self._seed_tensors], dim=dim)
+                if tensor.shape == stacked.shape:  # stacked already: in place, so cached views stay valid
+                    tensor.data.copy_(stacked)
+                else:
+                    tensor.data = stacked
         for key, optimizer in self.host.optimizers.items():
             self._stack_optimizer_state(key, optimizer)
+        if hasattr(self.host, "stack_attributes"):
+            self.host.stack_attributes(self.algorithms)
 
     def unstack(self) -> None:
         """Writes each seed's slice of the stack (weights, target networks, per-seed buffers such as MARWIL's
@@ -175,11 +276,14 @@ class SeedStack:
         with torch.no_grad():
             for s, seed_tensors in enumerate(self._seed_tensors):
                 for (_, tensor, dim), own in zip(self._entries, seed_tensors):
-                    own.data = tensor.detach().select(dim, s).clone()
+                    own.data.copy_(tensor.detach().select(dim, s))  # in place: cached views stay valid
             host_buffers = _other_buffers(self.host, self._stacked_ids)
             for s, algorithm in enumerate(self.algorithms):
                 own_buffers = _other_buffers(algorithm, {id(t) for t in self._seed_tensors[s]})
-                for (name, tensor), (_, own) in zip(host_buffers, own_buffers):
+                for name, own in own_buffers.items():
+                    tensor = host_buffers.get(name)
+                    if tensor is None:
+                        continue
                     if tensor.shape == own.shape:
                         own.copy_(tensor)
                     elif tensor.shape == (count, *own.shape):  # a loss keeps it per seed (MARWIL's c^2)
