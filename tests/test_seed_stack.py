@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -70,7 +71,16 @@ def _assert_close_per_seed(singles, stack) -> None:
         _assert_close_trees(stacked.state_dict(), single.state_dict(), f"seed {seed}")
 
 
-@pytest.mark.parametrize("case", [ALGO_CASES[name] for name in ("bc", "bail", "pbail", "marwil", "bcq", "bear")], ids=repr)
+def _vmapped_critics(case):
+    """The case with its critics run by ``torch.vmap`` (the default on accelerators) instead of a loop."""
+    return dataclasses.replace(case, overrides={**case.overrides, "critic": {**case.overrides["critic"], "vmap": True}})
+
+
+CASES = [*(pytest.param(ALGO_CASES[name], id=name) for name in ("bc", "bail", "pbail", "marwil", "bcq", "bear")),
+         *(pytest.param(_vmapped_critics(ALGO_CASES[name]), id=f"{name}_vmap") for name in ("bcq", "bear"))]
+
+
+@pytest.mark.parametrize("case", CASES)
 def test_stacked_seeds_start_and_update_as_their_single_seed_runs(case, monkeypatch):
     """Same initialisation, same prepared data, same mini-batches -> per seed the same losses and weights over the
     first updates (stochastic losses draw ``row_noise``, the same numbers for every seed's rows)."""
@@ -203,3 +213,84 @@ def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
         torch.testing.assert_close(torch.tensor(fit.val_loss), torch.tensor(single.val_loss), rtol=1e-3, atol=1e-4)
         for (name, p), q in zip(net.named_parameters(), single.value_network.parameters()):
             torch.testing.assert_close(p, q, rtol=1e-3, atol=1e-4, msg=name)
+
+
+class _Kill(BaseException):
+    """Stands in for SIGKILL in the middle of a run."""
+
+
+@pytest.mark.parametrize("name", ["bc", "pbail"])
+def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name):
+    """The stack writes one single-seed checkpoint per seed; the stacked run continued from them ends where the
+    uninterrupted stacked run ends, and each of them also continues alone as that seed's single-seed run."""
+    from _contract import equal_trees
+    from tensordict import TensorDict
+
+    case = ALGO_CASES[name]
+    data = loss_batch((200,), seed=2)
+    observation = torch.randn(5, OBS, generator=torch.Generator().manual_seed(3))
+
+    def evaluate(policy):
+        obs = observation.expand(len(SEEDS), 5, OBS) if evaluate.stacked else observation
+        with torch.no_grad():
+            actions = policy(TensorDict({"observation": obs}, obs.shape[:-1]))["action"]
+        sums = actions.sum((-2, -1))
+        return [float(v) for v in sums] if evaluate.stacked else float(sums)
+
+    kwargs = dict(evaluate=evaluate, samples_per_epoch=ALGO_BATCH * 12, eval_every_epochs=0.25, log_every=5,
+                  progress=False)
+
+    def fresh_stack(checkpoints=None):
+        algorithms, streams = [], []
+        for j, seed in enumerate(SEEDS):
+            algorithms.append(_built(case, seed))
+            streams.append(torch.Generator())
+            streams[-1].set_state(torch.get_rng_state())
+            if checkpoints is not None:
+                algorithms[-1].load_state_dict(checkpoints[j]["algorithm"])
+        if checkpoints is None:
+            prepared = prepare_seeds(algorithms, data, [_context(seed) for seed in SEEDS])
+        else:
+            prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, SEEDS)]
+        stack = SeedStack(algorithms)
+        return stack, SeedBatchSampler(prepared, ALGO_BATCH, streams)
+
+    evaluate.stacked = True
+    reference, sampler = fresh_stack()
+    reference_histories = train(reference, sampler, **kwargs)
+    reference.unstack()
+
+    paths = [tmp_path / f"seed{seed}.pt" for seed in SEEDS]
+    killed, sampler = fresh_stack()
+    update, calls = killed.update, [0]
+
+    def dying_update(batch):
+        calls[0] += 1
+        if calls[0] == 8:
+            raise _Kill
+        return update(batch)
+
+    killed.update = dying_update
+    with pytest.raises(_Kill):
+        train(killed, sampler, checkpoint_path=paths, checkpoint_every_s=0.0, **kwargs)
+    checkpoints = [torch.load(p, weights_only=False) for p in paths]
+    assert [c["iteration"] for c in checkpoints] == [7] * len(SEEDS)
+    torch.manual_seed(99)  # the checkpoints' streams replace whatever the process has
+    resumed, sampler = fresh_stack(checkpoints)
+    histories = train(resumed, sampler, checkpoint_path=paths, resume_from=checkpoints, **kwargs)
+    assert [h.evaluations for h in histories] == [h.evaluations for h in reference_histories]
+    resumed.unstack()
+    for got, expected in zip(resumed.algorithms, reference.algorithms):
+        equal_trees(got.state_dict(), expected.state_dict())
+
+    evaluate.stacked = False  # seed 7's checkpoint, continued by its single-seed run
+    single = _built(case, SEEDS[1])
+    single_data = single.prepare(data, _context(SEEDS[1]))
+    single_reference = train(single, single_data, **kwargs)
+    alone = _built(case, SEEDS[1])
+    alone.load_state_dict(checkpoints[1]["algorithm"])
+    history = train(alone, alone.restore_prepared(data, _context(SEEDS[1])), resume_from=checkpoints[1], **kwargs)
+    assert len(history.evaluations) == len(single_reference.evaluations)
+    for got, expected in zip(history.evaluations, single_reference.evaluations):
+        assert math.isclose(got.mean_return, expected.mean_return, rel_tol=1e-4, abs_tol=1e-4)
+    _assert_close_trees(alone.state_dict(), single.state_dict(), "alone")

@@ -296,6 +296,60 @@ class SeedStack:
         if hasattr(self.host, "unstack_attributes"):
             self.host.unstack_attributes(self.algorithms)
 
+    # -- checkpoints: one single-seed checkpoint per seed ---------------------------------------------------------
+    def seed_checkpoints(self, state: dict[str, Any]) -> list[dict[str, Any]]:
+        """The training loop's checkpoint ``state`` of the stack (per-seed ``evaluations``, ``[S]`` metric sums, the
+        :class:`SeedBatchSampler`'s generators) split into one checkpoint per seed in the single-seed format of
+        :func:`torchrl_bail.trainer.train`: the seed's own ``algorithm`` state (after :meth:`unstack`), and as
+        ``rng["torch"]`` (or ``"torch_cuda"``) its mini-batch stream, where a single-seed run keeps it. Each can
+        be resumed by the single-seed run of that seed, or all of them by the stacked run (:meth:`merge_checkpoints`;
+        the stack's own global streams ride along under ``"stack_rng"``)."""
+        self.unstack()
+        count = self.seeds_count
+        sampler = state["sampler"]
+        out = []
+        for j, algorithm in enumerate(self.algorithms):
+            rng = dict(state["rng"])
+            if sampler.get("device", "cpu") == "cpu":
+                rng["torch"] = sampler["generators"][j]
+            else:
+                cuda = list(rng.get("torch_cuda", []))
+                index = sampler.get("device_index", 0)
+                cuda[index:index + 1] = [sampler["generators"][j]]
+                rng["torch_cuda"] = cuda
+            out.append({
+                **state, "algorithm": algorithm.state_dict(), "evaluations": state["evaluations"][j],
+                "metric_sums": {k: (v[j] if torch.is_tensor(v) and v.ndim and v.shape[0] == count else v)
+                                for k, v in state["metric_sums"].items()},
+                "rng": rng, "sampler": {}, "stack_rng": state["rng"],
+            })
+        return out
+
+    @staticmethod
+    def merge_checkpoints(states: Sequence[dict[str, Any]], sampler: SeedBatchSampler) -> dict[str, Any]:
+        """The stack's loop state from ``S`` seeds' checkpoints (:meth:`seed_checkpoints`, or single-seed runs' own,
+        when all stopped at the same iteration); the seeds' algorithms must already hold their ``algorithm`` state.
+        """
+        iterations = sorted({int(st["iteration"]) for st in states})
+        if len(iterations) > 1:
+            raise ValueError(f"the seeds' checkpoints stopped at different iterations {iterations}: a stacked run "
+                             "continues seeds that stopped together; continue them one by one (seed=<s>) instead")
+        keys = {k for st in states for k in st["metric_sums"]}
+
+        def stacked_sum(k):
+            values = [torch.as_tensor(st["metric_sums"].get(k, 0.0)) for st in states]
+            return torch.stack([v.reshape(()) for v in values])
+
+        if sampler.device.type == "cpu":
+            generators = [st["rng"]["torch"] for st in states]
+        else:
+            generators = [st["rng"]["torch_cuda"][sampler.device.index or 0] for st in states]
+        return {
+            **states[0], "evaluations": [st["evaluations"] for st in states],
+            "metric_sums": {k: stacked_sum(k) for k in keys},
+            "rng": states[0].get("stack_rng", states[0]["rng"]), "sampler": {"generators": generators},
+        }
+
     def _optimizer_pairs(self, key: str, optimizer: torch.optim.Optimizer, s: int):
         """``(host parameter, seed s's parameter, seed dim)`` for the optimizer ``key``, in parameter order."""
         dims = {id(t): d for _, t, d in self._entries}
@@ -353,7 +407,7 @@ class SeedBatchSampler:
         sizes = [len(d) for d in datas]
         self.sizes = sizes
         offsets = [0] * len(sizes) if shared else [sum(sizes[:i]) for i in range(len(sizes))]
-        self.offsets = torch.tensor(offsets, device=self.storage.device).unsqueeze(-1)
+        self.offsets = torch.tensor(offsets, device=self.device).unsqueeze(-1)
         self.batch_size = int(batch_size)
         self.generators = list(generators)
 
@@ -361,12 +415,20 @@ class SeedBatchSampler:
         return len(self.storage)
 
     def sample(self) -> TensorDictBase:
-        index = torch.stack([torch.randint(0, n, (self.batch_size,), generator=g, device=self.storage.device)
+        index = torch.stack([torch.randint(0, n, (self.batch_size,), generator=g, device=self.device)
                              for n, g in zip(self.sizes, self.generators)])
         return self.storage[index + self.offsets]
 
+    @property
+    def device(self) -> torch.device:
+        """Where the data lie and the indices are drawn."""
+        if self.storage.device is not None:
+            return self.storage.device
+        return next(iter(self.storage.values(True, True))).device
+
     def state_dict(self) -> dict[str, Any]:
-        return {"generators": [g.get_state() for g in self.generators]}
+        return {"generators": [g.get_state() for g in self.generators], "device": self.device.type,
+                "device_index": self.device.index or 0}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         for g, s in zip(self.generators, state["generators"]):

@@ -291,10 +291,11 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     returns one summary per seed.
 
     Each seed runs with the config of the single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory
-    (:func:`seed_run_dir`): the same ``config.yaml``, logs, ``policy.pt``, ``policy_best.pt`` and ``summary.json``.
-    Seeds whose directory already holds a finished run are reported, not trained again (``resume=auto``); the others
-    train together. A stacked run writes no checkpoint (``checkpoint.pt``): killed, it starts its unfinished seeds
-    over; a seed directory holding a single-seed run's checkpoint is refused (resume that run alone).
+    (:func:`seed_run_dir`): the same ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt``
+    and ``summary.json``. Seeds whose directory already holds a finished run are reported, not trained again
+    (``resume=auto``); the others train together. The checkpoints are single-seed checkpoints: a killed stacked run
+    continues from them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be
+    continued alone (``seed=<s>``).
     """
     import contextlib
 
@@ -315,12 +316,13 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
             resumption = stack.enter_context(Resumption(seed_cfg, seed_dir))
             if resumption.complete is not None:
                 summaries[i] = resumption.complete
-            elif resumption.checkpoint is not None:
-                raise ResumeError(f"{seed_dir} holds the checkpoint of an interrupted single-seed run, which a "
-                                  f"stacked run cannot continue; finish it alone (seed={seeds[i]}, without seeds=) "
-                                  "or start it over with resume=false")
             else:
                 todo.append((i, resumption))
+        stopped = {seeds[i]: (r.checkpoint or {}).get("iteration") for i, r in todo}
+        if len(set(stopped.values())) > 1:
+            raise ResumeError(f"the unfinished seeds stopped at different points (seed: checkpoint iteration "
+                              f"{stopped}); a stacked run continues seeds that stopped together: continue them one "
+                              "by one (seed=<s>, without seeds=) or start over with resume=false")
         if todo:
             trained = _run_stacked([configs[i] for i, _ in todo], [dirs[i] for i, _ in todo], [r for _, r in todo])
             summaries.update(zip([i for i, _ in todo], trained))
@@ -349,16 +351,25 @@ def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[
         data = training_data(cfg, batch, evaluator)
         for resumption in resumptions:
             resumption.check_data(data)
+        checkpoints = [r.checkpoint for r in resumptions]
+        resuming = checkpoints[0] is not None
         loggers = [make_logger(c, d) for c, d in zip(configs, dirs)]
         algorithms, contexts, streams = [], [], []
-        for seed_cfg, seed_dir, logger in zip(configs, dirs, loggers):
+        for seed_cfg, seed_dir, logger, checkpoint in zip(configs, dirs, loggers, checkpoints):
             # exactly what a single-seed run does: seed, build; its mini-batch stream continues the global one
             generator = seed_everything(int(seed_cfg.seed))
             algorithms.append(build_algorithm(seed_cfg.algo, obs_dim, action_spec, device))
-            contexts.append(PrepareContext(run_dir=seed_dir, logger=logger, generator=generator,
-                                           progress=cfg.progress))
             streams.append(_sampling_stream(int(seed_cfg.seed), device))
-        prepared = prepare_seeds(algorithms, data, contexts)
+            if checkpoint is not None:  # a checkpoint restores what prepare fitted: nothing is refitted or logged
+                algorithms[-1].load_state_dict(checkpoint["algorithm"])
+                contexts.append(PrepareContext(generator=generator))
+            else:
+                contexts.append(PrepareContext(run_dir=seed_dir, logger=logger, generator=generator,
+                                               progress=cfg.progress))
+        if resuming:
+            prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts)]
+        else:
+            prepared = prepare_seeds(algorithms, data, contexts)
         stack = SeedStack(algorithms)
         sampler = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
 
@@ -370,15 +381,19 @@ def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[
                             mean_return=point.mean_return)
             return save
 
+        every_minutes = cfg.checkpoint.get("every_minutes")
         histories = train(
             stack, sampler, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
             eval_every_epochs=cfg.eval.every_epochs, logger=loggers, progress=cfg.progress,
+            checkpoint_path=[d / "checkpoint.pt" for d in dirs] if cfg.checkpoint.enabled else None,
+            checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
+            checkpoint_extra=[r.checkpoint_extra for r in resumptions], resume_from=checkpoints if resuming else None,
             on_new_best=[keep_best(i) for i in range(len(configs))],
         )
         stack.unstack()
     finally:
         evaluator.close()
-    wall_time_s = time.perf_counter() - start
+    wall_time_s = time.perf_counter() - start + (checkpoints[0] or {}).get("wall_time_s", 0.0)
     return [finish_run(c, d, batch, a, h, action_spec, obs_dim, r, wall_time_s=wall_time_s)
             for c, d, a, h, r in zip(configs, dirs, algorithms, histories, resumptions)]
 

@@ -143,7 +143,9 @@ def train(
     :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds, ``data`` its
     :class:`~torchrl_bail.stacking.SeedBatchSampler`, ``evaluate`` returns one result per seed, ``logger`` and
     ``on_new_best`` are lists (one per seed; a training scalar of shape ``[S]`` is logged per seed, a scalar to
-    every seed) and the function returns one :class:`TrainHistory` per seed.
+    every seed), so are ``checkpoint_path``, ``checkpoint_extra`` and ``resume_from``: one single-seed checkpoint per
+    seed (:meth:`~torchrl_bail.stacking.SeedStack.seed_checkpoints`); the function returns one
+    :class:`TrainHistory` per seed.
     """
     seeds = getattr(algorithm, "seeds_count", None)
     batch_size = algorithm.batch_size
@@ -165,13 +167,14 @@ def train(
     sums: dict[str, torch.Tensor] = {}
     done, prior_wall_time = 0, 0.0
     if resume_from is not None:
+        if seeds is not None:  # one checkpoint per seed
+            resume_from = algorithm.merge_checkpoints(resume_from, sampler)
         done, prior_wall_time = _restore(resume_from, iterations, histories, sums, sampler, evaluate)
     start = time.perf_counter()
 
     def checkpoint(it: int) -> None:
-        save_checkpoint(checkpoint_path, {
+        state = {
             "format": CHECKPOINT_FORMAT,
-            "algorithm": algorithm.state_dict(),
             "iteration": it,
             "iterations": iterations,
             "evaluations": ([asdict(e) for e in history.evaluations] if seeds is None
@@ -181,8 +184,14 @@ def train(
             "sampler": sampler.state_dict(),
             "evaluator": evaluate.state_dict() if hasattr(evaluate, "state_dict") else None,
             "wall_time_s": prior_wall_time + time.perf_counter() - start,
-            **(checkpoint_extra() if checkpoint_extra is not None else {}),
-        })
+        }
+        if seeds is None:
+            save_checkpoint(checkpoint_path, {**state, "algorithm": algorithm.state_dict(),
+                                              **(checkpoint_extra() if checkpoint_extra is not None else {})})
+            return
+        for path, seed_state, extra in zip(checkpoint_path, algorithm.seed_checkpoints(state),
+                                           checkpoint_extra or [None] * seeds):
+            save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
 
     if checkpoint_path is not None and done == 0:
         checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
