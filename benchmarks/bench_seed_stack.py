@@ -21,6 +21,7 @@ the rounds, so a noisy neighbour on a shared machine hits both sides alike.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -54,10 +55,11 @@ def _sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _median_rate(fn, rounds: list[float]) -> None:
+def _one_round(fn, rates: list[float]) -> None:
+    """Times one call of ``fn`` and appends its rate (calls per second) to ``rates``."""
     start = time.perf_counter()
     fn()
-    rounds.append(1.0 / (time.perf_counter() - start))
+    rates.append(1.0 / (time.perf_counter() - start))
 
 
 def interleaved(stacked, sequential, single, *, repeats: int, warmup: int = 3) -> tuple[float, float, float]:
@@ -68,7 +70,7 @@ def interleaved(stacked, sequential, single, *, repeats: int, warmup: int = 3) -
     rates: tuple[list[float], list[float], list[float]] = ([], [], [])
     for _ in range(repeats):
         for fn, r in zip((stacked, sequential, single), rates):
-            _median_rate(fn, r)
+            _one_round(fn, r)
     return tuple(statistics.median(r) for r in rates)
 
 
@@ -159,7 +161,7 @@ def main() -> None:
     if "bail" in args.algos:
         rows.append(bench_envelope(args.seeds, data, device, args.repeats))
     print(f"\n{args.seeds} seeds stacked vs {args.seeds} sequential  (torch {torch.__version__}, {device}, "
-          f"{torch.get_num_threads()} threads)")
+          f"{torch.get_num_threads()} threads; load average at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
     print(f"{'case':<44} {'stacked/s':>10} {'sequential/s':>13} {'speedup':>8} {'vs 1 seed':>10}")
     for r in rows:
         print(f"{r['name']:<44} {r['stacked_per_s']:>10.2f} {r['sequential_per_s']:>13.2f} {r['speedup']:>8.2f} "

@@ -322,6 +322,8 @@ class SeedStack:
                 "metric_sums": {k: (v[j] if torch.is_tensor(v) and v.ndim and v.shape[0] == count else v)
                                 for k, v in state["metric_sums"].items()},
                 "rng": rng, "sampler": {}, "stack_rng": state["rng"],
+                "stack_mean_metrics": [k for k, v in state["metric_sums"].items()
+                                       if not (torch.is_tensor(v) and v.ndim and v.shape[0] == count)],
             })
         return out
 
@@ -335,8 +337,11 @@ class SeedStack:
             raise ValueError(f"the seeds' checkpoints stopped at different iterations {iterations}: a stacked run "
                              "continues seeds that stopped together; continue them one by one (seed=<s>) instead")
         keys = {k for st in states for k in st["metric_sums"]}
+        means = set(states[0].get("stack_mean_metrics", ()))  # the losses' means over the seeds stay scalars
 
         def stacked_sum(k):
+            if k in means:
+                return states[0]["metric_sums"][k]
             values = [torch.as_tensor(st["metric_sums"].get(k, 0.0)) for st in states]
             return torch.stack([v.reshape(()) for v in values])
 

@@ -141,11 +141,11 @@ def train(
 
     Several seeds at once (:mod:`torchrl_bail.stacking`): ``algorithm`` is a
     :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds, ``data`` its
-    :class:`~torchrl_bail.stacking.SeedBatchSampler`, ``evaluate`` returns one result per seed, ``logger`` and
-    ``on_new_best`` are lists (one per seed; a training scalar of shape ``[S]`` is logged per seed, a scalar to
-    every seed), so are ``checkpoint_path``, ``checkpoint_extra`` and ``resume_from``: one single-seed checkpoint per
-    seed (:meth:`~torchrl_bail.stacking.SeedStack.seed_checkpoints`); the function returns one
-    :class:`TrainHistory` per seed.
+    :class:`~torchrl_bail.stacking.SeedBatchSampler`, ``evaluate`` returns one result per seed; ``logger``,
+    ``on_new_best``, ``checkpoint_path``, ``checkpoint_extra`` and ``resume_from`` are lists, one per seed (one
+    single-seed checkpoint per seed, :meth:`~torchrl_bail.stacking.SeedStack.seed_checkpoints`). A training scalar
+    of shape ``[S]`` is logged per seed; a plain scalar (a loss averaged over the seeds) goes to every seed as
+    ``train/<name>_mean_over_seeds``. The function then returns one :class:`TrainHistory` per seed.
     """
     seeds = getattr(algorithm, "seeds_count", None)
     batch_size = algorithm.batch_size
@@ -205,6 +205,8 @@ def train(
         if it % log_every == 0:
             for j, seed_logger in enumerate(loggers):
                 for k, v in sums.items() if seed_logger is not None else ():
+                    if seeds is not None and not (torch.is_tensor(v) and v.ndim):  # a loss' mean over the seeds
+                        k, v = f"{k}_mean_over_seeds", v
                     value = v[j] if torch.is_tensor(v) and v.ndim else v
                     seed_logger.log_scalar(f"train/{k}", float(value) / log_every, step=it)
             sums.clear()

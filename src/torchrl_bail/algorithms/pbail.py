@@ -129,10 +129,10 @@ class ProgressiveBAIL(BehaviourCloning):
         # 1. envelope step on the non-validation rows (per seed on [S, B] mini-batches, then their mean)
         train_rows = (~batch[VALIDATION_KEY]).to(torch.float32).reshape(batch.batch_size)
         per_row = self.envelope_loss(batch)["loss_envelope"].reshape(batch.batch_size)
-        loss_envelope = ((per_row * train_rows).sum(-1) / train_rows.sum(-1).clamp_min(1.0)).mean()
+        loss_envelope = (per_row * train_rows).sum(-1) / train_rows.sum(-1).clamp_min(1.0)
         opt = self.optimizers["envelope"]
         opt.zero_grad(set_to_none=True)
-        loss_envelope.backward()
+        loss_envelope.mean().backward()
         opt.step()
         # 2. selection inside the mini-batch (inside each seed's row) under the selection envelope
         with torch.no_grad():
