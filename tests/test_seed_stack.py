@@ -294,3 +294,11 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     for got, expected in zip(history.evaluations, single_reference.evaluations):
         assert math.isclose(got.mean_return, expected.mean_return, rel_tol=1e-4, abs_tol=1e-4)
     _assert_close_trees(alone.state_dict(), single.state_dict(), "alone")
+
+
+@pytest.mark.parametrize("seeds", ["[1,1]", "0", "[]", "[-1]", "abc"])
+def test_bad_seeds_are_refused_naming_the_key(seeds):
+    from torchrl_bail.config import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match=r"config key seeds = .*expected null, a count S >= 1"):
+        validate_config(_tiny_config(f"seeds={seeds}"))
