@@ -435,6 +435,18 @@ def is_compile_setting(v: Any) -> bool:
     return isinstance(v, bool) or (isinstance(v, str) and v in COMPILE_MODES[1:])
 
 
+def _seed_list(v: Any) -> bool:
+    """``seeds``: null, a count ``S >= 1`` or a non-empty list of distinct integers ``>= 0``."""
+    if v is None:
+        return True
+    if isinstance(v, bool):
+        return False
+    if isinstance(v, int):
+        return v >= 1
+    return (isinstance(v, (list, tuple)) and len(v) > 0 and len(set(v)) == len(v)
+            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v))
+
+
 def _device_name(v: str) -> bool:
     return v in ("cpu", "cuda", "auto") or (v.startswith("cuda:") and v[5:].isdigit())
 
@@ -445,6 +457,8 @@ class Config(_Checked):
     batch: Any = MISSING       # one of BATCH_SCHEMAS, chosen by the batch yaml's defaults
     algo: Any = MISSING        # one of ALGO_SCHEMAS
     seed: int = non_negative("an integer >= 0")
+    seeds: Any = _rule(_seed_list, "null, a count S >= 1 (seeds seed..seed+S-1) or a list of distinct seeds >= 0, "
+                       "e.g. [1,2,3]")
     device: str = _rule(_device_name, "cpu | cuda | cuda:N | auto")
     # not a run-only key: compiled kernels round differently, so compile=true is another run (README)
     compile: Any = _rule(is_compile_setting, "false | true | " + " | ".join(COMPILE_MODES[1:]))

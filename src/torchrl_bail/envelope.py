@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -43,6 +43,7 @@ from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
 from torchrl_bail.plots import new_figure, save_figure
+from torchrl_bail.stacking import SeedSlice
 
 __all__ = [
     "EarlyStopping",
@@ -349,10 +350,17 @@ def check_fit_arguments(*, batch_size: int, epochs: int, patience: int, val_frac
 
 def envelope_step(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimizer,
                   batch: TensorDictBase) -> torch.Tensor:
-    """One Adam step on the penalty loss of ``batch``; returns the detached loss."""
+    """One Adam step on the penalty loss of ``batch``; returns the detached loss.
+
+    Seed-stacked envelopes (:func:`~torchrl_bail.stacking.stack_modules`, a ``[S, B]`` batch, a loss with
+    ``reduction="none"``): the loss is each seed's mean ``[S]``, and their sum is back-propagated, so each seed's
+    slice receives exactly its own gradient.
+    """
     loss, _ = loss_module.envelope_loss(batch)
+    if loss.ndim:  # per-point losses [S, B] -> per seed [S]
+        loss = loss.mean(-1)
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    loss.sum().backward()
     optimizer.step()
     return loss.detach()
 
@@ -365,34 +373,49 @@ def train_one_epoch(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optim
 
     ``data`` holds the observations (the envelope's in-key) and returns (the loss' ``value_target``) of the whole
     batch on the training device; ``train_index`` (same device) selects the training split; the shuffle draws from
-    ``generator`` on the CPU.
+    ``generator`` on the CPU. Seed-stacked envelopes (see :func:`envelope_step`): ``train_index`` is ``[S, n]``
+    (each seed's split) and ``generator`` a list of ``S`` generators (each seed's shuffle); one loss per seed is
+    returned.
     """
-    n_train = len(train_index)
-    order = train_index[torch.randperm(n_train, generator=generator).to(train_index.device)]
+    n_train = train_index.shape[-1]
+    if train_index.ndim == 1:
+        order = train_index[torch.randperm(n_train, generator=generator).to(train_index.device)]
+    else:
+        order = torch.stack([row[torch.randperm(n_train, generator=g).to(row.device)]
+                             for row, g in zip(train_index, generator)])
     obs_key, return_key = loss_module.value_network.in_keys[0], loss_module.tensor_keys.value_target
     observations, returns = data.get(obs_key), data.get(return_key)
     running = None
     for start in range(0, n_train, batch_size):
-        index = order[start : start + batch_size]
-        obs_b = observations.index_select(0, index)
-        batch = TensorDict({obs_key: obs_b, return_key: returns.index_select(0, index)}, batch_size=obs_b.shape[:1])
-        loss = envelope_step(loss_module, optimizer, batch) * obs_b.shape[0]
+        index = order[..., start : start + batch_size]
+        if index.ndim == 1:
+            obs_b, ret_b = observations.index_select(0, index), returns.index_select(0, index)
+        else:
+            obs_b, ret_b = observations[index], returns[index]
+        batch = TensorDict({obs_key: obs_b, return_key: ret_b}, batch_size=index.shape)
+        loss = envelope_step(loss_module, optimizer, batch) * index.shape[-1]
         running = loss if running is None else running + loss
-    return float(running) / n_train
+    return float(running) / n_train if running.ndim == 0 else (running / n_train).tolist()
 
 
 @torch.no_grad()
-def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> float:
+def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> float | list[float]:
     """The mean penalty loss over every validation point (``nan`` for an empty set), evaluated in chunks for
-    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``)."""
-    n = len(validation)
+    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``).
+
+    Seed-stacked envelopes: ``validation`` is ``[S, n]`` (each seed's validation set), the loss per point
+    (``reduction="none"``), and the result one loss per seed."""
+    n = validation.batch_size[-1]
+    seeds = validation.batch_size[:-1].numel() if validation.batch_dims > 1 else None
     if n == 0:
-        return math.nan
+        return math.nan if seeds is None else [math.nan] * seeds
     total = 0
-    for chunk in validation.split(_VALIDATION_CHUNK):
+    for chunk in validation.split(_VALIDATION_CHUNK, dim=validation.batch_dims - 1):
         loss, _ = loss_module.envelope_loss(chunk)
-        total = total + loss.mean() * len(chunk)
-    return float(total / n)
+        if seeds is not None and loss.ndim < 2:
+            raise ValueError("validation_loss on seed-stacked [S, n] data needs a loss with reduction='none'")
+        total = total + (loss.mean() if seeds is None else loss.mean(-1)) * chunk.batch_size[-1]
+    return float(total / n) if seeds is None else (total / n).tolist()
 
 
 def fit_upper_envelope(
@@ -408,11 +431,11 @@ def fit_upper_envelope(
     val_fraction: float = 0.2,
     patience: int = 4,
     early_stopping: EarlyStopping = "paper",
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | Sequence[torch.Generator] | None = None,
     device: torch.device | str | None = None,
     progress: bool = True,
     callback: Callable[[int, dict[str, Any]], Any] | None = None,
-) -> EnvelopeFit:
+) -> EnvelopeFit | list[EnvelopeFit]:
     """Fits the upper envelope ``V_phi`` to the returns as the authors do (supp. B.1-B.2, Alg. 1).
 
     BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
@@ -468,8 +491,14 @@ def fit_upper_envelope(
             ``info = {"train_loss", "val_loss", "best_epoch", "best_val_loss", "reverted"}``; a truthy return
             value stops training after that epoch. Defaults to ``None``.
 
+    Several seeds in one fit: ``value_network`` stacked over ``S`` seeds
+    (:func:`~torchrl_bail.stacking.stack_modules`) and ``generator`` a list of the ``S`` seeds' generators. Each
+    seed gets its own split, shuffles, validation losses, early stopping (patience count, best weights) and
+    returned weights, exactly those of its own fit with its generator (to float rounding); the mini-batches of
+    all seeds go through one batched step. Returns one :class:`EnvelopeFit` per seed (``callback`` gets lists).
+
     Returns:
-        :class:`EnvelopeFit`.
+        :class:`EnvelopeFit` (a list of them for several seeds).
     """
     mode = check_fit_arguments(batch_size=batch_size, epochs=epochs, patience=patience, val_fraction=val_fraction,
                                early_stopping=early_stopping)
@@ -479,11 +508,19 @@ def fit_upper_envelope(
     device = torch.device(device) if device is not None else _module_device(value_network)
     value_network.to(device)
     dtype = _module_dtype(value_network)
-    loss_module = UpperEnvelopeLoss(value_network, penalty=penalty)
+    stacked = generator is not None and not isinstance(generator, torch.Generator)
+    loss_module = UpperEnvelopeLoss(value_network, penalty=penalty, reduction="none" if stacked else "mean")
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
 
-    train_index, val_index = envelope_split(returns.cpu(), val_fraction, generator=generator)
-    if float(val_fraction) > 0 and len(val_index) == 0:
+    if stacked:
+        generator = list(generator)
+        splits = [envelope_split(returns.cpu(), val_fraction, generator=g) for g in generator]
+        train_index, val_index = (torch.stack(parts) for parts in zip(*splits))
+        networks = [SeedSlice(value_network, s) for s in range(len(generator))]
+    else:
+        train_index, val_index = envelope_split(returns.cpu(), val_fraction, generator=generator)
+        networks = [value_network]
+    if float(val_fraction) > 0 and val_index.shape[-1] == 0:
         warnings.warn(
             f"fit_upper_envelope: {len(returns)} points leave no validation point at val_fraction={val_fraction}; "
             "training without validation or early stopping (the last weights are returned)",
@@ -493,47 +530,59 @@ def fit_upper_envelope(
     data = TensorDict(dict(zip(keys, (observations.to(device=device, dtype=dtype),
                                       returns.to(device=device, dtype=dtype)))), batch_size=[len(returns)])
     validation = data[val_index.to(device)]
+    has_validation = val_index.shape[-1] > 0
     train_on_device = train_index.to(device)
     # as coded, the "best" record aliases the live weights and is never loaded back
-    tracker = EarlyStoppingTracker(value_network, patience=patience, revert=mode != "as_coded",
-                                   copy_best=mode != "as_coded")
+    trackers = [EarlyStoppingTracker(network, patience=patience, revert=mode != "as_coded",
+                                     copy_best=mode != "as_coded") for network in networks]
 
-    train_losses: list[float] = []
-    val_losses: list[float] = []
+    def per_seed(value) -> list:
+        return value if stacked else [value]
+
+    train_losses: list[list[float]] = [[] for _ in networks]
+    val_losses: list[list[float]] = [[] for _ in networks]
     bar = tqdm(range(1, epochs + 1), desc="upper envelope", unit="epoch", disable=not progress, leave=False)
     for epoch in bar:
-        train_losses.append(train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size,
-                                            generator=generator))
-        val_losses.append(validation_loss(loss_module, validation))
-        if len(validation):
-            tracker.observe(val_losses[-1])
-        best_epoch = tracker.best_step if len(validation) else epoch
-        bar.set_postfix(train=f"{train_losses[-1]:.4g}", val=f"{val_losses[-1]:.4g}", best=best_epoch)
+        train = per_seed(train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size,
+                                         generator=generator))
+        val = per_seed(validation_loss(loss_module, validation))
+        for tracker, seed_train, seed_val, tr, va in zip(trackers, train_losses, val_losses, train, val):
+            seed_train.append(tr)
+            seed_val.append(va)
+            if has_validation:
+                tracker.observe(va)
+        best_epochs = [tracker.best_step if has_validation else epoch for tracker in trackers]
+        bar.set_postfix(train=f"{sum(train) / len(train):.4g}", val=f"{sum(val) / len(val):.4g}",
+                        best=best_epochs[0] if not stacked else max(best_epochs))
         if callback is not None:
-            info = {"train_loss": train_losses[-1], "val_loss": val_losses[-1], "best_epoch": best_epoch,
-                    "best_val_loss": tracker.best_loss if len(validation) else math.nan,
-                    "reverted": bool(tracker.reverts)}
-            if callback(epoch, info):
+            info = {"train_loss": train, "val_loss": val, "best_epoch": best_epochs,
+                    "best_val_loss": [tracker.best_loss if has_validation else math.nan for tracker in trackers],
+                    "reverted": [bool(tracker.reverts) for tracker in trackers]}
+            if callback(epoch, info if stacked else {key: value[0] for key, value in info.items()}):
                 break
     bar.close()
 
-    returned: Literal["best", "last"] = "last"
-    if mode == "paper_best" and tracker.best.recorded:
-        tracker.best.load_into(value_network)
-        returned = "best"
-    return EnvelopeFit(
-        value_network=value_network,
-        train_loss=train_losses,
-        val_loss=val_losses,
-        best_epoch=tracker.best_step if len(validation) else len(train_losses),
-        best_val_loss=tracker.best_loss if len(validation) else math.nan,
-        train_index=train_index,
-        val_index=val_index,
-        revert_epochs=tracker.reverts,
-        early_stopping=mode,
-        returned=returned,
-        optimizer=optimizer,
-    )
+    fits = []
+    for network, tracker, seed_train, seed_val, seed in zip(networks, trackers, train_losses, val_losses,
+                                                            range(len(networks))):
+        returned: Literal["best", "last"] = "last"
+        if mode == "paper_best" and tracker.best.recorded:
+            tracker.best.load_into(network)
+            returned = "best"
+        fits.append(EnvelopeFit(
+            value_network=value_network,
+            train_loss=seed_train,
+            val_loss=seed_val,
+            best_epoch=tracker.best_step if has_validation else len(seed_train),
+            best_val_loss=tracker.best_loss if has_validation else math.nan,
+            train_index=train_index[seed] if stacked else train_index,
+            val_index=val_index[seed] if stacked else val_index,
+            revert_epochs=tracker.reverts,
+            early_stopping=mode,
+            returned=returned,
+            optimizer=optimizer,
+        ))
+    return fits if stacked else fits[0]
 
 
 @torch.no_grad()

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
 from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
@@ -119,13 +119,16 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return logger
 
 
-def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary.
+def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | list[dict[str, Any]]:
+    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary (with ``seeds=``: one
+    summary per seed, see :func:`run_seeds`).
 
     With ``resume=auto`` (default) a checkpoint in ``run_dir`` is continued and a finished run is reported, not
     trained again (:mod:`torchrl_bail.resume`).
     """
     validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
+    if cfg.get("seeds") is not None:
+        return run_seeds(cfg, run_dir)
     # -- resume: lock the run directory, then continue, report complete, or start fresh --------------------------
     with Resumption(cfg, Path(run_dir)) as resumption:
         if resumption.complete is not None:
@@ -135,10 +138,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, Any]:
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
-    from torchrl_bail.data import monte_carlo_returns
     from torchrl_bail.evaluation import Evaluator
-    from torchrl_bail.io import write_json_atomic
-    from torchrl_bail.plots import plot_learning_curve
     from torchrl_bail.policy import save_policy
     from torchrl_bail.trainer import train
 
@@ -152,18 +152,8 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
                           max_episode_steps=cfg.env.get("max_episode_steps"), device=device)
     try:
-        obs_dim, act_dim = evaluator.obs_dim, evaluator.action_spec.shape[-1]
-        if (batch.obs_dim, batch.act_dim) != (obs_dim, act_dim):
-            raise ConfigError(
-                f"batch {batch.path} has observation/action sizes ({batch.obs_dim}, {batch.act_dim}) but env "
-                f"{cfg.env.id} has ({obs_dim}, {act_dim}); pick the matching env= for this dataset"
-            )
-        data = batch.data
-        returns = monte_carlo_returns(data, gamma=cfg.returns.gamma, horizon=cfg.returns.horizon,
-                                      augment=cfg.returns.augment)
-        data = data.select("observation", "action", "next", "episode").clone(False)
-        data.set("return", returns)
-
+        obs_dim = evaluator.obs_dim
+        data = training_data(cfg, batch, evaluator)
         logger = make_logger(cfg, run_dir)
         algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
         # -- resume: a checkpoint restores what prepare fitted; nothing is refitted, logged or plotted twice --------
@@ -190,14 +180,44 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
             checkpoint_extra=resumption.checkpoint_extra, resume_from=checkpoint, progress=cfg.progress,
             on_new_best=keep_best,
         )
-        last = history.evaluations[-1] if history.evaluations else None
-        save_policy(run_dir / "policy.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,
-                    iteration=history.iterations, epoch=algorithm.epochs,
-                    **({} if last is None else {"evaluation": len(history.evaluations) - 1,
-                                                "mean_return": last.mean_return}))
     finally:
         evaluator.close()
+    return finish_run(cfg, run_dir, batch, algorithm, history, evaluator.action_spec, obs_dim, resumption,
+                      wall_time_s=time.perf_counter() - start + (checkpoint or {}).get("wall_time_s", 0.0))
 
+
+def training_data(cfg: DictConfig, batch, evaluator):
+    """The batch's transitions with their Monte-Carlo returns (``"return"``), after checking that the batch fits
+    the evaluation env."""
+    from torchrl_bail.data import monte_carlo_returns
+
+    obs_dim, act_dim = evaluator.obs_dim, evaluator.action_spec.shape[-1]
+    if (batch.obs_dim, batch.act_dim) != (obs_dim, act_dim):
+        raise ConfigError(
+            f"batch {batch.path} has observation/action sizes ({batch.obs_dim}, {batch.act_dim}) but env "
+            f"{cfg.env.id} has ({obs_dim}, {act_dim}); pick the matching env= for this dataset"
+        )
+    data = batch.data
+    returns = monte_carlo_returns(data, gamma=cfg.returns.gamma, horizon=cfg.returns.horizon,
+                                  augment=cfg.returns.augment)
+    data = data.select("observation", "action", "next", "episode").clone(False)
+    data.set("return", returns)
+    return data
+
+
+def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action_spec, obs_dim: int,
+               resumption: Resumption, *, wall_time_s: float) -> dict[str, Any]:
+    """After training: ``policy.pt``, ``summary.json`` (written last: it marks the run complete) and the learning
+    curve of one seed's run; returns the summary."""
+    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.plots import plot_learning_curve
+    from torchrl_bail.policy import save_policy
+
+    last = history.evaluations[-1] if history.evaluations else None
+    save_policy(run_dir / "policy.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=action_spec,
+                iteration=history.iterations, epoch=algorithm.epochs,
+                **({} if last is None else {"evaluation": len(history.evaluations) - 1,
+                                            "mean_return": last.mean_return}))
     episode_returns = batch.episode_returns()
     summary = {
         "algo": cfg.algo.name,
@@ -219,7 +239,7 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
         "returns_augment": cfg.returns.augment,
         **algorithm.summary(),
         **resumption.summary_fields(),
-        "wall_time_s": time.perf_counter() - start + (checkpoint or {}).get("wall_time_s", 0.0),
+        "wall_time_s": wall_time_s,
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
     }
@@ -233,6 +253,164 @@ def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, An
     log.info("final_return %.1f (best %.1f, batch mean %.1f) -> %s", summary["final_return"],
              summary["best_return"], summary["dataset_mean_episode_return"], run_dir / "summary.json")
     return summary
+
+
+def seed_list(cfg: DictConfig) -> list[int]:
+    """The seeds of a ``seeds=`` run: the list itself, or for a count ``S`` the seeds ``seed, ..., seed + S - 1``.
+
+    Examples:
+        >>> seed_list(OmegaConf.create({"seed": 4, "seeds": 3})), seed_list(OmegaConf.create({"seed": 1, "seeds": [7, 2]}))
+        ([4, 5, 6], [7, 2])
+    """
+    seeds = cfg.seeds
+    if isinstance(seeds, int):
+        return list(range(int(cfg.seed), int(cfg.seed) + seeds))
+    return [int(s) for s in seeds]
+
+
+def seed_run_dir(run_dir: Path, seed: int, other: int) -> Path:
+    """Where the single-seed run with seed ``other`` writes, given this command's run directory (made for
+    ``seed``): the last path component's ``seed<seed>`` prefix becomes ``seed<other>``, so each seed of a stacked run
+    lands exactly where ``seed=<other>`` alone would. A run directory named otherwise (``hydra.run.dir=...``) gets one
+    sub-directory ``seed<other>`` per seed.
+
+    Examples:
+        >>> seed_run_dir(Path("outputs/hopper_ddpg_b1/bc/seed1,preset=quick"), 1, 3).as_posix()
+        'outputs/hopper_ddpg_b1/bc/seed3,preset=quick'
+        >>> seed_run_dir(Path("/tmp/run"), 1, 3).as_posix()
+        '/tmp/run/seed3'
+    """
+    run_dir, prefix = Path(run_dir), f"seed{seed}"
+    name = run_dir.name
+    if name.startswith(prefix) and (len(name) == len(prefix) or not name[len(prefix)].isdigit()):
+        return run_dir.parent / f"seed{other}{name[len(prefix):]}"
+    return run_dir / f"seed{other}"
+
+
+def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
+    """Trains the seeds of ``cfg.seeds`` in one process, their networks stacked (:mod:`torchrl_bail.stacking`);
+    returns one summary per seed.
+
+    Each seed runs with the config of the single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory
+    (:func:`seed_run_dir`): the same ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt``
+    and ``summary.json``. Seeds whose directory already holds a finished run are reported, not trained again
+    (``resume=auto``); the others train together. The checkpoints are single-seed checkpoints: a killed stacked run
+    continues from them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be
+    continued alone (``seed=<s>``).
+    """
+    import contextlib
+
+    from torchrl_bail.resume import ResumeError
+
+    seeds = seed_list(cfg)
+    configs, dirs = [], []
+    for seed in seeds:
+        seed_cfg = cfg.copy()
+        with open_dict(seed_cfg):
+            seed_cfg.seed, seed_cfg.seeds = seed, None
+        configs.append(seed_cfg)
+        dirs.append(seed_run_dir(run_dir, int(cfg.seed), seed))
+    summaries: dict[int, dict[str, Any]] = {}
+    with contextlib.ExitStack() as stack:
+        todo = []
+        for i, (seed_cfg, seed_dir) in enumerate(zip(configs, dirs)):
+            resumption = stack.enter_context(Resumption(seed_cfg, seed_dir))
+            if resumption.complete is not None:
+                summaries[i] = resumption.complete
+            else:
+                todo.append((i, resumption))
+        stopped = {seeds[i]: (r.checkpoint or {}).get("iteration") for i, r in todo}
+        if len(set(stopped.values())) > 1:
+            raise ResumeError(f"the unfinished seeds stopped at different points (seed: checkpoint iteration "
+                              f"{stopped}); a stacked run continues seeds that stopped together: continue them one "
+                              "by one (seed=<s>, without seeds=) or start over with resume=false")
+        if todo:
+            trained = _run_stacked([configs[i] for i, _ in todo], [dirs[i] for i, _ in todo], [r for _, r in todo])
+            summaries.update(zip([i for i, _ in todo], trained))
+    return [summaries[i] for i in range(len(seeds))]
+
+
+def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[Resumption]) -> list[dict[str, Any]]:
+    from torchrl_bail.algorithms import PrepareContext, build_algorithm
+    from torchrl_bail.evaluation import Evaluator
+    from torchrl_bail.policy import save_policy
+    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
+    from torchrl_bail.trainer import train
+
+    start = time.perf_counter()
+    cfg = configs[0]
+    for seed_cfg, seed_dir in zip(configs, dirs):
+        OmegaConf.save(seed_cfg, seed_dir / "config.yaml", resolve=True)
+    device = _device(cfg.device)
+    batch = load_training_batch(cfg)
+    seeds = [int(c.seed) for c in configs]
+    log.info("training seeds %s of %s in one process (networks stacked)", seeds, cfg.algo.name)
+    evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seeds=seeds, max_steps=cfg.eval.max_steps,
+                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device)
+    try:
+        obs_dim, action_spec = evaluator.obs_dim, evaluator.action_spec
+        data = training_data(cfg, batch, evaluator)
+        for resumption in resumptions:
+            resumption.check_data(data)
+        checkpoints = [r.checkpoint for r in resumptions]
+        resuming = checkpoints[0] is not None
+        loggers = [make_logger(c, d) for c, d in zip(configs, dirs)]
+        algorithms, contexts, streams = [], [], []
+        for seed_cfg, seed_dir, logger, checkpoint in zip(configs, dirs, loggers, checkpoints):
+            # exactly what a single-seed run does: seed, build; its mini-batch stream continues the global one
+            generator = seed_everything(int(seed_cfg.seed))
+            algorithms.append(build_algorithm(seed_cfg.algo, obs_dim, action_spec, device))
+            streams.append(_sampling_stream(int(seed_cfg.seed), device))
+            if checkpoint is not None:  # a checkpoint restores what prepare fitted: nothing is refitted or logged
+                algorithms[-1].load_state_dict(checkpoint["algorithm"])
+                contexts.append(PrepareContext(generator=generator))
+            else:
+                contexts.append(PrepareContext(run_dir=seed_dir, logger=logger, generator=generator,
+                                               progress=cfg.progress))
+        if resuming:
+            prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts)]
+        else:
+            prepared = prepare_seeds(algorithms, data, contexts)
+        stack = SeedStack(algorithms)
+        stack.host.compile(cfg.compile)  # the one update all seeds share; a no-op for compile=false
+        sampler = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
+
+        def keep_best(i: int):
+            def save(point, index: int) -> None:
+                stack.unstack()
+                save_policy(dirs[i] / "policy_best.pt", algorithms[i], configs[i], obs_dim=obs_dim,
+                            action_spec=action_spec, iteration=point.iteration, epoch=point.epoch, evaluation=index,
+                            mean_return=point.mean_return)
+            return save
+
+        every_minutes = cfg.checkpoint.get("every_minutes")
+        histories = train(
+            stack, sampler, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
+            eval_every_epochs=cfg.eval.every_epochs, logger=loggers, progress=cfg.progress,
+            checkpoint_path=[d / "checkpoint.pt" for d in dirs] if cfg.checkpoint.enabled else None,
+            checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
+            checkpoint_extra=[r.checkpoint_extra for r in resumptions], resume_from=checkpoints if resuming else None,
+            on_new_best=[keep_best(i) for i in range(len(configs))],
+        )
+        stack.unstack()
+    finally:
+        evaluator.close()
+    wall_time_s = time.perf_counter() - start + (checkpoints[0] or {}).get("wall_time_s", 0.0)
+    return [finish_run(c, d, batch, a, h, action_spec, obs_dim, r, wall_time_s=wall_time_s)
+            for c, d, a, h, r in zip(configs, dirs, algorithms, histories, resumptions)]
+
+
+def _sampling_stream(seed: int, device):
+    """The generator seed ``seed``'s mini-batch indices come from: a copy of the global stream right after its
+    algorithm was built (CPU), or a CUDA generator seeded like the default one ``torch.manual_seed`` seeds (the
+    indices of a single-seed run are drawn on the data's device)."""
+    import torch
+
+    if device.type == "cpu":
+        generator = torch.Generator()
+        generator.set_state(torch.get_rng_state())
+        return generator
+    return torch.Generator(device=device).manual_seed(seed)
 
 
 def _best_policy(history) -> dict[str, Any] | None:
@@ -282,7 +460,10 @@ def _hydra_main(cfg: DictConfig) -> float:
         torch.set_num_threads(threads)
         log.info("torch threads: %d", threads)
     with exit_on_config_error():
-        return run(cfg, Path(HydraConfig.get().runtime.output_dir))["final_return"]
+        summaries = run(cfg, Path(HydraConfig.get().runtime.output_dir))
+    if isinstance(summaries, list):  # seeds=: the sweeper's objective is the mean over the seeds
+        return sum(s["final_return"] for s in summaries) / len(summaries)
+    return summaries["final_return"]
 
 
 def main() -> None:

@@ -113,7 +113,7 @@ def train(
     progress: bool = True,
     log_every: int = 100,
     on_new_best: Callable[[EvalPoint, int], None] | None = None,
-) -> TrainHistory:
+) -> TrainHistory | list[TrainHistory]:
     """Runs ``algorithm`` for ``algorithm.epochs`` epochs on ``data``.
 
     Args:
@@ -138,37 +138,60 @@ def train(
         log_every (int): training scalars are averaged and logged every ``log_every`` updates.
         on_new_best: ``(point, index)`` called when an evaluation beats every earlier one (e.g. to save the
             best policy); ``index`` is the evaluation's position in ``history.evaluations``.
+
+    Several seeds at once (:mod:`torchrl_bail.stacking`): ``algorithm`` is a
+    :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds, ``data`` its
+    :class:`~torchrl_bail.stacking.SeedBatchSampler`, ``evaluate`` returns one result per seed; ``logger``,
+    ``on_new_best``, ``checkpoint_path``, ``checkpoint_extra`` and ``resume_from`` are lists, one per seed (one
+    single-seed checkpoint per seed, :meth:`~torchrl_bail.stacking.SeedStack.seed_checkpoints`). A training scalar
+    of shape ``[S]`` is logged per seed; a plain scalar (a loss averaged over the seeds) goes to every seed as
+    ``train/<name>_mean_over_seeds``. The function then returns one :class:`TrainHistory` per seed.
     """
-    if len(data) == 0:
-        raise ValueError("the training data is empty: nothing to sample mini-batches from")
+    seeds = getattr(algorithm, "seeds_count", None)
     batch_size = algorithm.batch_size
     per_update = algorithm.samples_per_update
     iterations = max(1, math.ceil(algorithm.epochs * samples_per_epoch / per_update))
     eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / per_update))
-    data = data.to(algorithm.device)
-    sampler = RandomSampler()
-    buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=sampler, batch_size=batch_size)
-    history = TrainHistory()
+    if seeds is None:
+        if len(data) == 0:
+            raise ValueError("the training data is empty: nothing to sample mini-batches from")
+        data = data.to(algorithm.device)
+        sampler = RandomSampler()
+        buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=sampler, batch_size=batch_size)
+    else:
+        buffer = sampler = data  # a SeedBatchSampler: [S, B] mini-batches, one random stream per seed
+    loggers = [logger] if seeds is None else list(logger or [None] * seeds)
+    best_callbacks = [on_new_best] if seeds is None else list(on_new_best or [None] * seeds)
+    histories = [TrainHistory() for _ in loggers]
+    history = histories[0]
     sums: dict[str, torch.Tensor] = {}
     done, prior_wall_time = 0, 0.0
     if resume_from is not None:
-        done, prior_wall_time = _restore(resume_from, iterations, history, sums, sampler, evaluate)
+        if seeds is not None:  # one checkpoint per seed
+            resume_from = algorithm.merge_checkpoints(resume_from, sampler)
+        done, prior_wall_time = _restore(resume_from, iterations, histories, sums, sampler, evaluate)
     start = time.perf_counter()
 
     def checkpoint(it: int) -> None:
-        save_checkpoint(checkpoint_path, {
+        state = {
             "format": CHECKPOINT_FORMAT,
-            "algorithm": algorithm.state_dict(),
             "iteration": it,
             "iterations": iterations,
-            "evaluations": [asdict(e) for e in history.evaluations],
+            "evaluations": ([asdict(e) for e in history.evaluations] if seeds is None
+                            else [[asdict(e) for e in h.evaluations] for h in histories]),
             "metric_sums": {k: v.clone() if torch.is_tensor(v) else v for k, v in sums.items()},
             "rng": rng_state(),
             "sampler": sampler.state_dict(),
             "evaluator": evaluate.state_dict() if hasattr(evaluate, "state_dict") else None,
             "wall_time_s": prior_wall_time + time.perf_counter() - start,
-            **(checkpoint_extra() if checkpoint_extra is not None else {}),
-        })
+        }
+        if seeds is None:
+            save_checkpoint(checkpoint_path, {**state, "algorithm": algorithm.state_dict(),
+                                              **(checkpoint_extra() if checkpoint_extra is not None else {})})
+            return
+        for path, seed_state, extra in zip(checkpoint_path, algorithm.seed_checkpoints(state),
+                                           checkpoint_extra or [None] * seeds):
+            save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
 
     if checkpoint_path is not None and done == 0:
         checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
@@ -179,24 +202,28 @@ def train(
         metrics = algorithm.update(buffer.sample())
         for k, v in metrics.items():
             sums[k] = sums.get(k, 0.0) + v
-        if logger is not None and it % log_every == 0:
-            for k, v in sums.items():
-                logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
-            sums.clear()
-        elif logger is None and it % log_every == 0:
+        if it % log_every == 0:
+            for j, seed_logger in enumerate(loggers):
+                for k, v in sums.items() if seed_logger is not None else ():
+                    if seeds is not None and not (torch.is_tensor(v) and v.ndim):  # a loss' mean over the seeds
+                        k, v = f"{k}_mean_over_seeds", v
+                    value = v[j] if torch.is_tensor(v) and v.ndim else v
+                    seed_logger.log_scalar(f"train/{k}", float(value) / log_every, step=it)
             sums.clear()
         evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
         if evaluated:
-            point = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
-            is_best = all(point.mean_return > e.mean_return for e in history.evaluations)
-            history.evaluations.append(point)
-            if on_new_best is not None and is_best:
-                on_new_best(point, len(history.evaluations) - 1)
-            if logger is not None:
-                logger.log_scalar("eval/return", point.mean_return, step=it)
-                logger.log_scalar("eval/epoch", point.epoch, step=it)
-                logger.log_scalar("eval/failures", point.failures, step=it)
-            bar.set_postfix(epoch=f"{point.epoch:.2f}", eval_return=f"{point.mean_return:.1f}")
+            points = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
+            for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks):
+                is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
+                seed_history.evaluations.append(point)
+                if callback is not None and is_best:
+                    callback(point, len(seed_history.evaluations) - 1)
+                if seed_logger is not None:
+                    seed_logger.log_scalar("eval/return", point.mean_return, step=it)
+                    seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
+                    seed_logger.log_scalar("eval/failures", point.failures, step=it)
+            mean_return = sum(p.mean_return for p in points) / len(points)
+            bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
         if checkpoint_path is not None and (
             evaluated or it == iterations
             or (checkpoint_every_s is not None and time.monotonic() - last_checkpoint >= checkpoint_every_s)
@@ -205,12 +232,14 @@ def train(
             last_checkpoint = time.monotonic()
         bar.update(1)
     bar.close()
-    history.iterations = iterations
-    history.wall_time_s = prior_wall_time + time.perf_counter() - start
-    return history
+    for seed_history in histories:
+        seed_history.iterations = iterations
+        seed_history.wall_time_s = prior_wall_time + time.perf_counter() - start
+    return history if seeds is None else histories
 
 
-def _restore(state: dict, iterations: int, history: TrainHistory, sums: dict, sampler, evaluate) -> tuple[int, float]:
+def _restore(state: dict, iterations: int, histories: list[TrainHistory], sums: dict, sampler,
+             evaluate) -> tuple[int, float]:
     """Loads the loop's side of a checkpoint; returns ``(iteration, wall time so far)``."""
     if state.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}: it was written by "
@@ -218,7 +247,9 @@ def _restore(state: dict, iterations: int, history: TrainHistory, sums: dict, sa
     if state["iterations"] != iterations:
         raise ValueError(f"the checkpoint's schedule has {state['iterations']} iterations but this run has "
                          f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
-    history.evaluations.extend(EvalPoint(**e) for e in state["evaluations"])
+    per_seed = state["evaluations"] if len(histories) > 1 else [state["evaluations"]]
+    for history, evaluations in zip(histories, per_seed):
+        history.evaluations.extend(EvalPoint(**e) for e in evaluations)
     sums.update(state["metric_sums"])
     sampler.load_state_dict(state["sampler"])
     if state.get("evaluator") is not None and hasattr(evaluate, "load_state_dict"):
@@ -227,8 +258,9 @@ def _restore(state: dict, iterations: int, history: TrainHistory, sums: dict, sa
     return int(state["iteration"]), float(state.get("wall_time_s", 0.0))
 
 
-def _evaluate(evaluate: Callable, algorithm: Algorithm, iteration: int, epoch: float) -> EvalPoint:
-    result = evaluate(algorithm.policy)
-    if isinstance(result, (int, float)):
-        return EvalPoint(iteration, epoch, float(result))
-    return EvalPoint(iteration, epoch, result.mean_return, list(result.returns), result.failures)
+def _evaluate(evaluate: Callable, algorithm: Algorithm, iteration: int, epoch: float) -> list[EvalPoint]:
+    """One evaluation as one point per seed (a list of one for a single-seed run)."""
+    results = evaluate(algorithm.policy)
+    return [EvalPoint(iteration, epoch, float(result)) if isinstance(result, (int, float)) else
+            EvalPoint(iteration, epoch, result.mean_return, list(result.returns), result.failures)
+            for result in (results if isinstance(results, list) else [results])]

@@ -13,6 +13,7 @@ regression instead of the envelope).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
@@ -24,6 +25,7 @@ from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below, plot_envelope
 from torchrl_bail.modules import make_value_network
+from torchrl_bail.stacking import stack_modules, unstack_modules
 from torchrl_bail.transforms.best_action import BestActionFilter
 
 __all__ = ["BAIL"]
@@ -59,12 +61,39 @@ class BAIL(BehaviourCloning):
         self._summary: dict[str, Any] = {}
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
-        observations, returns = data["observation"], data["return"]
+        fit = None
         if self.selection_by == "envelope":
             fit = fit_upper_envelope(
-                self.value_network, observations.to(self.device), returns.to(self.device),
+                self.value_network, data["observation"].to(self.device), data["return"].to(self.device),
                 generator=ctx.generator, device=self.device, progress=ctx.progress, **self.envelope_kwargs,
             )
+        return self._select_after_fit(data, fit, ctx)
+
+    @staticmethod
+    def prepare_stacked(algorithms: list[BAIL], data: TensorDictBase,
+                        contexts: list[PrepareContext]) -> list[TensorDictBase]:
+        """:meth:`prepare` of ``S`` seeds' BAIL (:mod:`torchrl_bail.stacking`): their envelopes are fitted as one
+        seed-stacked network, each seed with its own split, shuffles, early stopping and best weights (those of its
+        own :meth:`prepare`, to float rounding); then each seed selects its best actions under its envelope."""
+        first = algorithms[0]
+        if first.selection_by != "envelope":
+            return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts)]
+        networks = [algorithm.value_network for algorithm in algorithms]
+        stacked = stack_modules(networks)
+        observations = data["observation"].to(first.device)
+        fits = fit_upper_envelope(
+            stacked, observations, data["return"].to(first.device), generator=[ctx.generator for ctx in contexts],
+            device=first.device, progress=contexts[0].progress, **first.envelope_kwargs,
+        )
+        unstack_modules(stacked, networks)
+        return [algorithm._select_after_fit(data, dataclasses.replace(fit, value_network=network), ctx)
+                for algorithm, fit, network, ctx in zip(algorithms, fits, networks, contexts)]
+
+    def _select_after_fit(self, data: TensorDictBase, fit, ctx: PrepareContext) -> TensorDictBase:
+        """What :meth:`prepare` does after the envelope fit (``fit`` is ``None`` when ranking by return): log the
+        fit, measure the envelope, plot it, select the best actions."""
+        observations, returns = data["observation"], data["return"]
+        if fit is not None:
             for epoch, (tr, va) in enumerate(zip(fit.train_loss, fit.val_loss), start=1):
                 ctx.log("envelope/train_loss", tr, step=epoch)
                 ctx.log("envelope/val_loss", va, step=epoch)

@@ -40,6 +40,7 @@ from torchrl_bail.algorithms.bc import BehaviourCloning, make_bc_loss
 from torchrl_bail.envelope import EarlyStoppingTracker, validation_loss
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+from torchrl_bail.stacking import SeedSlice
 from torchrl_bail.transforms.best_action import best_action_mask
 
 __all__ = ["ProgressiveBAIL"]
@@ -90,6 +91,8 @@ class ProgressiveBAIL(BehaviourCloning):
                                                    copy_best=not as_coded)
         self._iteration = 0
         self._validation_data: TensorDictBase | None = None
+        #: ``(early-stopping tracker, selection network)`` per seed: one pair here, one per seed when stacked
+        self._seed_tracking = [(self.early_stopping, self.selection_network)]
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
         n = len(data)
@@ -109,14 +112,15 @@ class ProgressiveBAIL(BehaviourCloning):
         """One validation of the training envelope; the tracker may revert it, then the selection network follows
         ``phi'`` (see the module docstring)."""
         val = self._validation_data
-        if val is None or len(val) == 0:  # no validation set: no early stopping
+        if val is None or val.batch_size[-1] == 0:  # no validation set: no early stopping
             return
-        event = self.early_stopping.observe(validation_loss(self.envelope_loss, val))
-        best = self.early_stopping.best
-        if self.best_envelope == "paper" and event == "improved":
-            best.load_into(self.selection_network)
-        elif self.best_envelope == "as_coded" and event == "worse":
-            best.load_into(self.selection_network)  # the aliased record: the current weights
+        losses = validation_loss(self.envelope_loss, val)
+        for (tracker, selection), loss in zip(self._seed_tracking, losses if isinstance(losses, list) else [losses]):
+            event = tracker.observe(loss)
+            if self.best_envelope == "paper" and event == "improved":
+                tracker.best.load_into(selection)
+            elif self.best_envelope == "as_coded" and event == "worse":
+                tracker.best.load_into(selection)  # the aliased record: the current weights
 
     #: the validation clock and the early-stopping decisions stay in Python; the three steps are compiled
     compiled_method = "_steps"
@@ -129,19 +133,19 @@ class ProgressiveBAIL(BehaviourCloning):
 
     def _steps(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """The envelope step, the selection and the imitation step of one update (tensor work only)."""
-        # 1. envelope step on the non-validation rows
-        train_rows = (~batch[VALIDATION_KEY]).to(torch.float32)
-        per_row = self.envelope_loss(batch)["loss_envelope"].reshape(-1)
-        loss_envelope = (per_row * train_rows).sum() / train_rows.sum().clamp_min(1.0)
+        # 1. envelope step on the non-validation rows (per seed on [S, B] mini-batches, then their mean)
+        train_rows = (~batch[VALIDATION_KEY]).to(torch.float32).reshape(batch.batch_size)
+        per_row = self.envelope_loss(batch)["loss_envelope"].reshape(batch.batch_size)
+        loss_envelope = (per_row * train_rows).sum(-1) / train_rows.sum(-1).clamp_min(1.0)
         opt = self.optimizers["envelope"]
         opt.zero_grad(set_to_none=True)
-        loss_envelope.backward()
+        loss_envelope.mean().backward()
         opt.step()
-        # 2. selection inside the mini-batch under the selection envelope
+        # 2. selection inside the mini-batch (inside each seed's row) under the selection envelope
         with torch.no_grad():
             selector = self.value_network if self.selection_envelope == "training" else self.selection_network
-            values = selector(batch.select("observation"))["state_value"].reshape(-1)
-            selected = best_action_mask(batch["return"].reshape(-1), values, self.percentile,
+            values = selector(batch.select("observation"))["state_value"].reshape(batch.batch_size)
+            selected = best_action_mask(batch["return"].reshape(batch.batch_size), values, self.percentile,
                                         nonpositive_value="project" if self.v_projection else "raw")
         # 3. imitation step, normalised by the whole mini-batch
         weight = selected.to(torch.float32).unsqueeze(-1)
@@ -151,7 +155,28 @@ class ProgressiveBAIL(BehaviourCloning):
         loss_bc.backward()
         opt.step()
         return {"loss_envelope": loss_envelope.detach(), "loss_bc": loss_bc.detach(),
-                "selected_fraction": selected.float().mean()}
+                "selected_fraction": selected.float().mean(-1)}
+
+    # -- several seeds in one process (torchrl_bail.stacking.SeedStack) --------------------------------------------
+    def stack_attributes(self, algorithms: list[ProgressiveBAIL]) -> None:
+        """On the stack's host: the seeds' validation sets ``[S, n_val]``, update clock and early-stopping states;
+        each seed's tracker and selection network act on its slice of the stacked envelopes."""
+        self._iteration = algorithms[0]._iteration
+        if algorithms[0]._validation_data is not None:
+            self._validation_data = torch.stack([a._validation_data for a in algorithms])
+        as_coded = self.best_envelope == "as_coded"
+        self._seed_tracking = []
+        for s, algorithm in enumerate(algorithms):
+            tracker = EarlyStoppingTracker(SeedSlice(self.value_network, s), patience=self.patience,
+                                           revert=not as_coded, copy_best=not as_coded)
+            tracker.load_state_dict(algorithm.early_stopping.state_dict())
+            self._seed_tracking.append((tracker, SeedSlice(self.selection_network, s)))
+
+    def unstack_attributes(self, algorithms: list[ProgressiveBAIL]) -> None:
+        """Each seed's update clock and early-stopping state back into its own algorithm."""
+        for algorithm, (tracker, _) in zip(algorithms, self._seed_tracking):
+            algorithm._iteration = self._iteration
+            algorithm.early_stopping.load_state_dict(tracker.state_dict())
 
     def summary(self) -> dict[str, Any]:
         return {"envelope_best_val_loss": self.early_stopping.best_loss,

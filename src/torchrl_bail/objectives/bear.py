@@ -286,7 +286,7 @@ class BEARLoss(TwinCriticVAELoss):
         if terms is None:
             terms = self.policy_terms(tensordict)
         mmd, policy_q = terms["mmd"], terms["policy_q"]
-        constraint = self.log_alpha.detach().exp() * mmd
+        constraint = self._seed_log_alpha().detach().exp() * mmd
         warm = self.update_count < self.warm_start_updates
         loss = self._reduce(torch.where(warm, constraint, constraint - policy_q), tensordict)
         self._clear_weakrefs(tensordict, "actor_network_params", "qvalue_network_params", "vae_network_params")
@@ -300,9 +300,14 @@ class BEARLoss(TwinCriticVAELoss):
             with torch.no_grad():
                 terms = self.policy_terms(tensordict)
         mmd, policy_q = terms["mmd"].detach(), terms["policy_q"].detach()
-        alpha = self.log_alpha.exp()
+        alpha = self._seed_log_alpha().exp()
         loss = self._reduce(policy_q - alpha * (mmd - self.epsilon), tensordict)
-        return loss, {"alpha": alpha.detach()}
+        return loss, {"alpha": alpha.detach().squeeze(-1) if alpha.ndim else alpha.detach()}
+
+    def _seed_log_alpha(self) -> torch.Tensor:
+        """``log_alpha`` shaped to multiply per-state terms: a scalar, or (one multiplier per seed, stacked by
+        :class:`~torchrl_bail.stacking.SeedStack`) ``[S, 1]`` against ``[S, B]``."""
+        return self.log_alpha.unsqueeze(-1) if self.log_alpha.ndim else self.log_alpha
 
     @torch.no_grad()
     def clamp_log_alpha_(self) -> None:

@@ -28,6 +28,7 @@ from torchrl.objectives.utils import _cache_values, _vmap_func
 
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed, required_entry
 from torchrl_bail.objectives.vae import conditional_vae_loss
+from torchrl_bail.stacking import linear
 
 __all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target", "expand_samples"]
 
@@ -125,7 +126,7 @@ class _PlainMLP:
         x = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
         for step in self.steps:
             if isinstance(step, tuple):
-                x = nn.functional.linear(x, weights[step[0]], None if step[1] is None else weights[step[1]])
+                x = linear(x, weights[step[0]], None if step[1] is None else weights[step[1]])
             else:  # torch.relu_ after a Linear (whose backward never reads its output) or a parameter-free layer
                 x = step(x)
         return x

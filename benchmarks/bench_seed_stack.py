@@ -1,0 +1,173 @@
+"""Many seeds in one process: 5 seeds stacked (torchrl_bail.stacking) against 5 single-seed runs doing the same work.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_seed_stack.py [--seeds 5] [--algos bc bail bcq bear ...]
+                                                            [--repeats 15] [--device cpu|cuda] [--json PATH]
+
+For each algorithm of the registry, with its paper configuration (``conf/algo/<name>.yaml``) at Hopper sizes
+(obs 11, act 3) on a synthetic batch of 20 000 transitions, the same process alternates, round by round:
+
+* ``stacked``: one training iteration of the :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds: a ``[S, B]``
+  mini-batch from :class:`~torchrl_bail.stacking.SeedBatchSampler` and one update step;
+* ``sequential``: the same iteration of the ``S`` single-seed algorithms one after the other (each samples its
+  mini-batch as :func:`~torchrl_bail.trainer.train` does and takes its update step): what ``S`` separate runs compute.
+
+``speedup`` = stacked iterations/s / sequential rounds/s: the wall time of ``S`` sequential seeds over that of the
+stacked run (>= 1: the stack is no slower per seed; on a GPU the stacked run should cost <= 1.5x one seed, i.e.
+``speedup >= S / 1.5``; the column ``vs 1 seed`` gives stacked time / one seed's time). The row ``bail envelope``
+times BAIL's envelope fit (2 epochs over the batch): one seed-stacked fit against ``S`` fits. Rates are medians over
+the rounds, so a noisy neighbour on a shared machine hits both sides alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import torch
+from _bench import write_json
+from tensordict import TensorDict
+from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
+
+from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
+from torchrl_bail.config import algo_config
+from torchrl_bail.envelope import fit_upper_envelope
+from torchrl_bail.modules import action_spec_from_bounds, make_value_network
+from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds, stack_modules
+
+OBS, ACT, N = 11, 3, 20_000
+SPEC = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
+
+
+def synthetic_batch(device) -> TensorDict:
+    g = torch.Generator().manual_seed(0)
+    return TensorDict({
+        "observation": torch.randn(N, OBS, generator=g), "action": torch.rand(N, ACT, generator=g) * 2 - 1,
+        "return": 50 * torch.rand(N, generator=g),
+        "next": {"observation": torch.randn(N, OBS, generator=g), "reward": torch.randn(N, 1, generator=g),
+                 "terminated": torch.zeros(N, 1, dtype=torch.bool)},
+    }, [N]).to(device)
+
+
+def _sync(device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _one_round(fn, rates: list[float]) -> None:
+    """Times one call of ``fn`` and appends its rate (calls per second) to ``rates``."""
+    start = time.perf_counter()
+    fn()
+    rates.append(1.0 / (time.perf_counter() - start))
+
+
+def interleaved(stacked, sequential, single, *, repeats: int, warmup: int = 3) -> tuple[float, float, float]:
+    """Median rates of the three callables, alternating round by round."""
+    for fn in (stacked, sequential, single):
+        for _ in range(warmup):
+            fn()
+    rates: tuple[list[float], list[float], list[float]] = ([], [], [])
+    for _ in range(repeats):
+        for fn, r in zip((stacked, sequential, single), rates):
+            _one_round(fn, r)
+    return tuple(statistics.median(r) for r in rates)
+
+
+def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int) -> dict:
+    config = algo_config(name, **({"envelope.epochs": 1} if name == "bail" else {}))
+    cls = ALGORITHMS[name]
+
+    def build(seed: int):
+        torch.manual_seed(seed)
+        return cls(OBS, SPEC, config, device)
+
+    contexts = [PrepareContext(generator=torch.Generator().manual_seed(s)) for s in range(seeds)]
+    # the stack: its seeds' prepared data (BAIL: a quick one-epoch envelope keeps about 30 %)
+    stacked_algos = [build(s) for s in range(seeds)]
+    prepared = prepare_seeds(stacked_algos, data, contexts)
+    stack = SeedStack(stacked_algos)
+    streams = [torch.Generator(device=device).manual_seed(s) for s in range(seeds)]
+    sampler = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
+    # the sequential runs: each with its own replay buffer, as train() builds it
+    singles = [build(s) for s in range(seeds)]
+    buffers = [TensorDictReplayBuffer(storage=TensorStorage(d.to(device)), sampler=RandomSampler(),
+                                      batch_size=a.batch_size) for a, d in zip(singles, prepared)]
+
+    def stacked() -> None:
+        stack.update(sampler.sample())
+        _sync(device)
+
+    def sequential() -> None:
+        for algorithm, buffer in zip(singles, buffers):
+            algorithm.update(buffer.sample())
+        _sync(device)
+
+    def single() -> None:
+        singles[0].update(buffers[0].sample())
+        _sync(device)
+
+    st, seq, one = interleaved(stacked, sequential, single, repeats=repeats)
+    return {"name": f"{name} update (batch {stack.batch_size})", "stacked_per_s": st, "sequential_per_s": seq,
+            "speedup": st / seq, "vs_one_seed": one / st}
+
+
+def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
+    config = algo_config("bail")
+    env = config.envelope
+    kwargs = dict(penalty=env.penalty, lr=env.lr, weight_decay=env.weight_decay, batch_size=env.batch_size,
+                  epochs=2, val_fraction=env.val_fraction, patience=env.patience, progress=False, device=device)
+    observations, returns = data["observation"], data["return"]
+
+    def networks():
+        torch.manual_seed(0)
+        return [make_value_network(OBS, tuple(env.hidden), head_scale=env.head_scale).to(device)
+                for _ in range(seeds)]
+
+    def stacked() -> None:
+        fit_upper_envelope(stack_modules(networks()), observations, returns,
+                           generator=[torch.Generator().manual_seed(s) for s in range(seeds)], **kwargs)
+        _sync(device)
+
+    def sequential() -> None:
+        for s, net in enumerate(networks()):
+            fit_upper_envelope(net, observations, returns, generator=torch.Generator().manual_seed(s), **kwargs)
+        _sync(device)
+
+    def single() -> None:
+        fit_upper_envelope(networks()[0], observations, returns, generator=torch.Generator().manual_seed(0),
+                           **kwargs)
+        _sync(device)
+
+    st, seq, one = interleaved(stacked, sequential, single, repeats=max(3, repeats // 5), warmup=1)
+    return {"name": f"bail envelope fit (2 epochs, batch {env.batch_size})", "stacked_per_s": st,
+            "sequential_per_s": seq, "speedup": st / seq, "vs_one_seed": one / st}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--algos", nargs="+", default=["bc", "bail", "pbail", "marwil", "bcq", "bear"])
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    data = synthetic_batch(device)
+    rows = [bench_updates(name, args.seeds, data, device, args.repeats) for name in args.algos]
+    if "bail" in args.algos:
+        rows.append(bench_envelope(args.seeds, data, device, args.repeats))
+    print(f"\n{args.seeds} seeds stacked vs {args.seeds} sequential  (torch {torch.__version__}, {device}, "
+          f"{torch.get_num_threads()} threads; load average at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
+    print(f"{'case':<44} {'stacked/s':>10} {'sequential/s':>13} {'speedup':>8} {'vs 1 seed':>10}")
+    for r in rows:
+        print(f"{r['name']:<44} {r['stacked_per_s']:>10.2f} {r['sequential_per_s']:>13.2f} {r['speedup']:>8.2f} "
+              f"{r['vs_one_seed']:>10.2f}")
+    write_json(rows, args.json)
+
+
+if __name__ == "__main__":
+    main()
