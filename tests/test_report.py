@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from torchrl_bail.io import write_json_atomic
-from torchrl_bail.report import main
+from torchrl_bail.report import find_runs, group_runs, main
 
 rliable = pytest.importorskip("rliable", reason="the report needs the 'report' extra")
 from rliable import library, metrics  # noqa: E402
@@ -109,3 +109,14 @@ def test_missing_directory_and_empty_tree(tmp_path, capsys):
     assert main([str(tmp_path / "missing")]) == 2
     assert main([str(tmp_path)]) == 1
     assert "no summary.json" in capsys.readouterr().err
+
+
+def test_runs_from_before_a_key_existed_group_with_its_default(tmp_path):
+    """A run whose config.yaml predates ``compile`` and one with ``compile: false`` are one group; ``true`` is not."""
+    for seed, extra in ((1, {}), (2, {"compile": False}), (3, {"compile": True})):
+        _write_run(tmp_path, "hopper_ddpg05_b1", "bc", seed, 100.0 * seed)
+        if extra:
+            path = tmp_path / f"hopper_ddpg05_b1_bc_envelope_s{seed}" / "config.yaml"
+            path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **extra}))
+    groups = group_runs(find_runs([tmp_path]))
+    assert sorted((g.variant_label, g.seeds) for g in groups) == [("", 2), ("compile=true", 1)]

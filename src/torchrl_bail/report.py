@@ -63,6 +63,10 @@ REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
 RUN_ONLY_KEYS = ("seed", "progress", "logger.", "device", "data_dir", "hydra.", "resume", "checkpoint.", "threads",
                  "dataset", "env.", "batch.")
 
+#: config keys added after runs were made, with the value those older runs behaved as (so a run made before the
+#: key existed and one made after it with the default are one group)
+ADDED_KEYS = {"compile": False}
+
 
 class ReportError(ValueError):
     """A summary.json (or a directory given) cannot enter the report; the message names the file."""
@@ -122,9 +126,12 @@ def _read_config(run_dir: Path) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     try:
-        return _flatten(OmegaConf.to_container(OmegaConf.load(path), resolve=False))
+        config = _flatten(OmegaConf.to_container(OmegaConf.load(path), resolve=False))
     except Exception as err:  # noqa: BLE001 - any parse error is reported with the file
         raise ReportError(f"{path}: unreadable config ({err})") from None
+    for key, value in ADDED_KEYS.items():  # runs made before a key existed ran as its default
+        config.setdefault(key, value)
+    return config
 
 
 def _batch_identity(summary: dict) -> tuple[str, str | None]:
