@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import shutil
 
 import pytest
 import torch
@@ -53,7 +54,9 @@ OVERRIDES = {
 }
 #: inductor where it is affordable on 2 cores, aot_eager elsewhere (module docstring); BAIL updates with BC's method.
 #: Progressive BAIL and BCQ run with TORCHRL_BAIL_FULL_COMPILE_TESTS=1 only (see the module docstring)
-BACKENDS = {"bc": "inductor", "marwil": "aot_eager", "bear": "aot_eager"}
+#: (a machine without a C++ compiler, which inductor needs on CPU, runs BC through aot_eager too)
+_CXX = any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "c++", "clang++"))
+BACKENDS = {"bc": "inductor" if _CXX else "aot_eager", "marwil": "aot_eager", "bear": "aot_eager"}
 if os.environ.get("TORCHRL_BAIL_FULL_COMPILE_TESTS") == "1":
     BACKENDS.update(pbail="aot_eager", bcq="aot_eager")
 
