@@ -52,6 +52,10 @@ ABLATIONS = {
 }
 
 
+#: what a finished training run logs last (torchrl_bail.train)
+FINISHED = re.compile(r"final_return [-0-9.]+ \(best")
+
+
 @dataclass
 class Job:
     name: str                                   # <env>_<kind>/<algo>[/<ablation>]/seed<s>, or collect/<env>_<kind>...
@@ -78,18 +82,23 @@ def study_jobs() -> list[Job]:
         if env == "hopper":
             jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
             jobs += [j for name, extra in ABLATIONS.items() for j in train("hopper", "ddpg05", "bail", extra, "/" + name)]
-            jobs += [j for kind in ("ddpg01", "ddpg05") for algo in ("bcq", "bear") for j in train(env, kind, algo)]
+            bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in ("bcq", "bear")]
+            jobs += [cell[i] for i in range(len(SEEDS)) for cell in bcq_bear]  # seed 1 of every cell first
         else:
             jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
     return jobs
 
 
-def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int, float]:
+def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | None, float]:
+    """Runs ``job`` (its output appended to ``workdir/logs/<job>.log``); returns its exit code (``None``: it had
+    finished in an earlier call, its log says so, and nothing ran) and wall seconds."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     if data_dir is not None:
         env["TORCHRL_BAIL_DATA_DIR"] = str(data_dir)
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
     log.parent.mkdir(parents=True, exist_ok=True)
+    if job.module == "torchrl_bail.train" and log.is_file() and FINISHED.search(log.read_text(errors="replace")):
+        return job, None, 0.0
     extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
     start = time.perf_counter()
     with open(log, "a") as out:
@@ -153,7 +162,10 @@ def main(argv: list[str] | None = None) -> int:
             futures = [pool.submit(run_job, j, args.workdir.resolve(), args.data_dir) for j in jobs]
             for done, future in enumerate(as_completed(futures), 1):
                 job, rc, seconds = future.result()
-                timings.setdefault(job.name, seconds)  # the first (uninterrupted) wall time is kept
+                if rc is None:
+                    continue  # finished in an earlier call
+                if rc == 0:  # a run resumed after an interruption records its last part (summary: wall_time_s)
+                    timings.setdefault(job.name, seconds)
                 print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
                       f"in {seconds:.0f} s", flush=True)
                 if rc != 0:
