@@ -330,7 +330,7 @@ def _iqm_cell(row: dict) -> str:
 
 def _table(table: dict[str, dict[str, dict]], algos: list[str], cell, key: str) -> list[str]:
     """Rows of ``table`` (name -> algo -> row), the batch's mean episode return, one column per algorithm; the
-    best ``key`` per row in bold."""
+    best ``key`` per row in bold (when there is more than one column)."""
     lines = ["| batch | data | " + " | ".join(algos) + " |", "|---|---|" + "---|" * len(algos)]
     for name, cells in table.items():
         best = max(c[key] for c in cells.values())
@@ -340,7 +340,7 @@ def _table(table: dict[str, dict[str, dict]], algos: list[str], cell, key: str) 
         for i, a in enumerate(algos):
             c = cells.get(a)
             if c is not None:
-                out[i] = f"**{cell(c)}**" if c[key] == best else cell(c)
+                out[i] = f"**{cell(c)}**" if c[key] == best and len(algos) > 1 else cell(c)
         lines.append(f"| {name} | {'' if data is None else f'{data:.1f}'} | " + " | ".join(out) + " |")
     return lines
 
