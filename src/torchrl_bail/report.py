@@ -418,7 +418,7 @@ def _plot_curves(groups, path: Path) -> Path | None:
         return None
     cols = min(len(panels), CURVE_COLUMNS)
     rows = math.ceil(len(panels) / cols)
-    fig = new_figure(figsize=(5.0 * cols, 3.8 * rows))
+    fig = new_figure(figsize=(5.0 * cols, 3.8 * rows), layout="constrained")
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax in axes[len(panels):]:
         ax.set_visible(False)
