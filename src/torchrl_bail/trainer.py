@@ -169,7 +169,8 @@ def train(
     if resume_from is not None:
         if seeds is not None:  # one checkpoint per seed
             resume_from = algorithm.merge_checkpoints(resume_from, sampler)
-        done, prior_wall_time = _restore(resume_from, iterations, histories, sums, sampler, evaluate)
+        done, prior_wall_time = _restore(resume_from, iterations, histories, sums, sampler, evaluate,
+                                         per_seed=seeds is not None)
     start = time.perf_counter()
 
     def checkpoint(it: int) -> None:
@@ -238,17 +239,17 @@ def train(
     return history if seeds is None else histories
 
 
-def _restore(state: dict, iterations: int, histories: list[TrainHistory], sums: dict, sampler,
-             evaluate) -> tuple[int, float]:
-    """Loads the loop's side of a checkpoint; returns ``(iteration, wall time so far)``."""
+def _restore(state: dict, iterations: int, histories: list[TrainHistory], sums: dict, sampler, evaluate, *,
+             per_seed: bool) -> tuple[int, float]:
+    """Loads the loop's side of a checkpoint (``per_seed``: a stack's merged checkpoint, one evaluation list per
+    seed, however many seeds); returns ``(iteration, wall time so far)``."""
     if state.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}: it was written by "
                          "another version of torchrl_bail and cannot be resumed (start over with resume=false)")
     if state["iterations"] != iterations:
         raise ValueError(f"the checkpoint's schedule has {state['iterations']} iterations but this run has "
                          f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
-    per_seed = state["evaluations"] if len(histories) > 1 else [state["evaluations"]]
-    for history, evaluations in zip(histories, per_seed):
+    for history, evaluations in zip(histories, state["evaluations"] if per_seed else [state["evaluations"]]):
         history.evaluations.extend(EvalPoint(**e) for e in evaluations)
     sums.update(state["metric_sums"])
     sampler.load_state_dict(state["sampler"])
