@@ -241,6 +241,27 @@ def test_finished_run_is_reported_and_changed_config_refused(tmp_path, data_dir,
     assert restarted["iterations"] == 2 * first["iterations"]
 
 
+def test_checkpoints_written_before_a_key_existed_still_resume(tmp_path, data_dir, monkeypatch):
+    """``compile`` and ``seeds`` came after runs were made: an older checkpoint lacks them (and one of the first
+    ``seeds`` version stored ``seeds: None``); at their defaults both resume, another value is refused."""
+    from torchrl_bail import train as train_module
+    from torchrl_bail.resume import ADDED_KEYS
+
+    run_dir = tmp_path / "run"
+    cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
+    first = train_module.run(cfg, run_dir)
+    monkeypatch.setattr(trainer_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
+    path = run_dir / "checkpoint.pt"
+    checkpoint = torch.load(path, weights_only=False)
+    assert not set(ADDED_KEYS) & set(checkpoint["config"])  # written at the defaults: left out
+    for old_layout in ({}, {"seeds": None}, {"seeds": None, "compile": False}):
+        torch.save({**checkpoint, "config": {**checkpoint["config"], **old_layout}}, path)
+        assert train_module.run(cfg, run_dir) == first
+    torch.save({**checkpoint, "config": {**checkpoint["config"], "compile": True}}, path)
+    with pytest.raises(ResumeError, match=r"compile: True -> \(absent\)"):
+        train_module.run(cfg, run_dir)
+
+
 def test_resume_from_another_run_dir_and_the_lock(tmp_path, data_dir):
     from torchrl_bail import train as train_module
 

@@ -52,6 +52,7 @@ from typing import Any
 
 from torchrl_bail.io import write_json_atomic, write_text_atomic
 from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
+from torchrl_bail.resume import ADDED_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
            "summarise", "format_markdown", "numpy_seed", "main", "RUN_ONLY_KEYS"]
@@ -63,9 +64,6 @@ REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
 RUN_ONLY_KEYS = ("seed", "progress", "logger.", "device", "data_dir", "hydra.", "resume", "checkpoint.", "threads",
                  "dataset", "env.", "batch.")
 
-#: config keys added after runs were made, with the value those older runs behaved as (so a run made before the
-#: key existed and one made after it with the default are one group)
-ADDED_KEYS = {"compile": False}
 
 
 class ReportError(ValueError):

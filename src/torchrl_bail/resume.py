@@ -37,13 +37,16 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs", "register_resolvers", "run_dir_suffix"]
+__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs", "register_resolvers", "run_dir_suffix"]
 
 log = logging.getLogger("torchrl_bail")
 
 #: top-level config keys that may differ between a checkpoint and the command resuming it: they change how a
 #: run reports or where it finds its files, never its numbers (``device`` changes numbers only across devices)
 RUN_ONLY_KEYS = ("progress", "logger", "resume", "device", "data_dir", "checkpoint", "threads")
+#: top-level keys added after checkpoints and runs were made, with the value those older runs behaved as: at that
+#: value a key is left out of the comparison, so an older run still resumes and still groups with newer ones
+ADDED_KEYS = {"compile": False, "seeds": None}
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
 LOGS = "logs"
@@ -75,11 +78,14 @@ def register_resolvers() -> None:
 
 
 def comparable_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config without :data:`RUN_ONLY_KEYS`: what a checkpoint's numbers depend on (``compile=false``
-    is left out too: checkpoints written before the key existed are eager runs and still resume)."""
-    container = OmegaConf.to_container(cfg, resolve=True)
-    return {k: v for k, v in container.items()
-            if k not in RUN_ONLY_KEYS and k != "hydra" and not (k == "compile" and v is False)}
+    """The resolved config without :data:`RUN_ONLY_KEYS`: what a checkpoint's numbers depend on (an
+    :data:`ADDED_KEYS` key at its old behaviour is left out too, so checkpoints written before it existed resume)."""
+    return _without_run_only(OmegaConf.to_container(cfg, resolve=True))
+
+
+def _without_run_only(container: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
+            and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
 
 
 def diff_configs(old: Any, new: Any, prefix: str = "") -> list[str]:
@@ -208,7 +214,7 @@ class Resumption:
         if checkpoint.get("config") is None:
             raise ResumeError(f"{ckpt_path} carries no config (written by an older torchrl_bail): it cannot be "
                               "resumed safely; start over with resume=false or choose another hydra.run.dir")
-        diffs = diff_configs(checkpoint["config"], self.config)
+        diffs = diff_configs(_without_run_only(checkpoint["config"]), self.config)
         if diffs:
             shown = "; ".join(diffs[:4]) + (f"; ... ({len(diffs)} keys in all)" if len(diffs) > 4 else "")
             raise ResumeError(f"{ckpt_path} was written by another config ({shown}); rerun with the checkpoint's "
@@ -237,8 +243,7 @@ class Resumption:
             config_path = self.run_dir / "config.yaml"
             if not config_path.is_file():
                 return False
-            saved = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(config_path)).items()
-                     if k not in RUN_ONLY_KEYS}
+            saved = _without_run_only(OmegaConf.to_container(OmegaConf.load(config_path)))
             diffs = diff_configs(saved, self.config)
             if diffs:
                 raise ResumeError(f"{self.run_dir} holds a finished run of another config ({'; '.join(diffs[:4])}); "
