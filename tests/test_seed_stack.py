@@ -219,10 +219,13 @@ class _Kill(BaseException):
     """Stands in for SIGKILL in the middle of a run."""
 
 
-@pytest.mark.parametrize("name", ["bc", "pbail"])
-def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name):
+@pytest.mark.parametrize(("name", "seeds"), [("bc", SEEDS), ("pbail", SEEDS), ("bc", (7,))],
+                         ids=["bc", "pbail", "bc_one_seed"])
+def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name, seeds):
     """The stack writes one single-seed checkpoint per seed; the stacked run continued from them ends where the
-    uninterrupted stacked run ends, and each of them also continues alone as that seed's single-seed run."""
+    uninterrupted stacked run ends, and each of them also continues alone as that seed's single-seed run. A
+    one-seed stack (``seeds=1``, or the one unfinished seed of a stacked command) checkpoints and resumes the same
+    way."""
     from _contract import equal_trees
     from tensordict import TensorDict
 
@@ -231,7 +234,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     observation = torch.randn(5, OBS, generator=torch.Generator().manual_seed(3))
 
     def evaluate(policy):
-        obs = observation.expand(len(SEEDS), 5, OBS) if evaluate.stacked else observation
+        obs = observation.expand(len(seeds), 5, OBS) if evaluate.stacked else observation
         with torch.no_grad():
             actions = policy(TensorDict({"observation": obs}, obs.shape[:-1]))["action"]
         sums = actions.sum((-2, -1))
@@ -242,16 +245,16 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
 
     def fresh_stack(checkpoints=None):
         algorithms, streams = [], []
-        for j, seed in enumerate(SEEDS):
+        for j, seed in enumerate(seeds):
             algorithms.append(_built(case, seed))
             streams.append(torch.Generator())
             streams[-1].set_state(torch.get_rng_state())
             if checkpoints is not None:
                 algorithms[-1].load_state_dict(checkpoints[j]["algorithm"])
         if checkpoints is None:
-            prepared = prepare_seeds(algorithms, data, [_context(seed) for seed in SEEDS])
+            prepared = prepare_seeds(algorithms, data, [_context(seed) for seed in seeds])
         else:
-            prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, SEEDS)]
+            prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, seeds)]
         stack = SeedStack(algorithms)
         return stack, SeedBatchSampler(prepared, ALGO_BATCH, streams)
 
@@ -260,7 +263,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     reference_histories = train(reference, sampler, **kwargs)
     reference.unstack()
 
-    paths = [tmp_path / f"seed{seed}.pt" for seed in SEEDS]
+    paths = [tmp_path / f"seed{seed}.pt" for seed in seeds]
     killed, sampler = fresh_stack()
     update, calls = killed.update, [0]
 
@@ -274,7 +277,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     with pytest.raises(_Kill):
         train(killed, sampler, checkpoint_path=paths, checkpoint_every_s=0.0, **kwargs)
     checkpoints = [torch.load(p, weights_only=False) for p in paths]
-    assert [c["iteration"] for c in checkpoints] == [7] * len(SEEDS)
+    assert [c["iteration"] for c in checkpoints] == [7] * len(seeds)
     torch.manual_seed(99)  # the checkpoints' streams replace whatever the process has
     resumed, sampler = fresh_stack(checkpoints)
     histories = train(resumed, sampler, checkpoint_path=paths, resume_from=checkpoints, **kwargs)
@@ -283,13 +286,13 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     for got, expected in zip(resumed.algorithms, reference.algorithms):
         equal_trees(got.state_dict(), expected.state_dict())
 
-    evaluate.stacked = False  # seed 7's checkpoint, continued by its single-seed run
-    single = _built(case, SEEDS[1])
-    single_data = single.prepare(data, _context(SEEDS[1]))
+    evaluate.stacked = False  # the last seed's checkpoint, continued by its single-seed run
+    single = _built(case, seeds[-1])
+    single_data = single.prepare(data, _context(seeds[-1]))
     single_reference = train(single, single_data, **kwargs)
-    alone = _built(case, SEEDS[1])
-    alone.load_state_dict(checkpoints[1]["algorithm"])
-    history = train(alone, alone.restore_prepared(data, _context(SEEDS[1])), resume_from=checkpoints[1], **kwargs)
+    alone = _built(case, seeds[-1])
+    alone.load_state_dict(checkpoints[-1]["algorithm"])
+    history = train(alone, alone.restore_prepared(data, _context(seeds[-1])), resume_from=checkpoints[-1], **kwargs)
     assert len(history.evaluations) == len(single_reference.evaluations)
     for got, expected in zip(history.evaluations, single_reference.evaluations):
         assert math.isclose(got.mean_return, expected.mean_return, rel_tol=1e-4, abs_tol=1e-4)
