@@ -117,14 +117,16 @@ def rates(fn, n: int) -> tuple[float, float]:
     return n / (time.perf_counter() - wall), n / (time.process_time() - cpu)
 
 
-def our_updates(data) -> dict:
-    """One training iteration per algorithm: ``algorithm.update(buffer.sample())``, as the trainer runs it."""
+def our_updates(data, compile_mode: bool | str = False) -> dict:
+    """One training iteration per algorithm: ``algorithm.update(buffer.sample())``, as the trainer runs it
+    (``compile_mode``: the ``compile`` config key, :meth:`~torchrl_bail.algorithms.Algorithm.compile`)."""
     spec = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
     out = {}
     for name, cls, batch, kwargs in [("bcq", BCQ, BATCH, {}), ("bear", BEAR, BATCH, {"warm_start_updates": 0}),
                                      ("bc", BehaviourCloning, BC_BATCH, {})]:
         torch.manual_seed(0)
         algo = cls(OBS, spec, algo_config(name, batch_size=batch, epochs=1, **kwargs))
+        algo.compile(compile_mode)
         buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=RandomSampler(), batch_size=batch)
         out[name] = (lambda a=algo, b=buffer: a.update(b.sample()))
     return out
@@ -137,17 +139,26 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="alternating rounds per side")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads on both sides")
     parser.add_argument("--algos", default="bcq,bear,bc", help="comma-separated subset of bcq,bear,bc")
+    parser.add_argument("--compile", default="false",
+                        help="our side's compile setting (false, true, max-autotune, ...); d3rlpy 2.8 compiles "
+                             "only on CUDA (its compile_graph), so its side stays eager on a CPU")
     parser.add_argument("--json", default=None, help="also write the numbers here")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    compile_mode = {"false": False, "true": True}.get(args.compile.lower(), args.compile)
     peer = D3rlpySide(args.python, args.threads)
-    ours = our_updates(synthetic_data(TRANSITIONS))
-    names = {"bcq": "BCQ update (batch 100)", "bear": "BEAR update (batch 100)", "bc": "BC update (batch 1000)"}
+    ours = our_updates(synthetic_data(TRANSITIONS), compile_mode)
+    suffix = "" if compile_mode is False else f", compile={args.compile}"
+    names = {"bcq": f"BCQ update (batch 100{suffix})", "bear": f"BEAR update (batch 100{suffix})",
+             "bc": f"BC update (batch 1000{suffix})"}
     rows = []
     try:
         for algo in args.algos.split(","):
             n = args.updates * (5 if algo == "bc" else 1)
-            rates(ours[algo], 5)
+            compile_start = time.perf_counter()
+            rates(ours[algo], 5)  # warm-up (and, with --compile, the compilation)
+            if compile_mode is not False:
+                print(f"{names[algo]}: compiled in {time.perf_counter() - compile_start:.0f} s", flush=True)
             peer.rates(algo, 5)
             lib, d3 = [], []
             for _ in range(args.repeats):
@@ -159,7 +170,7 @@ def main() -> None:
                 row.update({f"torchrl_bail_{clock}": a, f"d3rlpy_{clock}": b, f"ratio_{clock}": a / b})
             row.update(rounds_torchrl_bail=lib, rounds_d3rlpy=d3)
             rows.append(row)
-            print(f"{names[algo]:<26} CPU-time rates: torchrl_bail {row['torchrl_bail_cpu']:7.1f}  d3rlpy "
+            print(f"{names[algo]:<44} CPU-time rates: torchrl_bail {row['torchrl_bail_cpu']:7.1f}  d3rlpy "
                   f"{row['d3rlpy_cpu']:7.1f}  ratio {row['ratio_cpu']:5.2f}   (wall clock: {row['ratio_wall']:.2f})",
                   flush=True)
     finally:
@@ -167,9 +178,9 @@ def main() -> None:
     print(f"\nupdates/s, medians of {args.repeats} alternating rounds (torch {torch.__version__}, "
           f"{args.threads} thread(s); d3rlpy {peer.versions['d3rlpy']} with torch {peer.versions['torch']}; "
           f"load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(f"{'case':<26} {'torchrl_bail':>13} {'d3rlpy':>9} {'ratio':>7}   {'(wall clock ratio)':>18}")
+    print(f"{'case':<44} {'torchrl_bail':>13} {'d3rlpy':>9} {'ratio':>7}   {'(wall clock ratio)':>18}")
     for r in rows:
-        print(f"{r['name']:<26} {r['torchrl_bail_cpu']:>13.1f} {r['d3rlpy_cpu']:>9.1f} {r['ratio_cpu']:>7.2f}   "
+        print(f"{r['name']:<44} {r['torchrl_bail_cpu']:>13.1f} {r['d3rlpy_cpu']:>9.1f} {r['ratio_cpu']:>7.2f}   "
               f"{r['ratio_wall']:>18.2f}")
     write_json(rows, args.json)
 
