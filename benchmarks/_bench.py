@@ -19,7 +19,7 @@ os.environ.setdefault("RL_WARNINGS", "0")
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-__all__ = ["rate", "compare", "bare_mlp", "print_table", "write_json"]
+__all__ = ["rate", "compare", "bare_mlp", "machine", "print_columns", "print_table", "write_json"]
 
 
 def rate(fn: Callable[[], object], n: int, warmup: int = 10) -> float:
@@ -56,11 +56,31 @@ def bare_mlp(in_features: int, out_features: int, hidden: Sequence[int]) -> nn.S
     return nn.Sequential(*layers)
 
 
+def machine() -> str:
+    """``"torch <version>, <n> thread(s), load average <l> on <c> CPUs"``: what a table's numbers were measured on
+    (read at the end of a run, so the load average covers it)."""
+    return (f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), load average {os.getloadavg()[0]:.1f} "
+            f"on {os.cpu_count()} CPUs")
+
+
+def print_columns(title: str, rows: list[dict], columns: Sequence[tuple[str, str, str]], name_width: int = 44) -> None:
+    """``title``, then one line per row: its ``name`` and, per ``(header, key, format spec)`` column, ``row[key]``
+    formatted (``">10.2f"``) under its header, aligned as the spec says (``<``: left, else right)."""
+    cells = [[format(r[key], spec) for r in rows] for _, key, spec in columns]
+    widths = [max([len(header), *map(len, column)]) for (header, _, _), column in zip(columns, cells)]
+    aligns = ["<" if spec.startswith("<") else ">" for _, _, spec in columns]
+    print(f"\n{title}")
+    print(f"{'case':<{name_width}}" + "".join(f" {h:{a}{w}}" for (h, _, _), a, w in zip(columns, aligns, widths)))
+    for i, r in enumerate(rows):
+        print(f"{r['name']:<{name_width}}" + "".join(f" {column[i]:{a}{w}}"
+                                                     for column, a, w in zip(cells, aligns, widths)))
+
+
 def print_table(rows: list[dict], title: str) -> None:
-    print(f"\n{title}  (torch {torch.__version__}, {torch.get_num_threads()} threads)")
-    print(f"{'case':<34} {'torchrl_bail':>14} {'bare torch':>14} {'ratio':>7}  unit")
-    for r in rows:
-        print(f"{r['name']:<34} {r['torchrl_bail']:>14.1f} {r['bare']:>14.1f} {r['ratio']:>7.2f}  {r['unit']}")
+    """The torchrl_bail-vs-bare table of :func:`compare` rows."""
+    print_columns(f"{title}  ({machine()})", rows,
+                  [("torchrl_bail", "torchrl_bail", ">14.1f"), ("bare torch", "bare", ">14.1f"),
+                   ("ratio", "ratio", ">7.2f"), ("unit", "unit", "<10")], name_width=34)
 
 
 def write_json(rows: list[dict], path: str | os.PathLike | None) -> None:

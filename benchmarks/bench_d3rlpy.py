@@ -64,7 +64,7 @@ import sys
 import time
 from pathlib import Path
 
-from _bench import write_json
+from _bench import machine, print_columns, write_json
 
 import torch  # noqa: E402
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  # noqa: E402
@@ -175,13 +175,11 @@ def main() -> None:
                   flush=True)
     finally:
         peer.close()
-    print(f"\nupdates/s, medians of {args.repeats} alternating rounds (torch {torch.__version__}, "
-          f"{args.threads} thread(s); d3rlpy {peer.versions['d3rlpy']} with torch {peer.versions['torch']}; "
-          f"load average at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(f"{'case':<44} {'torchrl_bail':>13} {'d3rlpy':>9} {'ratio':>7}   {'(wall clock ratio)':>18}")
-    for r in rows:
-        print(f"{r['name']:<44} {r['torchrl_bail_cpu']:>13.1f} {r['d3rlpy_cpu']:>9.1f} {r['ratio_cpu']:>7.2f}   "
-              f"{r['ratio_wall']:>18.2f}")
+    peer_versions = f"d3rlpy {peer.versions['d3rlpy']} with torch {peer.versions['torch']}"
+    print_columns(f"updates/s per CPU second, medians of {args.repeats} alternating rounds ({machine()}; "
+                  f"{peer_versions})", rows,
+                  [("torchrl_bail", "torchrl_bail_cpu", ">13.1f"), ("d3rlpy", "d3rlpy_cpu", ">9.1f"),
+                   ("ratio", "ratio_cpu", ">7.2f"), ("(wall clock ratio)", "ratio_wall", ">18.2f")])
     write_json(rows, args.json)
 
 

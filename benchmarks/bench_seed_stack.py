@@ -21,12 +21,11 @@ the rounds, so a noisy neighbour on a shared machine hits both sides alike.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import time
 
 import torch
-from _bench import write_json
+from _bench import machine, print_columns, write_json
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
@@ -160,12 +159,9 @@ def main() -> None:
     rows = [bench_updates(name, args.seeds, data, device, args.repeats) for name in args.algos]
     if "bail" in args.algos:
         rows.append(bench_envelope(args.seeds, data, device, args.repeats))
-    print(f"\n{args.seeds} seeds stacked vs {args.seeds} sequential  (torch {torch.__version__}, {device}, "
-          f"{torch.get_num_threads()} threads; load average at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(f"{'case':<44} {'stacked/s':>10} {'sequential/s':>13} {'speedup':>8} {'vs 1 seed':>10}")
-    for r in rows:
-        print(f"{r['name']:<44} {r['stacked_per_s']:>10.2f} {r['sequential_per_s']:>13.2f} {r['speedup']:>8.2f} "
-              f"{r['vs_one_seed']:>10.2f}")
+    columns = [("stacked/s", "stacked_per_s", ">10.2f"), ("sequential/s", "sequential_per_s", ">13.2f"),
+                   ("speedup", "speedup", ">8.2f"), ("vs 1 seed", "vs_one_seed", ">10.2f")]
+    print_columns(f"{args.seeds} seeds stacked vs {args.seeds} sequential on {device} ({machine()})", rows, columns)
     write_json(rows, args.json)
 
 
