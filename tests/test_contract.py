@@ -13,6 +13,8 @@ through the config and ``torchrl_bail.train.run`` writes its artifacts.
 
 from __future__ import annotations
 
+import copy
+
 import functools
 import inspect
 import io
@@ -376,6 +378,28 @@ def test_checkpoint_round_trip_continues_identically(case):
     equal_trees(resumed.state_dict(), algo.state_dict())
     assert _metrics_equal(_updates(resumed, data, 2, seed=2), _updates(algo, data, 2, seed=2))
     assert torch.equal(_act(resumed), _act(algo))
+
+
+@algo_cases
+def test_a_deep_copy_trains_on_its_own(case):
+    """``copy.deepcopy`` of a prepared, trained algorithm continues as the original would (same updates, same
+    actions) and updates only its own networks: TensorDict's clone-on-deepcopy used to leave the copy's losses
+    holding parameters apart from its networks, so the copy's optimizers never moved them."""
+    algo, data = _prepared(case, init_seed=0)
+    _updates(algo, data, 2, seed=1)
+    rng = torch.get_rng_state()
+    twin = copy.deepcopy(algo)
+    assert torch.equal(torch.get_rng_state(), rng), "copying consumed the caller's random numbers"
+    equal_trees(twin.state_dict(), algo.state_dict(), "copied")
+    assert _metrics_equal(_updates(twin, data, 2, seed=2), _updates(algo, data, 2, seed=2))
+    assert torch.equal(_act(twin), _act(algo))
+    equal_trees(twin.state_dict(), algo.state_dict(), "updated alike")
+    before = copy.deepcopy(algo.state_dict())
+    _updates(twin, data, 2, seed=3)
+    equal_trees(algo.state_dict(), before, "original")  # the copy's updates leave the original alone
+    trained = [name for name in twin.modules if name not in case.not_updated]
+    assert trained and all(not torch.equal(p, q) for name in trained for p, q in
+                           zip(twin.modules[name].parameters(), algo.modules[name].parameters()))
 
 
 @algo_cases

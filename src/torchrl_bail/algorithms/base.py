@@ -195,6 +195,44 @@ class Algorithm(ABC):
         for k, v in state.get("attributes", {}).items():
             setattr(self, k, copy.deepcopy(v))
 
+    def __deepcopy__(self, memo: dict) -> Algorithm:
+        """``copy.deepcopy(algorithm)``: an algorithm that trains on its own from this one's state.
+
+        It is built afresh from the same config (the random draws of its initialisation do not touch the caller's
+        streams), then loaded with a copy of :meth:`state_dict`; what :meth:`prepare` left behind is deep-copied
+        over: attributes the constructor does not set, and those holding plain data (tensors that are no
+        module's parameters or buffers, TensorDicts, numbers, strings and containers of them). Python's attribute-by-attribute copy would not do: a TorchRL loss
+        holds its networks' parameters in a :class:`~tensordict.nn.TensorDictParams`, whose ``__deepcopy__``
+        clones them apart from the copied networks, so the copy's updates would move the loss's clones and
+        never the networks its optimizers and policy use. The copy is eager (call :meth:`compile` on it again).
+
+        Examples:
+            >>> import copy
+            >>> from tensordict import TensorDict
+            >>> from torchrl_bail.algorithms.bc import BehaviourCloning
+            >>> from torchrl_bail.config import algo_config
+            >>> from torchrl_bail.modules import action_spec_from_bounds
+            >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]),
+            ...                         algo_config("bc", batch_size=8, policy={"hidden": [8]}))
+            >>> twin = copy.deepcopy(algo)
+            >>> before = [p.clone() for p in twin.actor.parameters()]
+            >>> _ = twin.update(TensorDict({"observation": torch.randn(8, 3), "action": torch.zeros(8, 1)}, [8]))
+            >>> all(not torch.equal(a, b) for a, b in zip(before, twin.actor.parameters()))  # the copy learns
+            True
+            >>> all(torch.equal(a, b) for a, b in zip(before, algo.actor.parameters()))  # the original does not
+            True
+        """
+        with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
+            twin = type(self)(self.obs_dim, copy.deepcopy(self.action_spec, memo), copy.deepcopy(self.config, memo),
+                              self.device)
+        memo[id(self)] = twin
+        twin.load_state_dict(copy.deepcopy(self.state_dict(), memo))
+        module_state = {t.data_ptr() for m in self.modules.values() for t in [*m.parameters(), *m.buffers()]}
+        for key, value in vars(self).items():  # what prepare left (validation sets, selections, counters)
+            if key not in vars(twin) or _is_plain_data(value, module_state):
+                setattr(twin, key, copy.deepcopy(value, memo))
+        return twin
+
     def _make_optimizers_capturable(self) -> None:
         """Step counters on the device (``capturable``): a CUDA graph replays device kernels only, so an optimizer
         that kept its step count on the host would never count a replayed update."""
@@ -204,6 +242,22 @@ class Algorithm(ABC):
             for state in optimizer.state.values():
                 if torch.is_tensor(state.get("step")):
                     state["step"] = state["step"].to(self.device, torch.float32)
+
+
+def _is_plain_data(value, module_state: set[int]) -> bool:
+    """Data a deep copy may duplicate: no module, optimizer or object wired to them, no tensor that is a
+    module's parameter or buffer (``module_state``: their ``data_ptr``\ s)."""
+    if isinstance(value, nn.Module):
+        return False
+    if value is None or isinstance(value, (bool, int, float, str, torch.Size, torch.device, TensorDictBase)):
+        return True
+    if isinstance(value, torch.Tensor):
+        return not isinstance(value, nn.Parameter) and value.data_ptr() not in module_state
+    if isinstance(value, (list, tuple)):
+        return all(_is_plain_data(v, module_state) for v in value)
+    if isinstance(value, dict):
+        return all(_is_plain_data(v, module_state) for v in value.values())
+    return False
 
 
 def _whole_update_graph(step, device: torch.device):
