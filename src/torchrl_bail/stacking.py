@@ -222,8 +222,8 @@ class SeedStack:
         if any(type(a) is not type(first) for a in self.algorithms):
             raise ValueError("SeedStack needs algorithms of one class")
         self.seeds_count = len(self.algorithms)
-        with torch.random.fork_rng(devices=[]):  # a fresh build (a deep copy would untie the losses' parameters
-            # from the modules'), whose random initialisation leaves the global stream alone and is overwritten next
+        with torch.random.fork_rng(devices=[]):  # a fresh build, whose random initialisation leaves the global
+            # stream alone and is overwritten next (a deep copy would copy the first seed's state for nothing)
             self.host = host = type(first)(first.obs_dim, first.action_spec, first.config, first.device)
         for attr in ("name", "batch_size", "epochs", "samples_per_update", "device"):
             setattr(self, attr, getattr(host, attr))
