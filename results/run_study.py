@@ -1,6 +1,6 @@
 """Reruns the results study of the README ("Results"), or any row of it, from scratch.
 
-    python results/run_study.py                              # everything: batches, 153 runs, reports (hours)
+    python results/run_study.py                              # everything: 11 batches, 144 runs, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
     python results/run_study.py --list                       # the jobs, in the order they run
 
@@ -15,7 +15,8 @@ When the runs are done, ``--results`` (default: ``results/study`` beside this sc
 run's ``summary.json``, resolved ``config.yaml`` and ``logs/`` (evaluation and training scalars; never checkpoints,
 policies or batches), ``timings.json`` (wall time of every job) and the two reports of ``torchrl_bail.report``:
 ``study.*`` (every batch x algorithm) and ``ablations.*`` (supp. D.1-D.3 on Hopper DDPG sigma=0.5), each as
-``.md``, ``.csv``, ``.json`` and figures.
+``.md``, ``.csv``, ``.json`` and figures, and ``curves.{md,json}``: whether each learning curve has flattened
+over the second half of training (:func:`curve_check`).
 
 The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
 opt_det (B1, 50k transitions); BAIL, Progressive BAIL, BC and MARWIL with seeds 1-3 on each; BCQ and BEAR with
@@ -133,6 +134,47 @@ def report(results: Path) -> None:
                                    "--out", str(results / prefix), "--plot"], stdout=subprocess.DEVNULL)
 
 
+def curve_check(results: Path) -> list[dict]:
+    """Has each learning curve flattened? Per group (batch x algorithm x overrides): the mean curve over seeds,
+    and over its second half (evaluations ``n // 2`` to ``n``, the ones ``final_return`` averages) its mean, the
+    change a least-squares line fits across it and the spread of the points around that line. ``still_moving``
+    marks a change larger than twice the spread and than 5 % of the mean. Written to ``results/curves.{md,json}``."""
+    import numpy as np
+
+    from torchrl_bail.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.plots import read_eval_curve
+
+    groups: dict[tuple[str, str, str], list] = {}
+    for run in sorted((results / "runs").glob("*/*/*")):
+        curve = read_eval_curve(run)
+        if curve is not None:
+            overrides = ",".join(o for o in run.name.split(",")[1:] if o != "preset=study")
+            groups.setdefault((run.parent.parent.name, run.parent.name, overrides), []).append(np.asarray(curve[1]))
+    rows = []
+    for (batch, algo, overrides), curves in groups.items():
+        n = min(len(c) for c in curves)
+        mean = np.mean([c[:n] for c in curves], axis=0)
+        x = np.arange(n // 2, n)
+        slope, intercept = np.polyfit(x, mean[n // 2:], 1)
+        spread = float(np.std(mean[n // 2:] - (slope * x + intercept), ddof=2)) if len(x) > 2 else float("nan")
+        change, level = float(slope * (x[-1] - x[0])), float(mean[n // 2:].mean())
+        rows.append({"batch": batch, "algo": algo, "overrides": overrides, "seeds": len(curves), "evaluations": n,
+                     "second_half_mean": level, "second_half_change": change, "residual_spread": spread,
+                     "still_moving": bool(abs(change) > max(2 * spread, 0.05 * abs(level)))})
+    lines = ["| batch | algo | overrides | 2nd-half mean | change over it | spread | still moving |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['batch']} | {r['algo']} | {r['overrides']} | {r['second_half_mean']:.1f} | "
+              f"{r['second_half_change']:+.1f} | {r['residual_spread']:.1f} | "
+              f"{('**rising**' if r['second_half_change'] > 0 else '**falling**') if r['still_moving'] else 'no'} |"
+              for r in rows]
+    lines += ["", "2nd-half mean: the seed-mean curve over the evaluations final_return averages; change: what a "
+              "least-squares line through them rises or falls across that half; spread: the points' standard "
+              "deviation around the line; still moving: |change| > 2 x spread and > 5 % of the mean."]
+    write_text_atomic(results / "curves.md", "\n".join(lines) + "\n")
+    write_json_atomic(results / "curves.json", rows)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
@@ -175,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
                 tmp.replace(timings_path)
     copied = gather(args.workdir, args.results)
     report(args.results)
+    curve_check(args.results)
     print(f"{len(copied)} runs in {args.results / 'runs'}; reports: {args.results}/study.md, ablations.md")
     if failed:
         print("failed (see their logs in " f"{args.workdir / 'logs'}): " + ", ".join(failed), file=sys.stderr)

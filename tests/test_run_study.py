@@ -1,0 +1,67 @@
+"""The results study's script (``results/run_study.py``): the jobs it runs and its learning-curve check."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "results" / "run_study.py"
+
+
+@pytest.fixture(scope="module")
+def run_study():
+    spec = importlib.util.spec_from_file_location("run_study", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["run_study"] = module  # its dataclasses look their module up while it loads
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop("run_study", None)
+
+
+def test_the_study_covers_every_cell_the_readme_lists(run_study):
+    jobs = run_study.study_jobs()
+    names = [j.name for j in jobs]
+    assert len(names) == len(set(names)) == 155
+    collects = [j for j in jobs if j.module == "torchrl_bail.collect"]
+    assert len(collects) == 11 and jobs[:11] == collects  # batches first
+    for env in ("hopper", "walker"):
+        for kind in ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det"):
+            for algo in ("bail", "pbail", "bc", "marwil"):
+                assert {f"{env}_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
+    for kind in ("ddpg01", "ddpg05"):
+        for algo in ("bcq", "bear"):
+            assert {f"hopper_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
+    by_name = {j.name: j for j in jobs}
+    assert by_name["hopper_ddpg05/bail/D1_oracle/seed2"].args == [
+        "+exp=hopper_ddpg05", "algo=bail", "seed=2", "preset=study", "batch.oracle.enabled=true",
+        "returns.augment=oracle"]
+    assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
+
+
+def _run(root: Path, name: str, returns: list[float]) -> None:
+    scalars = root / "runs" / "hopper_ddpg05_b1" / "bail" / name / "logs" / "scalars" / "eval"
+    scalars.mkdir(parents=True)
+    steps = [100 * (i + 1) for i in range(len(returns))]
+    (scalars / "return.csv").write_text("".join(f"{s},{r}\n" for s, r in zip(steps, returns)))
+    (scalars / "epoch.csv").write_text("".join(f"{s},{0.2 * (i + 1)}\n" for i, s in enumerate(steps)))
+
+
+def test_curve_check_tells_a_flat_curve_from_a_rising_one(run_study, tmp_path):
+    # flat: the second half (evaluations 5..9) alternates around 500 -> no fitted change
+    _run(tmp_path, "seed1,preset=study", [100, 200, 300, 400, 500, 490, 510, 490, 510, 500])
+    _run(tmp_path, "seed2,preset=study", [100, 200, 300, 400, 500, 510, 490, 510, 490, 500])
+    # rising by 50 per evaluation over the second half: +200 across it, exactly on the line (spread 0)
+    _run(tmp_path, "seed1,algo.envelope.penalty=1,preset=study", [0, 0, 0, 0, 0, 100, 150, 200, 250, 300])
+    rows = {r["overrides"]: r for r in run_study.curve_check(tmp_path)}
+    flat, rising = rows[""], rows["algo.envelope.penalty=1"]
+    assert flat["seeds"] == 2 and flat["evaluations"] == 10 and flat["second_half_mean"] == pytest.approx(500)
+    assert flat["second_half_change"] == pytest.approx(0, abs=1e-9) and not flat["still_moving"]
+    assert rising["second_half_change"] == pytest.approx(200) and rising["residual_spread"] == pytest.approx(0, abs=1e-9)
+    assert rising["still_moving"] and rising["second_half_mean"] == pytest.approx(200)
+    assert json.loads((tmp_path / "curves.json").read_text()) == list(rows.values())
+    assert "| hopper_ddpg05_b1 | bail | algo.envelope.penalty=1 | 200.0 | +200.0 | 0.0 | **rising** |" in (
+        tmp_path / "curves.md").read_text()
