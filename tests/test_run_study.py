@@ -25,16 +25,17 @@ def run_study():
 def test_the_study_covers_every_cell_the_readme_lists(run_study):
     jobs = run_study.study_jobs()
     names = [j.name for j in jobs]
-    assert len(names) == len(set(names)) == 155
+    assert len(names) == len(set(names)) == 167
     collects = [j for j in jobs if j.module == "torchrl_bail.collect"]
     assert len(collects) == 11 and jobs[:11] == collects  # batches first
     for env in ("hopper", "walker"):
         for kind in ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det"):
             for algo in ("bail", "pbail", "bc", "marwil"):
                 assert {f"{env}_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
-    for kind in ("ddpg01", "ddpg05"):
-        for algo in ("bcq", "bear"):
-            assert {f"hopper_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
+    for env in ("hopper", "walker"):
+        for kind in ("ddpg01", "ddpg05"):
+            for algo in ("bcq", "bear"):
+                assert {f"{env}_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
     by_name = {j.name: j for j in jobs}
     assert by_name["hopper_ddpg05/bail/D1_oracle/seed2"].args == [
         "+exp=hopper_ddpg05", "algo=bail", "seed=2", "preset=study", "batch.oracle.enabled=true",
