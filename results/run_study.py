@@ -137,7 +137,8 @@ def curve_check(results: Path) -> list[dict]:
     """Has each learning curve flattened? Per group (batch x algorithm x overrides): the mean curve over seeds,
     and over its second half (evaluations ``n // 2`` to ``n``, the ones ``final_return`` averages) its mean, the
     change a least-squares line fits across it and the spread of the points around that line. ``still_moving``
-    marks a change larger than twice the spread and than 5 % of the mean. Written to ``results/curves.{md,json}``."""
+    marks a change larger than twice the spread and than 5 % of the mean. Groups whose second half holds fewer than
+    3 evaluations are left out. Written to ``results/curves.{md,json}``."""
     import numpy as np
 
     from torchrl_bail.io import write_json_atomic, write_text_atomic
@@ -152,10 +153,12 @@ def curve_check(results: Path) -> list[dict]:
     rows = []
     for (batch, algo, overrides), curves in groups.items():
         n = min(len(c) for c in curves)
+        if n - n // 2 < 3:  # a line through a second half of fewer than 3 evaluations says nothing
+            continue
         mean = np.mean([c[:n] for c in curves], axis=0)
         x = np.arange(n // 2, n)
         slope, intercept = np.polyfit(x, mean[n // 2:], 1)
-        spread = float(np.std(mean[n // 2:] - (slope * x + intercept), ddof=2)) if len(x) > 2 else float("nan")
+        spread = float(np.std(mean[n // 2:] - (slope * x + intercept), ddof=2))
         change, level = float(slope * (x[-1] - x[0])), float(mean[n // 2:].mean())
         rows.append({"batch": batch, "algo": algo, "overrides": overrides, "seeds": len(curves), "evaluations": n,
                      "second_half_mean": level, "second_half_change": change, "residual_spread": spread,

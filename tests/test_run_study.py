@@ -43,8 +43,8 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
     assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
 
 
-def _run(root: Path, name: str, returns: list[float]) -> None:
-    scalars = root / "runs" / "hopper_ddpg05_b1" / "bail" / name / "logs" / "scalars" / "eval"
+def _run(root: Path, name: str, returns: list[float], algo: str = "bail") -> None:
+    scalars = root / "runs" / "hopper_ddpg05_b1" / algo / name / "logs" / "scalars" / "eval"
     scalars.mkdir(parents=True)
     steps = [100 * (i + 1) for i in range(len(returns))]
     (scalars / "return.csv").write_text("".join(f"{s},{r}\n" for s, r in zip(steps, returns)))
@@ -57,11 +57,14 @@ def test_curve_check_tells_a_flat_curve_from_a_rising_one(run_study, tmp_path):
     _run(tmp_path, "seed2,preset=study", [100, 200, 300, 400, 500, 510, 490, 510, 490, 500])
     # rising by 50 per evaluation over the second half: +200 across it, exactly on the line (spread 0)
     _run(tmp_path, "seed1,algo.envelope.penalty=1,preset=study", [0, 0, 0, 0, 0, 100, 150, 200, 250, 300])
+    _run(tmp_path, "seed1,preset=study", [0, 100, 200, 300], algo="bc")  # a second half of 2 points: left out
     rows = {r["overrides"]: r for r in run_study.curve_check(tmp_path)}
+    assert len(rows) == 2 and {r["algo"] for r in rows.values()} == {"bail"}
     flat, rising = rows[""], rows["algo.envelope.penalty=1"]
     assert flat["seeds"] == 2 and flat["evaluations"] == 10 and flat["second_half_mean"] == pytest.approx(500)
     assert flat["second_half_change"] == pytest.approx(0, abs=1e-9) and not flat["still_moving"]
-    assert rising["second_half_change"] == pytest.approx(200) and rising["residual_spread"] == pytest.approx(0, abs=1e-9)
+    assert rising["second_half_change"] == pytest.approx(200)
+    assert rising["residual_spread"] == pytest.approx(0, abs=1e-9)
     assert rising["still_moving"] and rising["second_half_mean"] == pytest.approx(200)
     assert json.loads((tmp_path / "curves.json").read_text()) == list(rows.values())
     assert "| hopper_ddpg05_b1 | bail | algo.envelope.penalty=1 | 200.0 | +200.0 | 0.0 | **rising** |" in (

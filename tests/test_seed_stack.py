@@ -169,7 +169,8 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
     assert [s["seed"] for s in stacked] == [1, 2]
     for name in ("summary.json", "policy.pt", "policy_best.pt", "config.yaml", "learning_curve.png"):
         assert (tmp_path / "stacked" / "seed2" / name).stat().st_size > 0, name
-    assert (tmp_path / "stacked" / "seed2" / "config.yaml").read_text() == (tmp_path / "single" / "config.yaml").read_text()
+    stacked_config = (tmp_path / "stacked" / "seed2" / "config.yaml").read_text()
+    assert stacked_config == (tmp_path / "single" / "config.yaml").read_text()
     got, expected = stacked[1], single
     assert got.keys() == expected.keys()
     for key in expected.keys() - {"wall_time_s", "run_dir"}:

@@ -65,7 +65,6 @@ RUN_ONLY_KEYS = ("seed", "progress", "logger.", "device", "data_dir", "hydra.", 
                  "dataset", "env.", "batch.")
 
 
-
 class ReportError(ValueError):
     """A summary.json (or a directory given) cannot enter the report; the message names the file."""
 

@@ -37,7 +37,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs", "register_resolvers", "run_dir_suffix"]
+__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs", "register_resolvers",
+           "run_dir_suffix"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -80,10 +81,12 @@ def register_resolvers() -> None:
 def comparable_config(cfg: DictConfig) -> dict[str, Any]:
     """The resolved config without :data:`RUN_ONLY_KEYS`: what a checkpoint's numbers depend on (an
     :data:`ADDED_KEYS` key at its old behaviour is left out too, so checkpoints written before it existed resume)."""
-    return _without_run_only(OmegaConf.to_container(cfg, resolve=True))
+    return _comparable(OmegaConf.to_container(cfg, resolve=True))
 
 
-def _without_run_only(container: dict[str, Any]) -> dict[str, Any]:
+def _comparable(container: dict[str, Any]) -> dict[str, Any]:
+    """A config's top level without what a checkpoint's numbers do not depend on: :data:`RUN_ONLY_KEYS`, Hydra's
+    node and :data:`ADDED_KEYS` at their old behaviour."""
     return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
             and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
 
@@ -214,7 +217,7 @@ class Resumption:
         if checkpoint.get("config") is None:
             raise ResumeError(f"{ckpt_path} carries no config (written by an older torchrl_bail): it cannot be "
                               "resumed safely; start over with resume=false or choose another hydra.run.dir")
-        diffs = diff_configs(_without_run_only(checkpoint["config"]), self.config)
+        diffs = diff_configs(_comparable(checkpoint["config"]), self.config)
         if diffs:
             shown = "; ".join(diffs[:4]) + (f"; ... ({len(diffs)} keys in all)" if len(diffs) > 4 else "")
             raise ResumeError(f"{ckpt_path} was written by another config ({shown}); rerun with the checkpoint's "
@@ -243,7 +246,7 @@ class Resumption:
             config_path = self.run_dir / "config.yaml"
             if not config_path.is_file():
                 return False
-            saved = _without_run_only(OmegaConf.to_container(OmegaConf.load(config_path)))
+            saved = _comparable(OmegaConf.to_container(OmegaConf.load(config_path)))
             diffs = diff_configs(saved, self.config)
             if diffs:
                 raise ResumeError(f"{self.run_dir} holds a finished run of another config ({'; '.join(diffs[:4])}); "

@@ -47,8 +47,8 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "linear", "prepare_seeds", "stack_modules",
-           "unstack_modules"]
+__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "linear", "prepare_seeds",
+           "stack_modules", "unstack_modules"]
 
 _TARGET = "target_"
 

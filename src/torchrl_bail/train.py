@@ -259,8 +259,10 @@ def seed_list(cfg: DictConfig) -> list[int]:
     """The seeds of a ``seeds=`` run: the list itself, or for a count ``S`` the seeds ``seed, ..., seed + S - 1``.
 
     Examples:
-        >>> seed_list(OmegaConf.create({"seed": 4, "seeds": 3})), seed_list(OmegaConf.create({"seed": 1, "seeds": [7, 2]}))
-        ([4, 5, 6], [7, 2])
+        >>> seed_list(OmegaConf.create({"seed": 4, "seeds": 3}))
+        [4, 5, 6]
+        >>> seed_list(OmegaConf.create({"seed": 1, "seeds": [7, 2]}))
+        [7, 2]
     """
     seeds = cfg.seeds
     if isinstance(seeds, int):

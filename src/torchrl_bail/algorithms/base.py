@@ -201,10 +201,11 @@ class Algorithm(ABC):
         It is built afresh from the same config (the random draws of its initialisation do not touch the caller's
         streams), then loaded with a copy of :meth:`state_dict`; what :meth:`prepare` left behind is deep-copied
         over: attributes the constructor does not set, and those holding plain data (tensors that are no
-        module's parameters or buffers, TensorDicts, numbers, strings and containers of them). Python's attribute-by-attribute copy would not do: a TorchRL loss
-        holds its networks' parameters in a :class:`~tensordict.nn.TensorDictParams`, whose ``__deepcopy__``
-        clones them apart from the copied networks, so the copy's updates would move the loss's clones and
-        never the networks its optimizers and policy use. The copy is eager (call :meth:`compile` on it again).
+        module's parameters or buffers, TensorDicts, numbers, strings and containers of them). Python's
+        attribute-by-attribute copy would not do: a TorchRL loss holds its networks' parameters in a
+        :class:`~tensordict.nn.TensorDictParams`, whose ``__deepcopy__`` clones them apart from the copied networks,
+        so the copy's updates would move the loss's clones and never the networks its optimizers and policy use.
+        The copy is eager (call :meth:`compile` on it again).
 
         Examples:
             >>> import copy
@@ -246,7 +247,7 @@ class Algorithm(ABC):
 
 def _is_plain_data(value, module_state: set[int]) -> bool:
     """Data a deep copy may duplicate: no module, optimizer or object wired to them, no tensor that is a
-    module's parameter or buffer (``module_state``: their ``data_ptr``\ s)."""
+    module's parameter or buffer (``module_state``: the ``data_ptr`` of each)."""
     if isinstance(value, nn.Module):
         return False
     if value is None or isinstance(value, (bool, int, float, str, torch.Size, torch.device, TensorDictBase)):
