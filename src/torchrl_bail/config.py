@@ -328,6 +328,7 @@ class MARWILConfig(AlgoConfig):
     vf_coeff: float = non_negative()
     max_exponent: float = positive()
     eps: float = non_negative()
+    value_warmup_updates: int = at_least(0)
     value: NetConfig = MISSING
     policy: NetConfig = MISSING
 
