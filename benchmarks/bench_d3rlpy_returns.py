@@ -207,7 +207,10 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_d3rlpy_returns-") as tmp:
         for name in args.batch:
-            batch = resolve_batch(name, overrides=args.batch_overrides)
+            try:
+                batch = resolve_batch(name, overrides=args.batch_overrides)
+            except (FileNotFoundError, ValueError) as err:
+                raise SystemExit(f"bench_d3rlpy_returns: {err}") from None
             env = args.env or batch.metadata.get("env_name") or env_name(batch.env_id)
             arrays = Path(tmp) / f"{Path(str(batch.path)).name}.npz"
             np.savez(arrays, **d3rlpy_arrays(batch))
