@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_minari_export import native_batch
+from _hopper_batches import native_batch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_d3rlpy_returns import compose_run, d3rlpy_arrays, matched_constants, schedule  # noqa: E402

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _hopper_batches import hopper_rows
 from hydra import compose, initialize_config_dir
-from test_minari_export import hopper_rows
 from torchrl.data.datasets import load_dataset
 from torchrl.data.datasets.common import BaseDatasetExperienceReplay
 
