@@ -31,7 +31,8 @@ obtained, the unfinished final episode, the keys left out.
 Reference scores (v5, measured here; see ``results/reference_scores.json``): ``ref_min_score`` is the mean return
 of a uniform-random policy over 100 episodes (:data:`V5_RANDOM_SCORES`); ``ref_max_score`` is meant to be the best
 policy return this library's SAC run reaches on the env, and no paper-scale SAC run exists yet, so it is only
-written when given (``--ref-max-score``). Minari itself stores ``ref_min_score`` only together with
+written when given (``--ref-max-score``); for an env outside the table, a given ``ref_max_score`` makes Minari
+measure ``ref_min_score`` itself (its random policy, 100 episodes). Minari itself stores ``ref_min_score`` only together with
 ``ref_max_score``; here the random reference is written either way (Minari's ``get_normalized_score`` still needs
 both).
 
