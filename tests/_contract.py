@@ -126,10 +126,11 @@ class AlgoCase:
     cli: tuple[str, ...]
     not_updated: frozenset[str] = frozenset()
 
-    def build(self):
-        """The algorithm with tiny networks; the suite seeds torch before calling it."""
-        config = algo_config(self.name, batch_size=ALGO_BATCH, epochs=1, **self.overrides)
-        return ALGORITHMS[self.name](OBS, SPEC, config)
+    def build(self, device="cpu", **overrides):
+        """The algorithm with tiny networks (and ``overrides``, dotted keys into a block: ``**{"envelope.patience":
+        1}``) on ``device``; the suite seeds torch before calling it."""
+        config = algo_config(self.name, batch_size=ALGO_BATCH, epochs=1, **{**self.overrides, **overrides})
+        return ALGORITHMS[self.name](OBS, SPEC, config, device)
 
     def __repr__(self) -> str:
         return self.name

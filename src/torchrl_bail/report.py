@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from torchrl_bail.config import ALGO_SCHEMAS
 from torchrl_bail.io import write_json_atomic, write_text_atomic
 from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
 from torchrl_bail.resume import ADDED_KEYS
@@ -57,7 +58,8 @@ from torchrl_bail.resume import ADDED_KEYS
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
            "summarise", "format_markdown", "numpy_seed", "main", "RUN_ONLY_KEYS"]
 
-ALGO_ORDER = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
+#: the algorithms' order in tables and figures: their schemas' (the registry's)
+ALGO_ORDER = list(ALGO_SCHEMAS)
 #: keys every summary.json must have to enter the report
 REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
 #: config keys (prefixes end in ".") that never separate groups: the seed and what only changes how a run executes

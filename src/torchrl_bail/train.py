@@ -302,9 +302,14 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     """
     import contextlib
 
+    from torchrl_bail.algorithms import ALGORITHMS
     from torchrl_bail.resume import ResumeError
 
     seeds = seed_list(cfg)
+    refusal = ALGORITHMS[cfg.algo.name].seed_stack_refusal
+    if refusal is not None:
+        raise ConfigError("seeds", seeds, f"null with algo={cfg.algo.name}, whose seeds cannot be stacked ({refusal}); "
+                          f"run them one by one: -m seed={','.join(map(str, seeds))}")
     configs, dirs = [], []
     for seed in seeds:
         seed_cfg = cfg.copy()
