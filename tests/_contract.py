@@ -156,6 +156,9 @@ ALGO_CASES = {case.name: case for case in [
     AlgoCase("bcq", _NETS, ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
     AlgoCase("bear", {**_NETS, "warm_start_updates": 2},
              ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
+    # the actor steps at every update here, so that every optimizer steps in one (tests/test_td3bc.py: the delay)
+    AlgoCase("td3bc", {"actor": _NET, "critic": _NET, "policy_delay": 1},
+             ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")),
 ]}
 
 #: transitions in the tiny batch every tiny end-to-end run shares

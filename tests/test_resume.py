@@ -2,7 +2,7 @@
 
 Unit level: every algorithm's ``state_dict`` is complete (a fresh object loaded from it makes the same updates
 bit for bit), and the training loop resumed from its checkpoint reproduces the uninterrupted loop. Run level
-(in process, on a tiny generated batch): runs of BAIL and BCQ "killed" at random points (an exception escaping
+(in process, on a tiny generated batch): runs of BAIL, BCQ and TD3+BC "killed" at random points (an exception escaping
 the update or the envelope fit leaves the disk as SIGKILL would) and restarted match the reference run's summary,
 scalar logs and weights; a changed config is refused; a finished run is reported, not retrained. The SIGKILL
 version of the drill with real processes is ``benchmarks/kill_drill.py``.
@@ -147,6 +147,9 @@ RUN = {
              "algo.batch_size=100"],
     "bcq": ["algo=bcq", "algo.epochs=0.004", "eval.every_epochs=0.001", "algo.vae.hidden=[16,16]",
             "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]", "algo.batch_size=50"],
+    # killed after odd and even updates: the actor's delay counts on from the checkpoint
+    "td3bc": ["algo=td3bc", "algo.epochs=0.004", "eval.every_epochs=0.001", "algo.actor.hidden=[16,16]",
+              "algo.critic.hidden=[16,16]", "algo.batch_size=50"],
 }
 
 
@@ -169,7 +172,7 @@ def _outputs(run_dir) -> dict:
     return {"summary": summary, "logs": logs, "weights": weights}
 
 
-@pytest.mark.parametrize("algo", ["bail", "bcq"])
+@pytest.mark.parametrize("algo", list(RUN))
 def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir, monkeypatch, algo):
     from torchrl_bail import train as train_module
 
