@@ -2,8 +2,8 @@
 
 It builds d3rlpy 2.8's BCQ, BEAR and BC at the sizes ``bench_d3rlpy.py`` passes, then answers lines on stdin:
 ``<algo> <n>`` runs ``n`` training iterations of ``<algo>`` (``sample_transition_batch`` + ``update``, what
-d3rlpy's ``fit`` runs per step) and prints ``<updates per wall-clock second> <updates per CPU second>``; ``quit`` ends it. Only numpy, torch and d3rlpy are
-imported here.
+d3rlpy's ``fit`` runs per step) and prints ``<updates per wall-clock second> <updates per CPU second>``; ``quit``
+ends it. Only numpy, torch and d3rlpy are imported here.
 """
 
 from __future__ import annotations

@@ -376,7 +376,7 @@ class BEARActorConfig(NetConfig):
 class BEARConfig(TwinCriticVAEConfig):
     kernel_sigma: float = positive()
     num_samples_match: int = at_least(1)
-    mmd_stabiliser: float = non_negative()
+    mmd_stabilizer: float = non_negative()
     epsilon: float = non_negative()
     log_alpha_init: Optional[float] = None
     log_alpha_min: float = MISSING

@@ -72,7 +72,8 @@ def _container(cfg: Any) -> dict:
 
 
 def _network_sizes(algo_cfg: dict) -> dict[str, list[int]]:
-    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with ``hidden``."""
+    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with
+    ``hidden``."""
     return {k: [int(h) for h in v["hidden"]] for k, v in algo_cfg.items() if isinstance(v, dict) and "hidden" in v}
 
 
