@@ -426,7 +426,7 @@ def test_tiny_run_through_the_config(case, tiny_run_data_dir, tmp_path):
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=[*TINY_RUN, f"algo={case.name}", *case.cli, f"data_dir={tiny_run_data_dir}"])
-    summary = run(cfg, tmp_path)
+    (summary,) = run(cfg, tmp_path)
     assert (summary["algo"], summary["num_transitions"]) == (case.name, TINY_STEPS)
     assert math.isfinite(summary["final_return"]) and summary["iterations"] >= 1
     for name in ("summary.json", "policy.pt", "checkpoint.pt", "learning_curve.png", "config.yaml"):

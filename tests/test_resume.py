@@ -206,7 +206,7 @@ def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir
         with pytest.raises(_Kill):
             train_module.run(cfg, run_dir)
     monkeypatch.setattr(algorithms_module, "build_algorithm", build)
-    summary = train_module.run(cfg, run_dir)
+    (summary,) = train_module.run(cfg, run_dir)
     assert summary["resumed_from_iteration"], "the last start resumed from a checkpoint"
     resumed = _outputs(run_dir)
     assert resumed["summary"] == reference["summary"]
@@ -219,10 +219,10 @@ def test_finished_run_is_reported_and_changed_config_refused(tmp_path, data_dir,
 
     run_dir = tmp_path / "run"
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
-    first = train_module.run(cfg, run_dir)
+    (first,) = train_module.run(cfg, run_dir)
     monkeypatch.setattr(trainer_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     with caplog.at_level("INFO", logger="torchrl_bail"):
-        again = train_module.run(cfg, run_dir)
+        (again,) = train_module.run(cfg, run_dir)
     assert again == first and again["resumed_from_iteration"] == []
     assert "already complete" in caplog.text and "summary.json" in caplog.text
     # run-only keys may change; anything else is refused, naming the key
@@ -231,7 +231,7 @@ def test_finished_run_is_reported_and_changed_config_refused(tmp_path, data_dir,
     with pytest.raises(ResumeError, match=r"algo\.epochs: 0\.002 -> 0\.004"):
         train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001"), run_dir)
     monkeypatch.undo()
-    restarted = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001",
+    (restarted,) = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001",
                                       "resume=false"), run_dir)
     assert restarted["iterations"] == 2 * first["iterations"]
 
@@ -244,14 +244,14 @@ def test_checkpoints_written_before_a_key_existed_still_resume(tmp_path, data_di
 
     run_dir = tmp_path / "run"
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
-    first = train_module.run(cfg, run_dir)
+    (first,) = train_module.run(cfg, run_dir)
     monkeypatch.setattr(trainer_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     path = run_dir / "checkpoint.pt"
     checkpoint = torch.load(path, weights_only=False)
     assert not set(ADDED_KEYS) & set(checkpoint["config"])  # written at the defaults: left out
     for old_layout in ({}, {"seeds": None}, {"seeds": None, "compile": False}):
         torch.save({**checkpoint, "config": {**checkpoint["config"], **old_layout}}, path)
-        assert train_module.run(cfg, run_dir) == first
+        assert train_module.run(cfg, run_dir) == [first]
     torch.save({**checkpoint, "config": {**checkpoint["config"], "compile": True}}, path)
     with pytest.raises(ResumeError, match=r"compile: True -> \(absent\)"):
         train_module.run(cfg, run_dir)
@@ -262,8 +262,8 @@ def test_resume_from_another_run_dir_and_the_lock(tmp_path, data_dir):
 
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
     source = tmp_path / "old_run"
-    expected = train_module.run(cfg, source)
-    moved = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001",
+    (expected,) = train_module.run(cfg, source)
+    (moved,) = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001",
                                   f"resume={source}"), tmp_path / "new_run")
     assert moved["final_return"] == expected["final_return"] and moved["resumed_from_iteration"] == [2]
     assert (tmp_path / "new_run" / "logs" / "scalars" / "eval" / "return.csv").read_text() == \

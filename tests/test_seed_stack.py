@@ -169,7 +169,7 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
 
     common = ("algo=bc", *ALGO_CASES["bc"].cli, f"data_dir={tiny_run_data_dir}")
     stacked = run(_tiny_config(*common, "seeds=[1,2]"), tmp_path / "stacked")
-    single = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
+    (single,) = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
     assert [s["seed"] for s in stacked] == [1, 2]
     for name in ("summary.json", "policy.pt", "policy_best.pt", "config.yaml", "learning_curve.png"):
         assert (tmp_path / "stacked" / "seed2" / name).stat().st_size > 0, name
