@@ -104,8 +104,8 @@ def run_batch(batch_name: str, seed: int, updates: int, every: int, reset_at: in
     held = min(5000, n // 5)
     order = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
     held_out, train = data[order[:held]].clone(), data[order[held:]].clone()
-    overrides = {"marwil": [], "marwil_adam_reset": [], "marwil_value_warmup": [f"algo.value_warmup_updates={reset_at}"],
-                 "bc": []}
+    overrides = {name: [] for name in TRAINEES}
+    overrides["marwil_value_warmup"] = [f"algo.value_warmup_updates={reset_at}"]
     trainees = {}
     for name in TRAINEES:
         cfg = compose_config(batch_name, "bc" if name == "bc" else "marwil", seed, *overrides[name])

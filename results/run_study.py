@@ -1,6 +1,6 @@
 """Reruns the results study of the README ("Results"), or any row of it, from scratch.
 
-    python results/run_study.py                              # everything: 11 batches, 156 runs, reports (hours)
+    python results/run_study.py                              # everything: 11 batches, every algorithm, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
     python results/run_study.py --list                       # the jobs, in the order they run
     python results/run_study.py --study paper_hopper --jobs 2   # the paper-scale Hopper study (days of CPU)
@@ -21,8 +21,9 @@ policies or batches), ``timings.json`` (wall time of every job) and the two repo
 over the second half of training (:func:`curve_check`).
 
 The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
-opt_det (B1, 50k transitions); BAIL, Progressive BAIL, BC and MARWIL with seeds 1-3 on each; BCQ and BEAR with
-seeds 1-3 on the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
+opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.config.ALGO_SCHEMAS`: BAIL,
+Progressive BAIL, BC, MARWIL, ...) with seeds 1-3 on each, except BCQ and BEAR (:data:`DDPG_ONLY`), with seeds 1-3 on
+the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
 returns, on the oracle batch of 2000-step episodes), D.2 (selection by return, no envelope) and D.3 (ordinary
 regression, penalty K = 1), seeds 1-3.
 
@@ -46,11 +47,16 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_bail.config import ALGO_SCHEMAS
+
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
 ENVS = ("hopper", "walker")
 KINDS = ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det")
-IMITATION = ("bail", "pbail", "bc", "marwil")
+#: the study's cost rule: a BCQ or BEAR run costs ~10x an imitation run on a 2-core CPU, so these two run on the
+#: two DDPG batches of each env only; every other registered algorithm runs on every batch
+DDPG_ONLY = ("bcq", "bear")
+EVERY_BATCH = tuple(name for name in ALGO_SCHEMAS if name not in DDPG_ONLY)
 #: supp. D.1-D.3 on Hopper ddpg05: name -> overrides (D.1 runs on the oracle batch, with both kinds of returns)
 ABLATIONS = {
     "D1_oracle": ["batch.oracle.enabled=true", "returns.augment=oracle"],
@@ -88,10 +94,10 @@ def study_jobs() -> list[Job]:
                                                            "preset=study", *extra]) for s in SEEDS]
 
     for env in ENVS:
-        jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
+        jobs += [j for kind in KINDS for algo in EVERY_BATCH for j in train(env, kind, algo)]
         if env == "hopper":
             jobs += [j for name, extra in ABLATIONS.items() for j in train(env, "ddpg05", "bail", extra, "/" + name)]
-        bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in ("bcq", "bear")]
+        bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in DDPG_ONLY]
         jobs += [cell[i] for i in range(len(SEEDS)) for cell in bcq_bear]  # seed 1 of every cell first
     return jobs
 
@@ -130,7 +136,7 @@ def paper_hopper_jobs() -> list[Job]:
         jobs += train(kind, "bail", seeds) + train(kind, "bc", seeds) + train(kind, "pbail", 3)
         jobs += train(kind, "marwil", 3) + train(kind, "marwil", 3, *warmup)
     for kind in ("med_det", "opt_stoch", "ddpg01"):
-        jobs += [collect(kind)] + [j for algo in IMITATION for j in train(kind, algo, 3)]
+        jobs += [collect(kind)] + [j for algo in ("bail", "pbail", "bc", "marwil") for j in train(kind, algo, 3)]
     return jobs + train("opt_det", "bcq", 3)
 
 

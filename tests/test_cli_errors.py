@@ -66,7 +66,8 @@ CASES = [
      ["returns.augment", "batch.oracle.enabled=true"]),
     # paths
     ("missing_dataset", [EXP, "dataset=/nonexistent/hopper-medium-v2.hdf5"], ["dataset", "existing D4RL"]),
-    ("missing_resume_dir", [EXP, "resume=/nonexistent/run"], ["resume", "auto | true | false | an existing run directory"]),
+    ("missing_resume_dir", [EXP, "resume=/nonexistent/run"],
+     ["resume", "auto | true | false | an existing run directory"]),
     ("data_dir_is_a_file", [EXP, f"data_dir={REPO / 'pyproject.toml'}"], ["data_dir", "a directory"]),
 ]
 

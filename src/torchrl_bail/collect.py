@@ -1,7 +1,8 @@
 """Make (or find) a behaviour batch: ``python -m torchrl_bail.collect +exp=hopper_ddpg05 [preset=quick]``.
 
 The batch for ``env`` x ``batch`` is collected once and cached under ``data_dir`` (see
-:mod:`torchrl_bail.data.cache`, made by :mod:`torchrl_bail.behaviour`); a second call only reports it. Multirun works as for training::
+:mod:`torchrl_bail.data.cache`, made by :mod:`torchrl_bail.behaviour`); a second call only reports it. Multirun works
+as for training::
 
     python -m torchrl_bail.collect -m +exp=hopper_ddpg05 batch.index=1,2
 
@@ -132,9 +133,7 @@ def _list_main(argv: list[str]) -> int:
     for arg in it:
         if arg == "--data-dir":
             data_dir = next(it, None)
-        elif arg.startswith("--data-dir="):
-            data_dir = arg.split("=", 1)[1]
-        elif arg.startswith("data_dir="):
+        elif arg.startswith(("--data-dir=", "data_dir=")):
             data_dir = arg.split("=", 1)[1]
         elif arg != "--list":
             print(f"--list accepts only --data-dir DIR (or data_dir=DIR), got {arg!r}", file=sys.stderr)

@@ -32,8 +32,8 @@ Reference scores (v5, measured here; see ``results/reference_scores.json``): ``r
 of a uniform-random policy over 100 episodes (:data:`V5_RANDOM_SCORES`); ``ref_max_score`` is meant to be the best
 policy return this library's SAC run reaches on the env, and no paper-scale SAC run exists yet, so it is only
 written when given (``--ref-max-score``); for an env outside the table, a given ``ref_max_score`` makes Minari
-measure ``ref_min_score`` itself (its random policy, 100 episodes). Minari itself stores ``ref_min_score`` only together with
-``ref_max_score``; here the random reference is written either way (Minari's ``get_normalized_score`` still needs
+measure ``ref_min_score`` itself (its random policy, 100 episodes). Minari itself stores ``ref_min_score`` only
+together with ``ref_max_score``; here the random reference is written either way (Minari's ``get_normalized_score`` still needs
 both).
 
 Writes are atomic: the dataset is built under a hidden temporary root beside Minari's data path (Minari lists
@@ -122,7 +122,7 @@ def check_dataset_id(dataset_id: str, *, force: bool = False) -> Path:
         >>> check_dataset_id("bail/hopper ddpg05")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        torchrl_bail.data.minari_export.MinariExportError: Minari dataset id 'bail/hopper ddpg05': expected ...-v<version>...
+        torchrl_bail.data.minari_export.MinariExportError: Minari dataset id 'bail/hopper ddpg05': expected ...
     """
     _minari()
     from minari.dataset.minari_dataset import parse_dataset_id
