@@ -33,8 +33,8 @@ of a uniform-random policy over 100 episodes (:data:`V5_RANDOM_SCORES`); ``ref_m
 policy return this library's SAC run reaches on the env, and no paper-scale SAC run exists yet, so it is only
 written when given (``--ref-max-score``); for an env outside the table, a given ``ref_max_score`` makes Minari
 measure ``ref_min_score`` itself (its random policy, 100 episodes). Minari itself stores ``ref_min_score`` only
-together with ``ref_max_score``; here the random reference is written either way (Minari's ``get_normalized_score`` still needs
-both).
+together with ``ref_max_score``; here the random reference is written either way (Minari's
+``get_normalized_score`` still needs both).
 
 Writes are atomic: the dataset is built under a hidden temporary root beside Minari's data path (Minari lists
 neither it nor anything in it) and renamed into place; ``force=True`` replaces an existing dataset only once the new
