@@ -31,7 +31,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config import algo_config
-from torchrl_bail.envelope import fit_upper_envelope
+from torchrl_bail.envelope import fit_upper_envelope, fit_upper_envelopes
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds, stack_modules
 
@@ -124,8 +124,8 @@ def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
                 for _ in range(seeds)]
 
     def stacked() -> None:
-        fit_upper_envelope(stack_modules(networks()), observations, returns,
-                           generator=[torch.Generator().manual_seed(s) for s in range(seeds)], **kwargs)
+        fit_upper_envelopes(stack_modules(networks()), observations, returns,
+                            generators=[torch.Generator().manual_seed(s) for s in range(seeds)], **kwargs)
         _sync(device)
 
     def sequential() -> None:

@@ -98,7 +98,7 @@ def _fit_on_curve(mode: str, monkeypatch, stop_at: int | None = None):
     """A real fit whose validation losses are :data:`CURVE`; returns the fit, the net and its weights after every
     epoch (as the callback sees them: after any revert of that epoch)."""
     scripted = iter(CURVE)
-    monkeypatch.setattr(envelope_module, "validation_loss", lambda loss_module, validation: next(scripted))
+    monkeypatch.setattr(envelope_module, "validation_loss", lambda loss_module, validation: [next(scripted)])
     torch.manual_seed(0)
     obs = torch.randn(60, 3, generator=torch.Generator().manual_seed(0))
     net = make_value_network(3, (8,))

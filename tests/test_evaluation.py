@@ -135,7 +135,9 @@ def test_simulator_exception_scores_only_that_episode_zero(monkeypatch):
 def test_several_seeds_in_one_step_loop_equal_separate_evaluations():
     policy = _policy()
     with Evaluator("Hopper-v5", episodes=2, seeds=[3, 4], max_steps=40) as ev:
-        together = ev(policy)
+        together = ev.per_seed(policy)
+        with pytest.raises(ValueError, match=r"plays 2 seeds \[3, 4\]: call evaluator.per_seed\(policy\)"):
+            ev(policy)
     assert policy.shapes[0] == (2, 2, 11)  # [seeds, episodes, obs]
     separate = []
     for s in (3, 4):

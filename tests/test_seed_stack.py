@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config import algo_config
-from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
-from torchrl_bail.trainer import train
+from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
+from torchrl_bail.trainer import train, train_seeds
 
 SEEDS = (3, 7, 11)
 #: the stacked run computes each seed's numbers with batched matrix products: equal up to float rounding
@@ -135,8 +135,8 @@ def test_training_loop_draws_each_seeds_single_seed_stream():
     sampler = SeedBatchSampler([data] * len(SEEDS), ALGO_BATCH, streams)
     assert len(sampler) == len(data)  # one storage for seeds that share their data
     scores = iter(range(100))
-    histories = train(stack, sampler, evaluate=lambda policy: [float(next(scores)) for _ in SEEDS],
-                      samples_per_epoch=ALGO_BATCH * 6, eval_every_epochs=0.5, progress=False)
+    histories = train_seeds(StackedTrainee(stack, sampler), evaluate=lambda p: [float(next(scores)) for _ in SEEDS],
+                            samples_per_epoch=ALGO_BATCH * 6, eval_every_epochs=0.5, progress=False)
     assert [h.iterations for h in histories] == [6] * len(SEEDS)
     assert [[e.mean_return for e in h.evaluations] for h in histories] == [[0, 3], [1, 4], [2, 5]]
     _assert_close_per_seed(singles, stack)
@@ -190,7 +190,7 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
 def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
     """BAIL's envelope, S seeds in one fit: own split, shuffles, validation losses, patience counts, reverts and
     returned weights per seed (a high learning rate makes the validation loss wander, so reverts happen)."""
-    from torchrl_bail.envelope import fit_upper_envelope
+    from torchrl_bail.envelope import fit_upper_envelope, fit_upper_envelopes
     from torchrl_bail.modules import make_value_network
     from torchrl_bail.stacking import stack_modules, unstack_modules
 
@@ -206,8 +206,8 @@ def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
                                   generator=torch.Generator().manual_seed(seed), **kwargs) for seed in SEEDS]
     networks = [network(seed) for seed in SEEDS]
     stacked = stack_modules(networks)
-    fits = fit_upper_envelope(stacked, observations, returns,
-                              generator=[torch.Generator().manual_seed(seed) for seed in SEEDS], **kwargs)
+    fits = fit_upper_envelopes(stacked, observations, returns,
+                               generators=[torch.Generator().manual_seed(seed) for seed in SEEDS], **kwargs)
     unstack_modules(stacked, networks)
     assert any(fit.revert_epochs for fit in singles) or early_stopping == "as_coded"
     for single, fit, net in zip(singles, fits, networks):
@@ -265,7 +265,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
 
     evaluate.stacked = True
     reference, sampler = fresh_stack()
-    reference_histories = train(reference, sampler, **kwargs)
+    reference_histories = train_seeds(StackedTrainee(reference, sampler), **kwargs)
     reference.unstack()
 
     paths = [tmp_path / f"seed{seed}.pt" for seed in seeds]
@@ -280,12 +280,12 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
 
     killed.update = dying_update
     with pytest.raises(_Kill):
-        train(killed, sampler, checkpoint_path=paths, checkpoint_every_s=0.0, **kwargs)
+        train_seeds(StackedTrainee(killed, sampler), checkpoint_paths=paths, checkpoint_every_s=0.0, **kwargs)
     checkpoints = [torch.load(p, weights_only=False) for p in paths]
     assert [c["iteration"] for c in checkpoints] == [7] * len(seeds)
     torch.manual_seed(99)  # the checkpoints' streams replace whatever the process has
     resumed, sampler = fresh_stack(checkpoints)
-    histories = train(resumed, sampler, checkpoint_path=paths, resume_from=checkpoints, **kwargs)
+    histories = train_seeds(StackedTrainee(resumed, sampler), checkpoint_paths=paths, resume_from=checkpoints, **kwargs)
     assert [h.evaluations for h in histories] == [h.evaluations for h in reference_histories]
     resumed.unstack()
     for got, expected in zip(resumed.algorithms, reference.algorithms):

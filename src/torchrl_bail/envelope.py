@@ -29,6 +29,7 @@ Examples:
 
 from __future__ import annotations
 
+import inspect
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -52,6 +53,7 @@ __all__ = [
     "EnvelopeFit",
     "envelope_split",
     "fit_upper_envelope",
+    "fit_upper_envelopes",
     "check_fit_arguments",
     "envelope_step",
     "train_one_epoch",
@@ -368,55 +370,47 @@ def envelope_step(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimiz
 
 def train_one_epoch(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimizer, data: TensorDict,
                     train_index: torch.Tensor, batch_size: int, *,
-                    generator: torch.Generator | None = None) -> float:
+                    generators: Sequence[torch.Generator | None]) -> list[float]:
     """One pass over the reshuffled training split in sequential mini-batches of ``batch_size`` (the last, partial
-    one kept); returns the mean loss over the epoch (mini-batch losses weighted by their size).
+    one kept); returns the mean loss over the epoch (mini-batch losses weighted by their size), one per seed.
 
     ``data`` holds the observations (the envelope's in-key) and returns (the loss' ``value_target``) of the whole
-    batch on the training device; ``train_index`` (same device) selects the training split; the shuffle draws from
-    ``generator`` on the CPU. Seed-stacked envelopes (see :func:`envelope_step`): ``train_index`` is ``[S, n]``
-    (each seed's split) and ``generator`` a list of ``S`` generators (each seed's shuffle); one loss per seed is
-    returned.
+    batch on the training device; ``train_index`` (same device) selects the training split, ``[n]`` for one envelope
+    or ``[S, n]`` for ``S`` seed-stacked ones (see :func:`envelope_step`: each seed's split); ``generators`` holds
+    each seed's shuffle generator (CPU; ``[None]``: the global stream).
     """
     n_train = train_index.shape[-1]
-    if train_index.ndim == 1:
-        order = train_index[torch.randperm(n_train, generator=generator).to(train_index.device)]
-    else:
-        order = torch.stack([row[torch.randperm(n_train, generator=g).to(row.device)]
-                             for row, g in zip(train_index, generator)])
+    rows = [row[torch.randperm(n_train, generator=g).to(row.device)]
+            for row, g in zip(train_index.reshape(-1, n_train), generators, strict=True)]
+    order = torch.stack(rows).reshape(train_index.shape)
     obs_key, return_key = loss_module.value_network.in_keys[0], loss_module.tensor_keys.value_target
     observations, returns = data.get(obs_key), data.get(return_key)
     running = None
     for start in range(0, n_train, batch_size):
         index = order[..., start : start + batch_size]
-        if index.ndim == 1:
-            obs_b, ret_b = observations.index_select(0, index), returns.index_select(0, index)
-        else:
-            obs_b, ret_b = observations[index], returns[index]
-        batch = TensorDict({obs_key: obs_b, return_key: ret_b}, batch_size=index.shape)
+        batch = TensorDict({obs_key: observations[index], return_key: returns[index]}, batch_size=index.shape)
         loss = envelope_step(loss_module, optimizer, batch) * index.shape[-1]
         running = loss if running is None else running + loss
-    return float(running) / n_train if running.ndim == 0 else (running / n_train).tolist()
+    return [float(running) / n_train] if running.ndim == 0 else (running / n_train).tolist()
 
 
 @torch.no_grad()
-def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> float | list[float]:
+def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> list[float]:
     """The mean penalty loss over every validation point (``nan`` for an empty set), evaluated in chunks for
-    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``).
-
-    Seed-stacked envelopes: ``validation`` is ``[S, n]`` (each seed's validation set), the loss per point
-    (``reduction="none"``), and the result one loss per seed."""
+    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``). One loss per
+    seed: ``validation`` is ``[n]`` (one envelope) or ``[S, n]`` (seed-stacked envelopes, each seed's validation set;
+    the loss per point, ``reduction="none"``)."""
     n = validation.batch_size[-1]
-    seeds = validation.batch_size[:-1].numel() if validation.batch_dims > 1 else None
+    stacked = validation.batch_dims > 1
     if n == 0:
-        return math.nan if seeds is None else [math.nan] * seeds
+        return [math.nan] * validation.batch_size[:-1].numel()
     total = 0
     for chunk in validation.split(_VALIDATION_CHUNK, dim=validation.batch_dims - 1):
         loss, _ = loss_module.envelope_loss(chunk)
-        if seeds is not None and loss.ndim < 2:
+        if stacked and loss.ndim < 2:
             raise ValueError("validation_loss on seed-stacked [S, n] data needs a loss with reduction='none'")
-        total = total + (loss.mean() if seeds is None else loss.mean(-1)) * chunk.batch_size[-1]
-    return float(total / n) if seeds is None else (total / n).tolist()
+        total = total + (loss.mean(-1) if stacked else loss.mean()) * chunk.batch_size[-1]
+    return (total / n).reshape(-1).tolist()
 
 
 def fit_upper_envelope(
@@ -432,11 +426,11 @@ def fit_upper_envelope(
     val_fraction: float = 0.2,
     patience: int = 4,
     early_stopping: EarlyStopping = "paper",
-    generator: torch.Generator | Sequence[torch.Generator] | None = None,
+    generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
     progress: bool = True,
     callback: Callable[[int, dict[str, Any]], Any] | None = None,
-) -> EnvelopeFit | list[EnvelopeFit]:
+) -> EnvelopeFit:
     """Fits the upper envelope ``V_phi`` to the returns as the authors do (supp. B.1-B.2, Alg. 1).
 
     BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
@@ -492,15 +486,52 @@ def fit_upper_envelope(
             ``info = {"train_loss", "val_loss", "best_epoch", "best_val_loss", "reverted"}``; a truthy return
             value stops training after that epoch. Defaults to ``None``.
 
-    Several seeds in one fit: ``value_network`` stacked over ``S`` seeds
-    (:func:`~torchrl_bail.stacking.stack_modules`) and ``generator`` a list of the ``S`` seeds' generators. Each
-    seed gets its own split, shuffles, validation losses, early stopping (patience count, best weights) and
-    returned weights, exactly those of its own fit with its generator (to float rounding); the mini-batches of
-    all seeds go through one batched step. Returns one :class:`EnvelopeFit` per seed (``callback`` gets lists).
+    Several seeds in one fit: :func:`fit_upper_envelopes`.
 
     Returns:
-        :class:`EnvelopeFit` (a list of them for several seeds).
+        :class:`EnvelopeFit`.
     """
+    settings = dict(penalty=penalty, lr=lr, weight_decay=weight_decay, batch_size=batch_size, epochs=epochs,
+                    val_fraction=val_fraction, patience=patience, early_stopping=early_stopping, device=device,
+                    progress=progress)
+    per_seed_callback = None if callback is None else (
+        lambda epoch, info: callback(epoch, {key: value[0] for key, value in info.items()}))
+    (fit,) = _fit(value_network, observations, returns, [generator], stacked=False, callback=per_seed_callback,
+                  **settings)
+    return fit
+
+
+def fit_upper_envelopes(
+    value_network: TensorDictModuleBase,
+    observations: torch.Tensor,
+    returns: torch.Tensor,
+    *,
+    generators: Sequence[torch.Generator],
+    callback: Callable[[int, dict[str, list]], Any] | None = None,
+    **settings: Any,
+) -> list[EnvelopeFit]:
+    """:func:`fit_upper_envelope` of ``S`` seeds in one fit: ``value_network`` stacked over the seeds
+    (:func:`~torchrl_bail.stacking.stack_modules`), ``generators`` the ``S`` seeds' generators, ``settings``
+    :func:`fit_upper_envelope`'s keyword arguments (its defaults).
+
+    Each seed gets its own split, shuffles, validation losses, early stopping (patience count, best weights) and
+    returned weights, exactly those of its own fit with its generator (to float rounding); the mini-batches of all
+    seeds go through one batched step. Returns one :class:`EnvelopeFit` per seed; ``callback`` gets ``info``'s
+    values as lists, one per seed.
+    """
+    defaults = {name: parameter.default for name, parameter in inspect.signature(fit_upper_envelope).parameters.items()
+                if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("generator", "callback")}
+    return _fit(value_network, observations, returns, list(generators), stacked=True, callback=callback,
+                **{**defaults, **settings})
+
+
+def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, returns: torch.Tensor,
+         generators: list[torch.Generator | None], *, stacked: bool, penalty: float, lr: float, weight_decay: float,
+         batch_size: int, epochs: int, val_fraction: float, patience: int, early_stopping: str,
+         device: torch.device | str | None, progress: bool,
+         callback: Callable[[int, dict[str, list]], Any] | None) -> list[EnvelopeFit]:
+    """The fit of one envelope (``stacked=False``, one generator) or of ``S`` seed-stacked ones; one
+    :class:`EnvelopeFit` per seed."""
     mode = check_fit_arguments(batch_size=batch_size, epochs=epochs, patience=patience, val_fraction=val_fraction,
                                early_stopping=early_stopping)
     returns = _flat_returns(observations, returns)
@@ -509,23 +540,18 @@ def fit_upper_envelope(
     device = torch.device(device) if device is not None else _module_device(value_network)
     value_network.to(device)
     dtype = _module_dtype(value_network)
-    stacked = generator is not None and not isinstance(generator, torch.Generator)
+    # one envelope reduces its loss by the mean, as it always has; stacked ones per seed ([S, B] -> [S])
     loss_module = UpperEnvelopeLoss(value_network, penalty=penalty, reduction="none" if stacked else "mean")
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
 
-    if stacked:
-        generator = list(generator)
-        splits = [envelope_split(returns.cpu(), val_fraction, generator=g) for g in generator]
-        train_index, val_index = (torch.stack(parts) for parts in zip(*splits))
-        networks = [SeedSlice(value_network, s) for s in range(len(generator))]
-    else:
-        train_index, val_index = envelope_split(returns.cpu(), val_fraction, generator=generator)
-        networks = [value_network]
+    splits = [envelope_split(returns.cpu(), val_fraction, generator=g) for g in generators]
+    train_index, val_index = (torch.stack(parts) if stacked else parts[0] for parts in zip(*splits))
+    networks = [SeedSlice(value_network, s) for s in range(len(generators))] if stacked else [value_network]
     if float(val_fraction) > 0 and val_index.shape[-1] == 0:
         warnings.warn(
             f"fit_upper_envelope: {len(returns)} points leave no validation point at val_fraction={val_fraction}; "
             "training without validation or early stopping (the last weights are returned)",
-            stacklevel=2,
+            stacklevel=3,
         )
     keys = (value_network.in_keys[0], loss_module.tensor_keys.value_target)
     data = TensorDict(dict(zip(keys, (observations.to(device=device, dtype=dtype),
@@ -537,16 +563,12 @@ def fit_upper_envelope(
     trackers = [EarlyStoppingTracker(network, patience=patience, revert=mode != "as_coded",
                                      copy_best=mode != "as_coded") for network in networks]
 
-    def per_seed(value) -> list:
-        return value if stacked else [value]
-
     train_losses: list[list[float]] = [[] for _ in networks]
     val_losses: list[list[float]] = [[] for _ in networks]
     bar = tqdm(range(1, epochs + 1), desc="upper envelope", unit="epoch", disable=not progress, leave=False)
     for epoch in bar:
-        train = per_seed(train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size,
-                                         generator=generator))
-        val = per_seed(validation_loss(loss_module, validation))
+        train = train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size, generators=generators)
+        val = validation_loss(loss_module, validation)
         for tracker, seed_train, seed_val, tr, va in zip(trackers, train_losses, val_losses, train, val):
             seed_train.append(tr)
             seed_val.append(va)
@@ -554,18 +576,18 @@ def fit_upper_envelope(
                 tracker.observe(va)
         best_epochs = [tracker.best_step if has_validation else epoch for tracker in trackers]
         bar.set_postfix(train=f"{sum(train) / len(train):.4g}", val=f"{sum(val) / len(val):.4g}",
-                        best=best_epochs[0] if not stacked else max(best_epochs))
-        if callback is not None:
-            info = {"train_loss": train, "val_loss": val, "best_epoch": best_epochs,
-                    "best_val_loss": [tracker.best_loss if has_validation else math.nan for tracker in trackers],
-                    "reverted": [bool(tracker.reverts) for tracker in trackers]}
-            if callback(epoch, info if stacked else {key: value[0] for key, value in info.items()}):
-                break
+                        best=max(best_epochs))
+        if callback is not None and callback(epoch, {
+            "train_loss": train, "val_loss": val, "best_epoch": best_epochs,
+            "best_val_loss": [tracker.best_loss if has_validation else math.nan for tracker in trackers],
+            "reverted": [bool(tracker.reverts) for tracker in trackers],
+        }):
+            break
     bar.close()
 
     fits = []
-    for network, tracker, seed_train, seed_val, seed in zip(networks, trackers, train_losses, val_losses,
-                                                            range(len(networks))):
+    for network, tracker, seed_train, seed_val, (seed_train_index, seed_val_index) in zip(
+            networks, trackers, train_losses, val_losses, splits):
         returned: Literal["best", "last"] = "last"
         if mode == "paper_best" and tracker.best.recorded:
             tracker.best.load_into(network)
@@ -576,14 +598,14 @@ def fit_upper_envelope(
             val_loss=seed_val,
             best_epoch=tracker.best_step if has_validation else len(seed_train),
             best_val_loss=tracker.best_loss if has_validation else math.nan,
-            train_index=train_index[seed] if stacked else train_index,
-            val_index=val_index[seed] if stacked else val_index,
+            train_index=seed_train_index,
+            val_index=seed_val_index,
             revert_epochs=tracker.reverts,
             early_stopping=mode,
             returned=returned,
             optimizer=optimizer,
         ))
-    return fits if stacked else fits[0]
+    return fits
 
 
 @torch.no_grad()

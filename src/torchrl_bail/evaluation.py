@@ -24,8 +24,8 @@ earlier ones did (set :attr:`Evaluator.evaluations` to resume a stream).
 
 Several training seeds at once: ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step
 loop; the policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. a vmapped
-ensemble of ``S`` policies) and the call returns one :class:`EvalResult` per seed, each equal to what
-``Evaluator(..., seed=s_j)`` gives for that seed's policy (as long as the policy computes each row as it would
+ensemble of ``S`` policies) and :meth:`Evaluator.per_seed` returns one :class:`EvalResult` per seed, each equal to
+what ``Evaluator(..., seed=s_j)`` gives for that seed's policy (as long as the policy computes each row as it would
 alone: a matrix product's last bits can depend on the batch shape).
 
 Examples:
@@ -95,7 +95,8 @@ class Evaluator:
         episodes (int): number of test episodes (per seed). Defaults to ``10``.
         seed (int): the run seed; see the module docstring for the per-episode reset seeds. Defaults to ``0``.
         seeds (sequence of int, optional): evaluate ``S`` seeds at once (``S x episodes`` episodes, policy batch
-            ``[S, episodes]``, one :class:`EvalResult` per seed); overrides ``seed``. Defaults to ``None``.
+            ``[S, episodes]``, :meth:`per_seed` returns one :class:`EvalResult` per seed); overrides ``seed``.
+            Defaults to ``None``.
         max_steps (int): step budget of one episode (the env's time limit ends episodes first when shorter).
             Defaults to ``1000``.
         max_episode_steps (int, optional): overrides the env's time limit.
@@ -125,8 +126,9 @@ class Evaluator:
         self.env_id = env_id
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
-        self.seed = int(seed)
-        self.seeds = None if seeds is None else [int(s) for s in seeds]
+        #: the seeds evaluated: ``[seed]``, or ``seeds``
+        self.seeds = [int(seed)] if seeds is None else [int(s) for s in seeds]
+        #: the policy's batch: ``[episodes]`` for ``seed``, ``[S, episodes]`` for ``seeds``
         self.batch_shape = torch.Size([self.episodes] if seeds is None else [len(self.seeds), self.episodes])
         self.device = torch.device(device)
         self.evaluations = 0
@@ -137,11 +139,20 @@ class Evaluator:
         self.action_spec = action_spec_from_bounds(space.low, space.high).to(self.device)
         self.obs_dim = int(self.envs[0].observation_space.shape[-1])
 
+    def __call__(self, policy: TensorDictModuleBase) -> EvalResult:
+        """Plays one evaluation of one seed's policy; returns its :class:`EvalResult` (an evaluator of several
+        ``seeds`` plays them with :meth:`per_seed`)."""
+        if len(self.seeds) > 1:
+            raise ValueError(f"this Evaluator plays {len(self.seeds)} seeds {self.seeds}: call "
+                             "evaluator.per_seed(policy) for their results, one per seed")
+        (result,) = self.per_seed(policy)
+        return result
+
     @torch.no_grad()
-    def __call__(self, policy: TensorDictModuleBase) -> EvalResult | list[EvalResult]:
-        """Plays one evaluation; returns an :class:`EvalResult` (a list of them, one per seed, with ``seeds``)."""
+    def per_seed(self, policy: TensorDictModuleBase) -> list[EvalResult]:
+        """Plays one evaluation; returns one :class:`EvalResult` per seed (one for an evaluator of one seed)."""
         n = len(self.envs)
-        seeds = [self.seed] if self.seeds is None else self.seeds
+        seeds = self.seeds
         obs = np.zeros((n, self.obs_dim), dtype=np.float32)
         returns = np.zeros(n)
         lengths = np.zeros(n, dtype=np.int64)
@@ -178,9 +189,7 @@ class Evaluator:
                     obs[i] = o
                     running[i] = not (terminated or truncated)
         returns[failed] = 0.0
-        results = [_result(returns[j], lengths[j], failed[j])
-                   for j in np.split(np.arange(n), len(seeds))]
-        return results[0] if self.seeds is None else results
+        return [_result(returns[j], lengths[j], failed[j]) for j in np.split(np.arange(n), len(seeds))]
 
     def state_dict(self) -> dict[str, int]:
         """What a checkpoint needs to continue the evaluation stream: the number of evaluations run so far (every

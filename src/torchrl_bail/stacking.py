@@ -47,8 +47,8 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "linear", "prepare_seeds",
-           "stack_modules", "unstack_modules"]
+__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "StackedTrainee", "linear",
+           "prepare_seeds", "stack_modules", "unstack_modules"]
 
 _TARGET = "target_"
 
@@ -206,8 +206,7 @@ def _other_buffers(algorithm, stacked_ids: set[int]) -> dict[str, torch.Tensor]:
 
 class SeedStack:
     """``S`` independently initialised copies of one algorithm, trained by one update step (see the module
-    docstring). It offers what :func:`torchrl_bail.trainer.train` asks of an algorithm (``name``, the schedule,
-    ``update``, ``policy``) and :attr:`seeds_count`.
+    docstring); :class:`StackedTrainee` trains it (:func:`torchrl_bail.trainer.train_seeds`).
 
     Args:
         algorithms: ``S`` algorithms of one class and config, each built (and prepared) as its single-seed run
@@ -438,6 +437,50 @@ class SeedBatchSampler:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         for g, s in zip(self.generators, state["generators"]):
             g.set_state(s)
+
+
+class StackedTrainee:
+    """``S`` seeds trained as one (:func:`torchrl_bail.trainer.train_seeds`' trainee): ``stack``'s update on the
+    ``[S, B]`` mini-batches of ``sampler``, each seed's checkpoint a single-seed one
+    (:meth:`SeedStack.seed_checkpoints`).
+
+    Training scalars: a ``[S]`` value (a per-seed diagnostic) is logged per seed under its name, a plain one (a
+    loss, averaged over the seeds by the host's update) by every seed as ``<name>_mean_over_seeds``.
+    """
+
+    def __init__(self, stack: SeedStack, sampler: SeedBatchSampler) -> None:
+        self.stack, self.sampler = stack, sampler
+        self.seeds = stack.seeds_count
+        self.name, self.epochs, self.samples_per_update = stack.name, stack.epochs, stack.samples_per_update
+
+    @property
+    def policy(self):
+        return self.stack.policy
+
+    def sample(self) -> TensorDictBase:
+        return self.sampler.sample()
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        return self.stack.update(batch)
+
+    def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
+        def per_seed(value) -> bool:
+            return torch.is_tensor(value) and bool(value.ndim)
+
+        return [{(k if per_seed(v) else f"{k}_mean_over_seeds"): (v[j] if per_seed(v) else v) for k, v in sums.items()}
+                for j in range(self.seeds)]
+
+    def checkpoints(self, state: dict[str, Any]) -> list[dict[str, Any]]:
+        return self.stack.seed_checkpoints({**state, "sampler": self.sampler.state_dict()})
+
+    def restore(self, checkpoints: list[dict[str, Any]]) -> dict[str, Any]:
+        state = self.stack.merge_checkpoints(checkpoints, self.sampler)
+        self.sampler.load_state_dict(state["sampler"])
+        return state
+
+    def algorithms(self) -> list[Any]:
+        self.stack.unstack()
+        return self.stack.algorithms
 
 
 def prepare_seeds(algorithms: Sequence[Any], data: TensorDictBase, contexts: Sequence[Any]) -> list[TensorDictBase]:

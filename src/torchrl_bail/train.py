@@ -299,8 +299,8 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.policy import save_policy
-    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
-    from torchrl_bail.trainer import train
+    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
+    from torchrl_bail.trainer import AlgorithmTrainee, train_seeds
 
     start = time.perf_counter()
     cfg = configs[0]
@@ -345,36 +345,30 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
         # -- the trainee: the algorithm itself, or the seeds' stack ---------------------------------------------------
         if stacked:
             stack = SeedStack(algorithms)
-            trainee, unstack = stack, stack.unstack
-            source = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
+            trainee = StackedTrainee(stack, SeedBatchSampler(prepared, stack.batch_size, streams, device=device))
             stack.host.compile(cfg.compile)  # the one update all seeds share; a no-op for compile=false
         else:
-            trainee, source, unstack = algorithms[0], prepared[0], lambda: None
-            trainee.compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
+            trainee = AlgorithmTrainee(algorithms[0], prepared[0])
+            algorithms[0].compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
 
         def keep_best(i: int):  # policy_best.pt: the best-evaluated policy of seed i so far
             def save(point, index: int) -> None:
-                unstack()
-                save_policy(dirs[i] / "policy_best.pt", algorithms[i], configs[i], obs_dim=obs_dim,
+                save_policy(dirs[i] / "policy_best.pt", trainee.algorithms()[i], configs[i], obs_dim=obs_dim,
                             action_spec=action_spec, iteration=point.iteration, epoch=point.epoch, evaluation=index,
                             mean_return=point.mean_return)
             return save
 
-        def per_seed(values: list) -> Any:  # the training loop takes one seed's values bare
-            return values if stacked else values[0]
-
         every_minutes = cfg.checkpoint.get("every_minutes")
-        histories = train(
-            trainee, source, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
-            eval_every_epochs=cfg.eval.every_epochs, logger=per_seed(loggers), progress=cfg.progress,
-            checkpoint_path=per_seed([d / "checkpoint.pt" for d in dirs]) if cfg.checkpoint.enabled else None,
+        histories = train_seeds(
+            trainee, evaluate=evaluator.per_seed, evaluation_state=evaluator, samples_per_epoch=cfg.samples_per_epoch,
+            eval_every_epochs=cfg.eval.every_epochs, loggers=loggers, progress=cfg.progress,
+            checkpoint_paths=[d / "checkpoint.pt" for d in dirs] if cfg.checkpoint.enabled else None,
             checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
-            checkpoint_extra=per_seed([r.checkpoint_extra for r in resumptions]),
-            resume_from=per_seed(checkpoints) if resuming else None,
-            on_new_best=per_seed([keep_best(i) for i in range(len(configs))]),
+            checkpoint_extras=[r.checkpoint_extra for r in resumptions],
+            resume_from=checkpoints if resuming else None,
+            on_new_best=[keep_best(i) for i in range(len(configs))],
         )
-        histories = histories if stacked else [histories]
-        unstack()
+        algorithms = trainee.algorithms()
     finally:
         evaluator.close()
     wall_time_s = time.perf_counter() - start + (checkpoints[0] or {}).get("wall_time_s", 0.0)

@@ -26,10 +26,10 @@ from __future__ import annotations
 import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -40,7 +40,8 @@ from tqdm.auto import tqdm
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.io import atomic_path
 
-__all__ = ["CHECKPOINT_FORMAT", "EvalPoint", "TrainHistory", "rng_state", "save_checkpoint", "set_rng_state", "train"]
+__all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "rng_state",
+           "save_checkpoint", "set_rng_state", "train", "train_seeds"]
 
 #: version of the checkpoint layout :func:`train` writes and resumes from
 CHECKPOINT_FORMAT = 1
@@ -98,6 +99,90 @@ def set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["torch_cuda"])
 
 
+class Trainee(Protocol):
+    """What :func:`train_seeds` trains: ``S >= 1`` seeds of one algorithm, seen as one learner.
+
+    :class:`AlgorithmTrainee` is one seed's algorithm with TorchRL's replay buffer;
+    :class:`~torchrl_bail.stacking.StackedTrainee` is a :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds with
+    its :class:`~torchrl_bail.stacking.SeedBatchSampler`. Per-seed values travel as lists of ``S``.
+    """
+
+    name: str
+    epochs: float
+    samples_per_update: int
+
+    @property
+    def seeds(self) -> int:
+        """``S``, the number of seeds trained."""
+
+    @property
+    def policy(self) -> Callable:
+        """The evaluation policy (``[S, N, obs_dim]`` observations when ``S > 1``)."""
+
+    def sample(self) -> TensorDictBase:
+        """The next mini-batch."""
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """One update step; returns its training scalars."""
+
+    def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
+        """The accumulated training scalars as each seed logs them (one dict per seed)."""
+
+    def checkpoints(self, state: dict[str, Any]) -> list[dict[str, Any]]:
+        """The loop's ``state`` (``"evaluations"``: one list per seed) as one single-seed checkpoint per seed, each
+        with its ``"algorithm"`` state and its mini-batch stream."""
+
+    def restore(self, checkpoints: list[dict[str, Any]]) -> dict[str, Any]:
+        """Loads the seeds' checkpoints' mini-batch streams; returns the loop's state (the inverse of
+        :meth:`checkpoints`; each seed's algorithm already holds its ``"algorithm"`` state)."""
+
+    def algorithms(self) -> list[Algorithm]:
+        """Each seed's own algorithm, holding its current trained state."""
+
+
+class AlgorithmTrainee:
+    """One seed: ``algorithm`` itself, its mini-batches drawn with replacement from ``data`` (moved to the
+    algorithm's device) by TorchRL's :class:`~torchrl.data.RandomSampler`, as a single-seed run always trained."""
+
+    seeds = 1
+
+    def __init__(self, algorithm: Algorithm, data: TensorDictBase) -> None:
+        if len(data) == 0:
+            raise ValueError("the training data is empty: nothing to sample mini-batches from")
+        self.algorithm = algorithm
+        self.name, self.epochs = algorithm.name, algorithm.epochs
+        self.samples_per_update = algorithm.samples_per_update
+        self.sampler = RandomSampler()
+        self.buffer = TensorDictReplayBuffer(storage=TensorStorage(data.to(algorithm.device)), sampler=self.sampler,
+                                             batch_size=algorithm.batch_size)
+
+    @property
+    def policy(self):
+        return self.algorithm.policy
+
+    def sample(self) -> TensorDictBase:
+        return self.buffer.sample()
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        return self.algorithm.update(batch)
+
+    def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
+        return [sums]
+
+    def checkpoints(self, state: dict[str, Any]) -> list[dict[str, Any]]:
+        (evaluations,) = state["evaluations"]
+        return [{**state, "evaluations": evaluations, "sampler": self.sampler.state_dict(),
+                 "algorithm": self.algorithm.state_dict()}]
+
+    def restore(self, checkpoints: list[dict[str, Any]]) -> dict[str, Any]:
+        (state,) = checkpoints
+        self.sampler.load_state_dict(state["sampler"])
+        return {**state, "evaluations": [state["evaluations"]]}
+
+    def algorithms(self) -> list[Algorithm]:
+        return [self.algorithm]
+
+
 def train(
     algorithm: Algorithm,
     data: TensorDictBase,
@@ -113,8 +198,9 @@ def train(
     progress: bool = True,
     log_every: int = 100,
     on_new_best: Callable[[EvalPoint, int], None] | None = None,
-) -> TrainHistory | list[TrainHistory]:
-    """Runs ``algorithm`` for ``algorithm.epochs`` epochs on ``data``.
+) -> TrainHistory:
+    """Runs ``algorithm`` for ``algorithm.epochs`` epochs on ``data``: the one-seed case of :func:`train_seeds`,
+    with an :class:`AlgorithmTrainee`.
 
     Args:
         algorithm: the :class:`~torchrl_bail.algorithms.base.Algorithm` (its ``prepare`` already ran).
@@ -122,7 +208,8 @@ def train(
 
     Keyword Args:
         evaluate: ``policy -> EvalResult | float``; called every ``eval_every_epochs`` and at the end. When it
-            has ``state_dict``/``load_state_dict`` (its random stream), that state is checkpointed too.
+            has ``state_dict``/``load_state_dict`` (an :class:`~torchrl_bail.evaluation.Evaluator`'s random stream),
+            that state is checkpointed too.
         samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
         eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
         logger: a TorchRL logger (``log_scalar``), optional.
@@ -138,39 +225,63 @@ def train(
         log_every (int): training scalars are averaged and logged every ``log_every`` updates.
         on_new_best: ``(point, index)`` called when an evaluation beats every earlier one (e.g. to save the
             best policy); ``index`` is the evaluation's position in ``history.evaluations``.
-
-    Several seeds at once (:mod:`torchrl_bail.stacking`): ``algorithm`` is a
-    :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds, ``data`` its
-    :class:`~torchrl_bail.stacking.SeedBatchSampler`, ``evaluate`` returns one result per seed; ``logger``,
-    ``on_new_best``, ``checkpoint_path``, ``checkpoint_extra`` and ``resume_from`` are lists, one per seed (one
-    single-seed checkpoint per seed, :meth:`~torchrl_bail.stacking.SeedStack.seed_checkpoints`). A training scalar
-    of shape ``[S]`` is logged per seed; a plain scalar (a loss averaged over the seeds) goes to every seed as
-    ``train/<name>_mean_over_seeds``. The function then returns one :class:`TrainHistory` per seed.
     """
-    seeds = getattr(algorithm, "seeds_count", None)
-    batch_size = algorithm.batch_size
-    per_update = algorithm.samples_per_update
-    iterations = max(1, math.ceil(algorithm.epochs * samples_per_epoch / per_update))
+    (history,) = train_seeds(
+        AlgorithmTrainee(algorithm, data), evaluate=None if evaluate is None else lambda policy: [evaluate(policy)],
+        evaluation_state=evaluate, samples_per_epoch=samples_per_epoch, eval_every_epochs=eval_every_epochs,
+        loggers=[logger], checkpoint_paths=None if checkpoint_path is None else [checkpoint_path],
+        checkpoint_every_s=checkpoint_every_s, checkpoint_extras=[checkpoint_extra],
+        resume_from=None if resume_from is None else [resume_from], progress=progress, log_every=log_every,
+        on_new_best=[on_new_best],
+    )
+    return history
+
+
+def train_seeds(
+    trainee: Trainee,
+    *,
+    evaluate: Callable[[Callable], Sequence] | None = None,
+    evaluation_state=None,
+    samples_per_epoch: int = 1_000_000,
+    eval_every_epochs: float = 0.5,
+    loggers: Sequence | None = None,
+    checkpoint_paths: Sequence[Path] | None = None,
+    checkpoint_every_s: float | None = None,
+    checkpoint_extras: Sequence[Callable[[], dict] | None] | None = None,
+    resume_from: Sequence[dict] | None = None,
+    progress: bool = True,
+    log_every: int = 100,
+    on_new_best: Sequence[Callable[[EvalPoint, int], None] | None] | None = None,
+) -> list[TrainHistory]:
+    """The training loop: runs the ``S`` seeds of ``trainee`` for ``trainee.epochs`` epochs; returns one
+    :class:`TrainHistory` per seed. Every per-seed argument is a list of ``S`` (``None`` entries allowed).
+
+    Keyword Args:
+        evaluate: ``policy -> [result per seed]`` (an :class:`~torchrl_bail.evaluation.EvalResult` or a float
+            each), e.g. :meth:`Evaluator.per_seed <torchrl_bail.evaluation.Evaluator.per_seed>`.
+        evaluation_state: the object whose ``state_dict``/``load_state_dict`` (the evaluation's random stream)
+            is checkpointed with the loop, when it has them (the :class:`~torchrl_bail.evaluation.Evaluator`).
+        loggers: per seed, a TorchRL logger. Its training scalars are what the trainee's ``seed_metrics`` names:
+            a stack logs each seed's own ``[S]`` values under their names and a loss averaged over the seeds as
+            ``train/<name>_mean_over_seeds``.
+        checkpoint_paths / checkpoint_extras / resume_from / on_new_best: per seed, what :func:`train` takes one
+            of: one single-seed checkpoint per seed is written and resumed from (a stack's seeds must have
+            stopped at the same iteration).
+
+    The other arguments are :func:`train`'s.
+    """
+    count = trainee.seeds
+    per_update = trainee.samples_per_update
+    iterations = max(1, math.ceil(trainee.epochs * samples_per_epoch / per_update))
     eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / per_update))
-    if seeds is None:
-        if len(data) == 0:
-            raise ValueError("the training data is empty: nothing to sample mini-batches from")
-        data = data.to(algorithm.device)
-        sampler = RandomSampler()
-        buffer = TensorDictReplayBuffer(storage=TensorStorage(data), sampler=sampler, batch_size=batch_size)
-    else:
-        buffer = sampler = data  # a SeedBatchSampler: [S, B] mini-batches, one random stream per seed
-    loggers = [logger] if seeds is None else list(logger or [None] * seeds)
-    best_callbacks = [on_new_best] if seeds is None else list(on_new_best or [None] * seeds)
-    histories = [TrainHistory() for _ in loggers]
-    history = histories[0]
+    loggers = list(loggers or [None] * count)
+    best_callbacks = list(on_new_best or [None] * count)
+    extras = list(checkpoint_extras or [None] * count)
+    histories = [TrainHistory() for _ in range(count)]
     sums: dict[str, torch.Tensor] = {}
     done, prior_wall_time = 0, 0.0
     if resume_from is not None:
-        if seeds is not None:  # one checkpoint per seed
-            resume_from = algorithm.merge_checkpoints(resume_from, sampler)
-        done, prior_wall_time = _restore(resume_from, iterations, histories, sums, sampler, evaluate,
-                                         per_seed=seeds is not None)
+        done, prior_wall_time = _restore(trainee, list(resume_from), iterations, histories, sums, evaluation_state)
     start = time.perf_counter()
 
     def checkpoint(it: int) -> None:
@@ -178,42 +289,32 @@ def train(
             "format": CHECKPOINT_FORMAT,
             "iteration": it,
             "iterations": iterations,
-            "evaluations": ([asdict(e) for e in history.evaluations] if seeds is None
-                            else [[asdict(e) for e in h.evaluations] for h in histories]),
+            "evaluations": [[asdict(e) for e in h.evaluations] for h in histories],
             "metric_sums": {k: v.clone() if torch.is_tensor(v) else v for k, v in sums.items()},
             "rng": rng_state(),
-            "sampler": sampler.state_dict(),
-            "evaluator": evaluate.state_dict() if hasattr(evaluate, "state_dict") else None,
+            "evaluator": evaluation_state.state_dict() if hasattr(evaluation_state, "state_dict") else None,
             "wall_time_s": prior_wall_time + time.perf_counter() - start,
         }
-        if seeds is None:
-            save_checkpoint(checkpoint_path, {**state, "algorithm": algorithm.state_dict(),
-                                              **(checkpoint_extra() if checkpoint_extra is not None else {})})
-            return
-        for path, seed_state, extra in zip(checkpoint_path, algorithm.seed_checkpoints(state),
-                                           checkpoint_extra or [None] * seeds):
+        for path, seed_state, extra in zip(checkpoint_paths, trainee.checkpoints(state), extras):
             save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
 
-    if checkpoint_path is not None and done == 0:
+    if checkpoint_paths is not None and done == 0:
         checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
     last_checkpoint = time.monotonic()
-    bar = tqdm(total=iterations, initial=done, desc=f"{algorithm.name}", unit="it", disable=not progress,
+    bar = tqdm(total=iterations, initial=done, desc=f"{trainee.name}", unit="it", disable=not progress,
                dynamic_ncols=True)
     for it in range(done + 1, iterations + 1):
-        metrics = algorithm.update(buffer.sample())
+        metrics = trainee.update(trainee.sample())
         for k, v in metrics.items():
             sums[k] = sums.get(k, 0.0) + v
         if it % log_every == 0:
-            for j, seed_logger in enumerate(loggers):
-                for k, v in sums.items() if seed_logger is not None else ():
-                    if seeds is not None and not (torch.is_tensor(v) and v.ndim):  # a loss' mean over the seeds
-                        k, v = f"{k}_mean_over_seeds", v
-                    value = v[j] if torch.is_tensor(v) and v.ndim else v
-                    seed_logger.log_scalar(f"train/{k}", float(value) / log_every, step=it)
+            for seed_logger, seed_sums in zip(loggers, trainee.seed_metrics(sums)):
+                for k, v in seed_sums.items() if seed_logger is not None else ():
+                    seed_logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
             sums.clear()
         evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
         if evaluated:
-            points = _evaluate(evaluate, algorithm, it, it * per_update / samples_per_epoch)
+            points = _evaluate(evaluate, trainee, it, it * per_update / samples_per_epoch)
             for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks):
                 is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
                 seed_history.evaluations.append(point)
@@ -225,7 +326,7 @@ def train(
                     seed_logger.log_scalar("eval/failures", point.failures, step=it)
             mean_return = sum(p.mean_return for p in points) / len(points)
             bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
-        if checkpoint_path is not None and (
+        if checkpoint_paths is not None and (
             evaluated or it == iterations
             or (checkpoint_every_s is not None and time.monotonic() - last_checkpoint >= checkpoint_every_s)
         ):
@@ -236,32 +337,32 @@ def train(
     for seed_history in histories:
         seed_history.iterations = iterations
         seed_history.wall_time_s = prior_wall_time + time.perf_counter() - start
-    return history if seeds is None else histories
+    return histories
 
 
-def _restore(state: dict, iterations: int, histories: list[TrainHistory], sums: dict, sampler, evaluate, *,
-             per_seed: bool) -> tuple[int, float]:
-    """Loads the loop's side of a checkpoint (``per_seed``: a stack's merged checkpoint, one evaluation list per
-    seed, however many seeds); returns ``(iteration, wall time so far)``."""
-    if state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}: it was written by "
-                         "another version of torchrl_bail and cannot be resumed (start over with resume=false)")
-    if state["iterations"] != iterations:
-        raise ValueError(f"the checkpoint's schedule has {state['iterations']} iterations but this run has "
-                         f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
-    for history, evaluations in zip(histories, state["evaluations"] if per_seed else [state["evaluations"]]):
+def _restore(trainee: Trainee, checkpoints: list[dict], iterations: int, histories: list[TrainHistory], sums: dict,
+             evaluation_state) -> tuple[int, float]:
+    """Loads the loop's side of the seeds' checkpoints; returns ``(iteration, wall time so far)``."""
+    for checkpoint in checkpoints:
+        if checkpoint.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"checkpoint format {checkpoint.get('format')!r} is not {CHECKPOINT_FORMAT}: it was "
+                             "written by another version of torchrl_bail and cannot be resumed (start over with "
+                             "resume=false)")
+        if checkpoint["iterations"] != iterations:
+            raise ValueError(f"the checkpoint's schedule has {checkpoint['iterations']} iterations but this run has "
+                             f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
+    state = trainee.restore(checkpoints)
+    for history, evaluations in zip(histories, state["evaluations"]):
         history.evaluations.extend(EvalPoint(**e) for e in evaluations)
     sums.update(state["metric_sums"])
-    sampler.load_state_dict(state["sampler"])
-    if state.get("evaluator") is not None and hasattr(evaluate, "load_state_dict"):
-        evaluate.load_state_dict(state["evaluator"])
+    if state.get("evaluator") is not None and hasattr(evaluation_state, "load_state_dict"):
+        evaluation_state.load_state_dict(state["evaluator"])
     set_rng_state(state["rng"])
     return int(state["iteration"]), float(state.get("wall_time_s", 0.0))
 
 
-def _evaluate(evaluate: Callable, algorithm: Algorithm, iteration: int, epoch: float) -> list[EvalPoint]:
-    """One evaluation as one point per seed (a list of one for a single-seed run)."""
-    results = evaluate(algorithm.policy)
+def _evaluate(evaluate: Callable, trainee: Trainee, iteration: int, epoch: float) -> list[EvalPoint]:
+    """One evaluation as one point per seed."""
     return [EvalPoint(iteration, epoch, float(result)) if isinstance(result, (int, float)) else
             EvalPoint(iteration, epoch, result.mean_return, list(result.returns), result.failures)
-            for result in (results if isinstance(results, list) else [results])]
+            for result in evaluate(trainee.policy)]

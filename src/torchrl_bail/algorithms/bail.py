@@ -23,7 +23,8 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
 
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
-from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below, plot_envelope
+from torchrl_bail.envelope import (envelope_values, fit_upper_envelope, fit_upper_envelopes, fraction_below,
+                                  plot_envelope)
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.stacking import stack_modules, unstack_modules
 from torchrl_bail.transforms.best_action import BestActionFilter
@@ -81,8 +82,8 @@ class BAIL(BehaviourCloning):
         networks = [algorithm.value_network for algorithm in algorithms]
         stacked = stack_modules(networks)
         observations = data["observation"].to(first.device)
-        fits = fit_upper_envelope(
-            stacked, observations, data["return"].to(first.device), generator=[ctx.generator for ctx in contexts],
+        fits = fit_upper_envelopes(
+            stacked, observations, data["return"].to(first.device), generators=[ctx.generator for ctx in contexts],
             device=first.device, progress=contexts[0].progress, **first.envelope_kwargs,
         )
         unstack_modules(stacked, networks)

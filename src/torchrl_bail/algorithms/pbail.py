@@ -115,7 +115,7 @@ class ProgressiveBAIL(BehaviourCloning):
         if val is None or val.batch_size[-1] == 0:  # no validation set: no early stopping
             return
         losses = validation_loss(self.envelope_loss, val)
-        for (tracker, selection), loss in zip(self._seed_tracking, losses if isinstance(losses, list) else [losses]):
+        for (tracker, selection), loss in zip(self._seed_tracking, losses):
             event = tracker.observe(loss)
             if self.best_envelope == "paper" and event == "improved":
                 tracker.best.load_into(selection)
