@@ -151,3 +151,23 @@ def test_entry_points_do_not_import_torch_before_the_config_is_checked():
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
+    """``dataset=`` of another env: one ConfigError naming the env key, both sizes and the remedy (it was a
+    TypeError: the error was built from one string)."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.config import ConfigError, describe_error
+    from torchrl_bail.train import training_data
+
+    cfg = OmegaConf.create({"env": {"name": "walker", "id": "Walker2d-v5"}})
+    batch = SimpleNamespace(path="/data/hopper_ddpg05_b1", obs_dim=11, act_dim=3)
+    evaluator = SimpleNamespace(obs_dim=17, action_spec=SimpleNamespace(shape=(6,)))
+    with pytest.raises(ConfigError) as err:
+        training_data(cfg, batch, evaluator)
+    assert describe_error(err.value) == (
+        "config key env = 'walker': expected the env of batch /data/hopper_ddpg05_b1, whose observation/action "
+        "sizes are (11, 3) where Walker2d-v5 has (17, 6); pick the matching env= for this dataset")

@@ -136,10 +136,9 @@ def training_data(cfg: DictConfig, batch, evaluator):
 
     obs_dim, act_dim = evaluator.obs_dim, evaluator.action_spec.shape[-1]
     if (batch.obs_dim, batch.act_dim) != (obs_dim, act_dim):
-        raise ConfigError(
-            f"batch {batch.path} has observation/action sizes ({batch.obs_dim}, {batch.act_dim}) but env "
-            f"{cfg.env.id} has ({obs_dim}, {act_dim}); pick the matching env= for this dataset"
-        )
+        raise ConfigError("env", cfg.env.name, f"the env of batch {batch.path}, whose observation/action sizes are "
+                          f"({batch.obs_dim}, {batch.act_dim}) where {cfg.env.id} has ({obs_dim}, {act_dim}); pick "
+                          "the matching env= for this dataset")
     data = batch.data
     returns = monte_carlo_returns(data, gamma=cfg.returns.gamma, horizon=cfg.returns.horizon,
                                   augment=cfg.returns.augment)
