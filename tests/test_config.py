@@ -115,3 +115,33 @@ def test_logger_name_from_the_config_wins(monkeypatch, tmp_path):
                          "logger.group=ablations"), tmp_path)
     assert seen["kwargs"]["experiment_name"] == "ablation-K1"
     assert seen["kwargs"]["wandb_kwargs"]["group"] == "ablations"
+
+
+def test_library_defaults_are_the_yaml_defaults():
+    """The library functions BAIL's config drives keep the defaults of ``conf/algo/bail.yaml`` (the one home of
+    the paper's constants): a default changed in one place and not the other fails here."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.config import algo_config
+    from torchrl_bail.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
+    from torchrl_bail.modules import make_deterministic_actor, make_value_network
+    from torchrl_bail.transforms import BestActionFilter
+
+    def defaults(fn) -> dict:
+        return {k: p.default for k, p in inspect.signature(fn).parameters.items() if p.default is not p.empty}
+
+    bail = OmegaConf.to_container(algo_config("bail"))
+    envelope, selection = bail["envelope"], bail["selection"]
+    fit = defaults(fit_upper_envelope)
+    for key in ("penalty", "lr", "weight_decay", "batch_size", "epochs", "val_fraction", "patience", "early_stopping"):
+        assert fit[key] == envelope[key], key
+    assert defaults(EarlyStoppingTracker)["patience"] == envelope["patience"]
+    assert defaults(envelope_split)["val_fraction"] == envelope["val_fraction"]
+    value = defaults(make_value_network)
+    assert (list(value["hidden"]), value["head_scale"]) == (envelope["hidden"], envelope["head_scale"])
+    assert list(defaults(make_deterministic_actor)["hidden"]) == bail["policy"]["hidden"]
+    selection_filter = defaults(BestActionFilter)
+    assert (selection_filter["percentile"], selection_filter["nonpositive_value"]) == (
+        selection["percentile"], selection["nonpositive_value"])
