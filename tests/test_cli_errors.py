@@ -146,7 +146,7 @@ def test_unreadable_dataset_is_one_line(tmp_path):
 
 def test_entry_points_do_not_import_torch_before_the_config_is_checked():
     """What keeps a bad command line at about a second: the entry modules and the schemas load without torch."""
-    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.config; "
+    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.cli, torchrl_bail.config; "
             "print(sorted(m for m in ('torch', 'torchrl', 'tensordict', 'numpy') if m in sys.modules))")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
@@ -160,7 +160,8 @@ def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
 
     from omegaconf import OmegaConf
 
-    from torchrl_bail.config import ConfigError, describe_error
+    from torchrl_bail.cli import describe_error
+    from torchrl_bail.config import ConfigError
     from torchrl_bail.train import training_data
 
     cfg = OmegaConf.create({"env": {"name": "walker", "id": "Walker2d-v5"}})
@@ -171,3 +172,16 @@ def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
     assert describe_error(err.value) == (
         "config key env = 'walker': expected the env of batch /data/hopper_ddpg05_b1, whose observation/action "
         "sizes are (11, 3) where Walker2d-v5 has (17, 6); pick the matching env= for this dataset")
+
+
+def test_help_lists_each_groups_real_options(tmp_path):
+    """``--help`` names the options of conf/'s groups, not the schemas or included parts Hydra's ConfigStore holds."""
+    from torchrl_bail.config import ALGO_SCHEMAS, group_options
+
+    proc = _run("torchrl_bail.train", ["--help"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    groups = {line.split(": ")[0]: line.split(": ")[1].split(", ") for line in proc.stdout.splitlines()
+              if line.split(": ")[0] in ("algo", "algo_preset", "batch", "env", "exp", "preset")}
+    assert groups == group_options()
+    assert groups["algo"] == sorted(ALGO_SCHEMAS)
+    assert "ddpg05" in groups["batch"] and "base_" not in proc.stdout and "_collection" not in proc.stdout

@@ -15,11 +15,9 @@ import pytest
 import torchrl_bail
 
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
-# ``config`` is the command-line front of train/collect: it composes and validates a config with Hydra alone and
-# loads the package lazily, so that a bad command line ends in about a second, before torch is imported.
-ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate",
-                "torchrl_bail.config"}
-BOTTOM = {"torchrl_bail.io"}  # the atomic writes: part of the bottom layer, imports nothing from the package
+ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate"}
+# the atomic writes and the one-line error classes: part of the bottom layer, they import nothing from the package
+BOTTOM = {"torchrl_bail.io", "torchrl_bail.errors"}
 
 
 def _module_name(path: Path) -> str:

@@ -33,7 +33,8 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import CommandLineError, exit_on_config_error, run_cli, validate_config
+from torchrl_bail.cli import exit_on_config_error, run_cli
+from torchrl_bail.config import CommandLineError, validate_config
 
 __all__ = ["collect", "export_main", "format_listing", "import_main", "main"]
 

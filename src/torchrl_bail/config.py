@@ -13,7 +13,8 @@ the allowed ranges. Hydra rejects a wrong type (``seed=abc``) or an unknown key 
 and the first failure raises :class:`ConfigError` naming the full key and what was expected. The top level checks
 what spans groups: env/batch combinations from the catalogue, ``returns.augment=oracle``, and paths.
 
-This module imports only Hydra/OmegaConf, so a bad command line ends in about a second, before torch loads.
+This module imports only Hydra/OmegaConf, so a bad command line ends in about a second, before torch loads; the
+command-line front that turns its errors into one line is :mod:`torchrl_bail.cli`.
 
 Examples:
     >>> from hydra import compose, initialize_config_dir
@@ -23,47 +24,29 @@ Examples:
     >>> validate_config(cfg)
     Traceback (most recent call last):
     ...
-    torchrl_bail.config.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+    torchrl_bail.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
-import os
-import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_bail.resume import ResumeError, register_resolvers
+from torchrl_bail.errors import CommandLineError, ConfigError
+from torchrl_bail.resume import register_resolvers
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
-           "DDPG_ENVS", "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error",
-           "is_compile_setting", "register_schemas", "run_cli", "validate_config"]
+           "DDPG_ENVS", "CommandLineError", "Config", "ConfigError", "group_options", "is_compile_setting",
+           "register_schemas", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
-
-
-class ConfigError(ValueError):
-    """A configuration value is missing or out of range; the message names the key and what was expected."""
-
-    def __init__(self, key: str, value: Any, expected: str):
-        self.key, self.value, self.expected = key, value, expected
-        super().__init__(f"config key {key} = {value!r}: expected {expected}")
-
-    def under(self, prefix: str) -> ConfigError:
-        """The same error with the key ``<prefix>.<key>``."""
-        return ConfigError(f"{prefix}.{self.key}" if prefix else self.key, self.value, self.expected)
-
-
-class CommandLineError(ValueError):
-    """The command line itself cannot be composed into a config."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -531,7 +514,7 @@ def register_schemas() -> None:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# validation and the command-line wrapper
+# validation (the command-line front that reports its errors: torchrl_bail.cli)
 # ---------------------------------------------------------------------------------------------------------------
 
 
@@ -579,7 +562,7 @@ def algo_config(name: str, /, **overrides: Any) -> DictConfig:
         >>> algo_config("bail", **{"selection.percentile": 1.5})
         Traceback (most recent call last):
         ...
-        torchrl_bail.config.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+        torchrl_bail.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
     """
     node = _algo_defaults(name)
     for key, value in overrides.items():
@@ -617,106 +600,28 @@ def _checked_algo(node: DictConfig) -> DictConfig:
     return node
 
 
-def describe_error(err: BaseException) -> str:
-    """One line for a configuration error from Hydra, OmegaConf or :func:`validate_config`."""
-    from hydra.errors import MissingConfigException, OverrideParseException
-    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+def group_options(conf: Path | None = None) -> dict[str, list[str]]:
+    """The options of each config group: ``{group: [option, ...]}`` from the yaml files under ``conf/`` (default:
+    :func:`~torchrl_bail.config.config_dir`), without Hydra's own groups (``hydra/...``) and the files named
+    ``_<name>`` (parts other files include).
 
-    def one_line(text: str) -> str:
-        return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
-
-    if isinstance(err, OverrideParseException):
-        detail = one_line(err.message).split(" See https://")[0]
-        return f"override {err.override!r} is not valid Hydra override syntax ({detail}); expected key=value"
-    if isinstance(err, MissingConfigException) and err.options is not None and err.missing_cfg_file:
-        group, _, option = err.missing_cfg_file.rpartition("/")
-        choices = sorted(o for o in err.options if not (o.startswith("base_") or o.startswith("_")))
-        return f"{group}={option}: no such option in conf/{group}/; expected one of {', '.join(choices)}"
-    unknown_key = isinstance(err, ConfigKeyError | ConfigAttributeError)
-    if unknown_key and dataclasses.is_dataclass(err.object_type) and getattr(err, "full_key", None):
-        known = ", ".join(f.name for f in dataclasses.fields(err.object_type))
-        return f"config key {err.full_key}: no such key; expected one of {known}"
-    if isinstance(err, OmegaConfBaseException) and getattr(err, "full_key", None):
-        return f"config key {err.full_key}: {one_line(err.msg).split(' full_key:')[0]}"
-    cause = err.__cause__ or err.__context__
-    if isinstance(cause, OmegaConfBaseException | MissingConfigException):
-        return describe_error(cause)
-    return one_line(err)
-
-
-def _config_errors() -> tuple[type[BaseException], ...]:
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    errors: list[type[BaseException]] = [ConfigError, CommandLineError, ResumeError, HydraException,
-                                         OmegaConfBaseException]
-    if "torchrl_bail.data" in sys.modules:  # batch/dataset errors, only possible once the data code is loaded
-        from torchrl_bail.data import BatchValidationError
-
-        errors += [BatchValidationError, FileNotFoundError]
-    if "torchrl_bail.behaviour" in sys.modules:  # recipe errors, only possible once the behaviour code is loaded
-        from torchrl_bail.behaviour import CollectionConfigError
-
-        errors.append(CollectionConfigError)
-    return tuple(errors)
-
-
-def _job_overrides(argv: list[str]) -> list[list[str]]:
-    """The override list of every job the command line launches: one for a run, one per sweep point for ``-m``
-    (the basic sweeper's expansion); none when a flag (``--help``, ``--cfg`` ...) or another sweeper is in play."""
-    flags = [a for a in argv if a.startswith("-")]
-    overrides = [a for a in argv if not a.startswith("-")]
-    if not flags:
-        return [overrides]
-    if not set(flags) <= {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
-        return []
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    parsed = OverridesParser.create().parse_overrides(overrides)
-    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
-
-
-def _precompose(argv: list[str]) -> None:
-    """Composes and validates the config of every job before Hydra creates a run directory or launches a job."""
-    jobs = _job_overrides(argv)
-    if not jobs:
-        return
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        for overrides in jobs:
-            try:
-                cfg = compose("config", overrides=overrides)
-            except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
-                raise CommandLineError(f"the overrides {' '.join(overrides)!r} do not compose: {err}; expected "
-                                       "key=value items (see --help)") from None
-            validate_config(cfg)
-
-
-@contextlib.contextmanager
-def exit_on_config_error() -> Iterator[None]:
-    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
-
-    Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
-    the first bad job without Hydra's multi-line report. Other errors keep their traceback.
+    Examples:
+        >>> group_options()["algo"][:3]
+        ['bail', 'bc', 'bcq']
     """
-    try:
-        yield
-    except _config_errors() as err:
-        print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
-        sys.exit(2)
+    conf = Path(conf) if conf is not None else config_dir()
+    groups: dict[str, list[str]] = {}
+    for path in sorted(conf.rglob("*.yaml")):
+        group = path.parent.relative_to(conf).as_posix()
+        if group != "." and not group.startswith("hydra") and not path.stem.startswith("_"):
+            groups.setdefault(group, []).append(path.stem)
+    return groups
 
 
-def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
-    """Runs a ``@hydra.main`` function after composing and validating every job's config, so that a bad command
-    line ends with one line on stderr and exit code 2 before anything is written or imported."""
-    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
-    argv = [*sys.argv[1:], *(extra_overrides or [])]
-    with exit_on_config_error():
-        _precompose(argv)
-        sys.argv = [sys.argv[0], *argv]
-        hydra_main()
+def _groups_help() -> str:
+    """The ``--help`` lines of :func:`group_options`: the ``config_groups`` resolver of ``conf/config.yaml``'s
+    ``hydra.help.template`` (Hydra's own list also shows the schemas, ``base_<name>_schema``, and the parts)."""
+    return "\n".join(f"{group}: {', '.join(options)}" for group, options in sorted(group_options().items()))
 
 
 def config_dir() -> Path:
@@ -728,6 +633,8 @@ def config_dir() -> Path:
     """
     register_schemas()
     register_resolvers()
+    if not OmegaConf.has_resolver("config_groups"):
+        OmegaConf.register_new_resolver("config_groups", _groups_help)
     packaged = Path(__file__).resolve().parent / "conf"
     if packaged.is_dir():
         return packaged

@@ -37,6 +37,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_bail.errors import ResumeError
+
 __all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs",
            "register_resolvers", "run_dir_suffix"]
 
@@ -56,10 +58,6 @@ SUMMARY = "summary.json"
 LOGS = "logs"
 #: longest override suffix kept verbatim in a directory name (file systems allow 255 bytes per component)
 _MAX_SUFFIX = 120
-
-
-class ResumeError(ValueError):
-    """The run directory cannot be continued by this command (other config, in use, no checkpoint)."""
 
 
 def run_dir_suffix(override_dirname: str) -> str:

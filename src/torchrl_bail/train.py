@@ -20,11 +20,12 @@ import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
+from torchrl_bail.cli import exit_on_config_error, run_cli
+from torchrl_bail.config import ConfigError, validate_config
 from torchrl_bail.resume import Resumption
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
-# (torchrl_bail.config.run_cli) in about a second, before they load.
+# (torchrl_bail.cli.run_cli) in about a second, before they load.
 
 __all__ = ["run", "main", "ConfigError", "validate_config", "make_logger", "flat_hparams"]
 

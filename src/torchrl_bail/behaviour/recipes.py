@@ -19,7 +19,7 @@ Examples:
     >>> validate_recipe(cfg)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    torchrl_bail.behaviour.recipes.CollectionConfigError: config key batch.recipe = 'dqn': expected one of ddpg, ...
+    torchrl_bail.errors.CollectionConfigError: config key batch.recipe = 'dqn': expected one of ddpg, ...
 """
 
 from __future__ import annotations
@@ -27,15 +27,12 @@ from __future__ import annotations
 import math
 
 from torchrl_bail.data.cache import config_value, oracle_settings
+from torchrl_bail.errors import CollectionConfigError
 
 __all__ = ["RECIPES", "EXEC_POLICIES", "CollectionConfigError", "validate_recipe"]
 
 RECIPES = ("ddpg", "sac", "sac_exec")
 EXEC_POLICIES = ("mediocre", "optimal")
-
-
-class CollectionConfigError(ValueError):
-    """A behaviour-data recipe value is missing or out of range; the message names the config key."""
 
 
 

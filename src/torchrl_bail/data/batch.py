@@ -47,6 +47,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_bail.errors import BatchValidationError
 from torchrl_bail.io import write_json_atomic
 
 __all__ = [
@@ -66,10 +67,6 @@ FORMAT_VERSION = 1
 FLOAT_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"))
 BOOL_KEYS = (("next", "done"), ("next", "terminated"), ("next", "truncated"))
 REQUIRED_KEYS = (*FLOAT_KEYS, *BOOL_KEYS, "episode")
-
-
-class BatchValidationError(ValueError):
-    """A batch (in memory or on disk) breaks the format; the message names the file, the key, the expectation."""
 
 
 def _name(key) -> str:

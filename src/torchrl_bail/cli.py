@@ -1,0 +1,116 @@
+"""The command-line front of ``train`` and ``collect``: every job's config composed and checked before anything
+is written or imported, and a bad command line, config or batch reported in one line (exit status 2).
+
+This module loads Hydra, OmegaConf and the schemas (:mod:`torchrl_bail.config`) only, so a bad command line ends in
+about a second, before torch loads. What it reports in one line: the errors of :mod:`torchrl_bail.errors`
+(:data:`~torchrl_bail.errors.USER_ERRORS`) and Hydra's and OmegaConf's own; anything else keeps its traceback.
+
+``--help`` lists the options of each config group as the files of ``conf/`` name them
+(:func:`torchrl_bail.config.group_options`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from torchrl_bail.config import config_dir, group_options, validate_config
+from torchrl_bail.errors import USER_ERRORS, CommandLineError
+
+__all__ = ["describe_error", "exit_on_config_error", "run_cli"]
+
+
+def describe_error(err: BaseException) -> str:
+    """One line for a configuration error from Hydra, OmegaConf or :func:`validate_config`."""
+    from hydra.errors import MissingConfigException, OverrideParseException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+
+    def one_line(text: str) -> str:
+        return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+    if isinstance(err, OverrideParseException):
+        detail = one_line(err.message).split(" See https://")[0]
+        return f"override {err.override!r} is not valid Hydra override syntax ({detail}); expected key=value"
+    if isinstance(err, MissingConfigException) and err.options is not None and err.missing_cfg_file:
+        group, _, option = err.missing_cfg_file.rpartition("/")
+        choices = group_options().get(group, sorted(err.options))
+        return f"{group}={option}: no such option in conf/{group}/; expected one of {', '.join(choices)}"
+    unknown_key = isinstance(err, ConfigKeyError | ConfigAttributeError)
+    if unknown_key and dataclasses.is_dataclass(err.object_type) and getattr(err, "full_key", None):
+        known = ", ".join(f.name for f in dataclasses.fields(err.object_type))
+        return f"config key {err.full_key}: no such key; expected one of {known}"
+    if isinstance(err, OmegaConfBaseException) and getattr(err, "full_key", None):
+        return f"config key {err.full_key}: {one_line(err.msg).split(' full_key:')[0]}"
+    cause = err.__cause__ or err.__context__
+    if isinstance(cause, OmegaConfBaseException | MissingConfigException):
+        return describe_error(cause)
+    return one_line(err)
+
+
+def _config_errors() -> tuple[type[BaseException], ...]:
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    return (*USER_ERRORS, HydraException, OmegaConfBaseException)
+
+
+def _job_overrides(argv: list[str]) -> list[list[str]]:
+    """The override list of every job the command line launches: one for a run, one per sweep point for ``-m``
+    (the basic sweeper's expansion); none when a flag (``--help``, ``--cfg`` ...) or another sweeper is in play."""
+    flags = [a for a in argv if a.startswith("-")]
+    overrides = [a for a in argv if not a.startswith("-")]
+    if not flags:
+        return [overrides]
+    if not set(flags) <= {"-m", "--multirun"} or any(a.startswith("hydra/sweeper=") for a in overrides):
+        return []
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def _precompose(argv: list[str]) -> None:
+    """Composes and validates the config of every job before Hydra creates a run directory or launches a job."""
+    jobs = _job_overrides(argv)
+    if not jobs:
+        return
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        for overrides in jobs:
+            try:
+                cfg = compose("config", overrides=overrides)
+            except (TypeError, ValueError) as err:  # Hydra's own checks of odd overrides (e.g. "=3")
+                raise CommandLineError(f"the overrides {' '.join(overrides)!r} do not compose: {err}; expected "
+                                       "key=value items (see --help)") from None
+            validate_config(cfg)
+
+
+@contextlib.contextmanager
+def exit_on_config_error() -> Iterator[None]:
+    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+
+    Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
+    the first bad job without Hydra's multi-line report. Other errors keep their traceback.
+    """
+    try:
+        yield
+    except _config_errors() as err:
+        print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
+        sys.exit(2)
+
+
+def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
+    """Runs a ``@hydra.main`` function after composing and validating every job's config, so that a bad command
+    line ends with one line on stderr and exit code 2 before anything is written or imported."""
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
+    argv = [*sys.argv[1:], *(extra_overrides or [])]
+    with exit_on_config_error():
+        _precompose(argv)
+        sys.argv = [sys.argv[0], *argv]
+        hydra_main()
