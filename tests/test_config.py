@@ -145,3 +145,20 @@ def test_library_defaults_are_the_yaml_defaults():
     selection_filter = defaults(BestActionFilter)
     assert (selection_filter["percentile"], selection_filter["nonpositive_value"]) == (
         selection["percentile"], selection["nonpositive_value"])
+
+
+def test_one_run_only_mark_feeds_resume_the_report_and_the_run_directory_names():
+    """The schema's ``run_only`` marks are the one list: resume compares configs without them, the report never
+    separates runs by them, and ``conf/config.yaml``'s ``exclude_keys`` (which run directory names leave out) is
+    exactly the keys under them plus those already in the path."""
+    from torchrl_bail import report, resume
+    from torchrl_bail.config import RUN_DIR_KEYS, RUN_ONLY_KEYS, run_dir_excluded_keys
+
+    assert RUN_ONLY_KEYS == ("device", "data_dir", "progress", "resume", "threads", "logger", "checkpoint")
+    assert resume.RUN_ONLY_KEYS is RUN_ONLY_KEYS
+    assert set(RUN_ONLY_KEYS) <= set(report.NON_SEPARATING_KEYS)
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=hopper_ddpg05"], return_hydra_config=True)
+    yaml_keys = list(cfg.hydra.job.config.override_dirname.exclude_keys)
+    assert sorted(yaml_keys) == sorted(run_dir_excluded_keys()) and len(set(yaml_keys)) == len(yaml_keys)
+    assert {"logger.backend", "checkpoint.every_minutes", *RUN_DIR_KEYS} <= set(yaml_keys)

@@ -30,7 +30,9 @@ Examples:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,11 +41,11 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from torchrl_bail.errors import CommandLineError, ConfigError
-from torchrl_bail.resume import register_resolvers
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
-           "DDPG_ENVS", "CommandLineError", "Config", "ConfigError", "group_options", "is_compile_setting",
-           "register_schemas", "validate_config"]
+           "DDPG_ENVS", "RUN_DIR_KEYS", "RUN_ONLY_KEYS", "CommandLineError", "Config", "ConfigError", "group_options",
+           "is_compile_setting", "register_schemas", "run_dir_excluded_keys", "run_dir_suffix", "run_only",
+           "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -56,6 +58,14 @@ DDPG_ENVS = ("hopper", "walker", "halfcheetah")
 
 def _rule(check: Callable[[Any], bool], expected: str):
     return field(default=MISSING, metadata={"check": check, "expected": expected})
+
+
+def run_only(rule=None):
+    """Marks a top-level key as run-only: it changes how a run reports, where it finds its files or how it executes,
+    never its numbers. The one mark behind :data:`RUN_ONLY_KEYS` (a checkpoint resumes across them, the report never
+    separates runs by them) and the run directory's name (:func:`run_dir_excluded_keys`)."""
+    metadata = {} if rule is None else dict(rule.metadata)
+    return field(default=MISSING, metadata={**metadata, "run_only": True})
 
 
 def _is_number(v: Any) -> bool:
@@ -457,19 +467,21 @@ class Config(_Checked):
     seed: int = non_negative("an integer >= 0")
     seeds: Any = _rule(_seed_list, "null, a count S >= 1 (seeds seed..seed+S-1) or a list of distinct seeds >= 0, "
                        "e.g. [1,2,3]")
-    device: str = _rule(_device_name, "cpu | cuda | cuda:N | auto")
+    # run-only: numbers change only across devices
+    device: str = run_only(_rule(_device_name, "cpu | cuda | cuda:N | auto"))
     # not a run-only key: compiled kernels round differently, so compile=true is another run (README)
     compile: Any = _rule(is_compile_setting, "false | true | " + " | ".join(COMPILE_MODES[1:]))
-    data_dir: Optional[str] = MISSING
+    data_dir: Optional[str] = run_only()
     dataset: Optional[str] = MISSING
-    progress: bool = MISSING
-    resume: str = MISSING      # auto | true | false | <run_dir> (see torchrl_bail.resume)
-    threads: Optional[int] = _rule(lambda v: v is None or v >= 1, "null or a number of threads >= 1")  # noqa: UP045
+    progress: bool = run_only()
+    resume: str = run_only()   # auto | true | false | <run_dir> (see torchrl_bail.resume)
+    threads: Optional[int] = run_only(_rule(lambda v: v is None or v >= 1,  # noqa: UP045
+                                            "null or a number of threads >= 1"))
     returns: ReturnsConfig = MISSING
     samples_per_epoch: int = at_least(1, "a positive integer")
     eval: EvalConfig = MISSING
-    logger: LoggerConfig = MISSING
-    checkpoint: CheckpointConfig = MISSING
+    logger: LoggerConfig = run_only()
+    checkpoint: CheckpointConfig = run_only()
 
     def check(self) -> None:
         if self.dataset is not None:
@@ -493,6 +505,54 @@ class Config(_Checked):
                 raise ConfigError("device", self.device, "a CUDA device, but torch sees none (use device=cpu or auto)")
         if self.resume.lower() not in ("auto", "true", "false") and not Path(self.resume).expanduser().is_dir():
             raise ConfigError("resume", self.resume, "auto | true | false | an existing run directory")
+
+
+#: the top-level keys marked :func:`run_only` in :class:`Config`: a checkpoint resumes across them
+#: (:mod:`torchrl_bail.resume`), the report never separates runs by them, run directories leave them out of their names
+RUN_ONLY_KEYS = tuple(f.name for f in dataclasses.fields(Config) if f.metadata.get("run_only"))
+#: the other keys a run directory's name leaves out: those already in its path (``conf/config.yaml``'s
+#: ``hydra.run.dir``; ``seeds=``: one directory per seed) and ``dataset`` (a path)
+RUN_DIR_KEYS = ("exp", "env", "batch", "batch.index", "algo", "seed", "seeds", "dataset")
+#: longest override suffix kept verbatim in a directory name (file systems allow 255 bytes per component)
+_MAX_SUFFIX = 120
+
+
+def run_dir_excluded_keys() -> list[str]:
+    """The overrides a run directory's name leaves out (Hydra's ``override_dirname.exclude_keys`` in
+    ``conf/config.yaml``, which a test ties to this): :data:`RUN_DIR_KEYS` and every key under :data:`RUN_ONLY_KEYS`.
+
+    Examples:
+        >>> [k for k in run_dir_excluded_keys() if k.startswith("logger.")]
+        ['logger.backend', 'logger.project', 'logger.group', 'logger.name']
+    """
+    keys = list(RUN_DIR_KEYS)
+    for f in dataclasses.fields(Config):
+        if f.metadata.get("run_only"):
+            schema = f.type if isinstance(f.type, type) else globals().get(str(f.type))
+            nested = dataclasses.is_dataclass(schema)
+            keys += [f"{f.name}.{leaf.name}" for leaf in dataclasses.fields(schema)] if nested else [f.name]
+    return keys
+
+
+def run_dir_suffix(override_dirname: str) -> str:
+    """``",<overrides>"`` for a non-empty Hydra ``override_dirname`` (``/`` -> ``%``; long ones shortened with a
+    hash), else ``""``: registered as the ``run_dir_suffix`` resolver of ``conf/config.yaml``'s run dirs.
+
+    Examples:
+        >>> run_dir_suffix("")
+        ''
+        >>> run_dir_suffix("algo.epochs=3,preset=quick")
+        ',algo.epochs=3,preset=quick'
+        >>> run_dir_suffix("dataset=/data/hopper.hdf5")
+        ',dataset=%data%hopper.hdf5'
+    """
+    text = str(override_dirname or "").replace(os.sep, "%")
+    if not text:
+        return ""
+    if len(text) > _MAX_SUFFIX:
+        digest = hashlib.sha1(text.encode()).hexdigest()[:10]
+        text = f"{text[:_MAX_SUFFIX - 11]}~{digest}"
+    return "," + text
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
@@ -629,12 +689,13 @@ def config_dir() -> Path:
 
     An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
     them at the repository's top-level ``conf/``. The typed schemas the yaml files name
-    (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way.
+    (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way, and the resolvers
+    ``conf/config.yaml`` uses (:func:`run_dir_suffix`; ``config_groups``, :func:`group_options` for ``--help``).
     """
     register_schemas()
-    register_resolvers()
-    if not OmegaConf.has_resolver("config_groups"):
-        OmegaConf.register_new_resolver("config_groups", _groups_help)
+    for name, resolver in (("run_dir_suffix", run_dir_suffix), ("config_groups", _groups_help)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
     packaged = Path(__file__).resolve().parent / "conf"
     if packaged.is_dir():
         return packaged

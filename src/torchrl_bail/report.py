@@ -8,8 +8,9 @@ Finds every ``summary.json`` below the given directories and groups the runs by
 * every **override that separates runs**: the run's resolved ``config.yaml`` files are compared key by key and
   any key whose value differs between runs of one (batch, algorithm) cell is a separating key (an ablation such
   as ``algo.selection.by=return``), except seeds and keys that only change how a run is executed
-  (:data:`RUN_ONLY_KEYS`: ``progress``, ``logger.*``, ``device``, ``data_dir``, ``hydra.*``, ``resume``...) and
-  ``env.*``/``batch.*``/``dataset`` (the batch identity already covers them).
+  (:data:`~torchrl_bail.config.RUN_ONLY_KEYS`: ``progress``, ``logger.*``, ``device``, ``data_dir``, ``resume``...),
+  ``hydra.*`` and ``env.*``/``batch.*``/``dataset`` (the batch identity already covers them); together
+  :data:`NON_SEPARATING_KEYS`.
 
 Per group it reports the number of distinct seeds, the mean and sample standard deviation (``ddof=1``) of
 ``final_return`` and ``best_return``, the interquartile mean (IQM) of ``final_return`` with a 95 % stratified
@@ -50,21 +51,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchrl_bail.config import ALGO_SCHEMAS
+from torchrl_bail.config import ALGO_SCHEMAS, RUN_ONLY_KEYS
 from torchrl_bail.io import write_json_atomic, write_text_atomic
 from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
 from torchrl_bail.resume import ADDED_KEYS, RENAMED_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
-           "summarise", "format_markdown", "numpy_seed", "main", "RUN_ONLY_KEYS"]
+           "summarise", "format_markdown", "numpy_seed", "main", "NON_SEPARATING_KEYS"]
 
 #: the algorithms' order in tables and figures: their schemas' (the registry's)
 ALGO_ORDER = list(ALGO_SCHEMAS)
 #: keys every summary.json must have to enter the report
 REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
-#: config keys (prefixes end in ".") that never separate groups: the seed and what only changes how a run executes
-RUN_ONLY_KEYS = ("seed", "progress", "logger.", "device", "data_dir", "hydra.", "resume", "checkpoint.", "threads",
-                 "dataset", "env.", "batch.")
+#: config keys (with everything under them) that never separate groups: the run-only keys the schema marks, the
+#: seed, Hydra's node and the batch identity (``env``, ``batch``, ``dataset``: a run's batch already groups it)
+NON_SEPARATING_KEYS = (*RUN_ONLY_KEYS, "seed", "hydra", "dataset", "env", "batch")
 
 
 class ReportError(ValueError):
@@ -187,7 +188,7 @@ def find_runs(paths: list[Path]) -> list[Run]:
 
 
 def _run_only(key: str) -> bool:
-    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RUN_ONLY_KEYS)
+    return any(key == k or key.startswith(f"{k}.") for k in NON_SEPARATING_KEYS)
 
 
 def separating_keys(runs: list[Run]) -> dict[str, list[str]]:

@@ -10,18 +10,13 @@ the remaining command-line overrides; see ``conf/config.yaml``), so the same com
 * ``true``: like ``auto`` but a missing checkpoint is an error.
 * ``<run_dir>``: continue another directory's checkpoint (its scalar logs come along) into this run directory.
 
-A checkpoint whose config differs from the command's in anything but the run-only keys (:data:`RUN_ONLY_KEYS`)
+A checkpoint whose config differs from the command's in anything but the run-only keys
+(:data:`~torchrl_bail.config.RUN_ONLY_KEYS`, marked in the schema)
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
 directory is locked while a run uses it: a second process on the same directory stops with a clear error.
 
 Examples:
-    >>> run_dir_suffix("")
-    ''
-    >>> run_dir_suffix("algo.epochs=3,preset=quick")
-    ',algo.epochs=3,preset=quick'
-    >>> run_dir_suffix("dataset=/data/hopper.hdf5")
-    ',dataset=%data%hopper.hdf5'
     >>> diff_configs({"a": 1, "b": {"c": 2}}, {"a": 1, "b": {"c": 3}})
     ['b.c: 2 -> 3']
 """
@@ -37,16 +32,13 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_bail.config import RUN_ONLY_KEYS
 from torchrl_bail.errors import ResumeError
 
-__all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs",
-           "register_resolvers", "run_dir_suffix"]
+__all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs"]
 
 log = logging.getLogger("torchrl_bail")
 
-#: top-level config keys that may differ between a checkpoint and the command resuming it: they change how a
-#: run reports or where it finds its files, never its numbers (``device`` changes numbers only across devices)
-RUN_ONLY_KEYS = ("progress", "logger", "resume", "device", "data_dir", "checkpoint", "threads")
 #: top-level keys added after checkpoints and runs were made, with the value those older runs behaved as: at that
 #: value a key is left out of the comparison, so an older run still resumes and still groups with newer ones
 ADDED_KEYS = {"compile": False, "seeds": None}
@@ -56,27 +48,6 @@ RENAMED_KEYS = {"algo.mmd_stabiliser": "algo.mmd_stabilizer"}
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
 LOGS = "logs"
-#: longest override suffix kept verbatim in a directory name (file systems allow 255 bytes per component)
-_MAX_SUFFIX = 120
-
-
-def run_dir_suffix(override_dirname: str) -> str:
-    """``",<overrides>"`` for a non-empty Hydra ``override_dirname`` (``/`` -> ``%``; long ones shortened with a
-    hash), else ``""``: registered as the ``run_dir_suffix`` resolver of ``conf/config.yaml``'s run dirs."""
-    text = str(override_dirname or "").replace(os.sep, "%")
-    if not text:
-        return ""
-    if len(text) > _MAX_SUFFIX:
-        digest = hashlib.sha1(text.encode()).hexdigest()[:10]
-        text = f"{text[:_MAX_SUFFIX - 11]}~{digest}"
-    return "," + text
-
-
-def register_resolvers() -> None:
-    """Registers :func:`run_dir_suffix` as the OmegaConf resolver the run directories of ``conf/config.yaml`` use
-    (called by :func:`torchrl_bail.config.config_dir`; idempotent)."""
-    if not OmegaConf.has_resolver("run_dir_suffix"):
-        OmegaConf.register_new_resolver("run_dir_suffix", run_dir_suffix)
 
 
 def comparable_config(cfg: DictConfig) -> dict[str, Any]:
