@@ -16,7 +16,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.behaviour import CollectionConfigError, ensure_batch, validate_recipe
+from torchrl_bail.behaviour import ensure_batch
+from torchrl_bail.config import ConfigError, collection_config
 from torchrl_bail.data.cache import SCRATCH, batch_name, batch_path, clean_stale, host_name, list_batches
 
 ENVS = ["hopper", "walker", "halfcheetah", "ant", "humanoid"]
@@ -50,7 +51,7 @@ def test_the_31_exps_give_the_papers_62_distinct_batches():
     for env, kind in exps:
         for index in (1, 2):
             cfg = _compose(f"+exp={env}_{kind}", f"batch.index={index}")
-            validate_recipe(cfg)
+            collection_config(cfg)
             assert (cfg.env.name, cfg.batch.kind) == (env, kind)
             assert batch_name(cfg) == f"{env}_{kind}_b{index}"
             paths.add(batch_path(cfg, "/d"))
@@ -64,20 +65,20 @@ def test_quick_preset_scales_every_recipe_and_any_combination_composes():
         if "sac" in quick.batch:
             assert quick.batch.sac.train_steps < paper.batch.sac.train_steps
     cfg = _compose("env=ant", "batch=ddpg05")
-    validate_recipe(cfg)
+    collection_config(cfg)
     assert batch_name(cfg) == "ant_ddpg05_b1"
     assert batch_name(_compose("+exp=hopper_ddpg05", "batch.oracle.enabled=true")) == "hopper_ddpg05_oracle_b1"
 
 
 def test_exec_and_sac_recipes_are_validated():
-    with pytest.raises(CollectionConfigError, match=r"batch\.policy"):
-        validate_recipe(_compose("+exp=hopper_med_det", "batch.policy=best"))
-    with pytest.raises(CollectionConfigError, match=r"batch\.sac\.polyak"):
-        validate_recipe(_compose("+exp=hopper_sac", "batch.sac.polyak=1.5"))
-    with pytest.raises(CollectionConfigError, match=r"batch\.steps"):
-        validate_recipe(_compose("+exp=hopper_sac", "batch.steps=2000", "batch.sac.train_steps=1000"))
-    with pytest.raises(CollectionConfigError, match=r"batch\.oracle\.horizon"):
-        validate_recipe(_compose("+exp=hopper_ddpg05", "batch.oracle.enabled=true", "batch.oracle.horizon=500"))
+    with pytest.raises(ConfigError, match=r"batch\.policy"):
+        collection_config(_compose("+exp=hopper_med_det", "batch.policy=best"))
+    with pytest.raises(ConfigError, match=r"batch\.sac\.polyak"):
+        collection_config(_compose("+exp=hopper_sac", "batch.sac.polyak=1.5"))
+    with pytest.raises(ConfigError, match=r"batch\.steps"):
+        collection_config(_compose("+exp=hopper_sac", "batch.steps=2000", "batch.sac.train_steps=1000"))
+    with pytest.raises(ConfigError, match=r"batch\.oracle\.horizon"):
+        collection_config(_compose("+exp=hopper_ddpg05", "batch.oracle.enabled=true", "batch.oracle.horizon=500"))
 
 
 @pytest.fixture(scope="module")

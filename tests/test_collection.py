@@ -17,7 +17,7 @@ from torchrl_bail import config_dir
 from torchrl_bail.behaviour import catalogue
 from torchrl_bail.behaviour.catalogue import ensure_batch
 from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg
-from torchrl_bail.behaviour.recipes import CollectionConfigError, validate_recipe
+from torchrl_bail.config import ConfigError, collection_config
 from torchrl_bail.data.cache import batch_name, batch_path, behaviour_seed
 
 #: short enough that a random or barely trained Hopper outlives it now and then
@@ -206,8 +206,8 @@ def test_names_and_hashes():
     ("env.max_episode_steps=0", "env.max_episode_steps"),
 ])
 def test_bad_recipes_are_named(override, key):
-    with pytest.raises(CollectionConfigError, match=key.replace(".", r"\.")):
-        validate_recipe(_compose("+exp=hopper_ddpg05", override))
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        collection_config(_compose("+exp=hopper_ddpg05", override))
 
 
 def test_cli_collects_then_reports_cached_then_lists(tmp_path):

@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error, run_cli
-from torchrl_bail.config import CommandLineError, validate_config
+from torchrl_bail.config import CommandLineError, collection_config, validate_config
 
 __all__ = ["collect", "export_main", "format_listing", "import_main", "main"]
 
@@ -43,11 +43,10 @@ log = logging.getLogger("torchrl_bail")
 
 def collect(cfg: DictConfig) -> dict:
     """Ensures the batch of ``cfg`` exists; returns a summary (path, cached, statistics)."""
-    from torchrl_bail.behaviour import ensure_batch, validate_recipe
+    from torchrl_bail.behaviour import ensure_batch
     from torchrl_bail.data.cache import batch_path, load_cached_batch
 
-    validate_recipe(cfg)
-    path = batch_path(cfg)
+    path = batch_path(collection_config(cfg))
     cached = load_cached_batch(path) is not None
     batch = ensure_batch(cfg, progress=bool(cfg.get("progress", True)))
     returns = batch.episode_returns()

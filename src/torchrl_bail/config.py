@@ -43,9 +43,9 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from torchrl_bail.errors import CommandLineError, ConfigError
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
-           "DDPG_ENVS", "RUN_DIR_KEYS", "RUN_ONLY_KEYS", "CommandLineError", "Config", "ConfigError", "group_options",
-           "is_compile_setting", "register_schemas", "run_dir_excluded_keys", "run_dir_suffix", "run_only",
-           "validate_config"]
+           "CollectionConfig", "collection_config", "DDPG_ENVS", "RUN_DIR_KEYS", "RUN_ONLY_KEYS", "CommandLineError",
+           "Config", "ConfigError", "group_options", "is_compile_setting", "register_schemas", "run_dir_excluded_keys",
+           "run_dir_suffix", "run_only", "validate_config"]
 
 #: the envs the paper made DDPG batches for (the README's catalogue table)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -507,6 +507,16 @@ class Config(_Checked):
             raise ConfigError("resume", self.resume, "auto | true | false | an existing run directory")
 
 
+@dataclass
+class CollectionConfig(_Checked):
+    """What collecting a batch reads (:mod:`torchrl_bail.behaviour`, :mod:`torchrl_bail.data.cache`): the env, the
+    batch recipe and where batches live; :func:`collection_config` makes one, every rule checked."""
+
+    env: EnvConfig = MISSING
+    batch: Any = MISSING       # one of BATCH_SCHEMAS
+    data_dir: Optional[str] = None
+
+
 #: the top-level keys marked :func:`run_only` in :class:`Config`: a checkpoint resumes across them
 #: (:mod:`torchrl_bail.resume`), the report never separates runs by them, run directories leave them out of their names
 RUN_ONLY_KEYS = tuple(f.name for f in dataclasses.fields(Config) if f.metadata.get("run_only"))
@@ -605,6 +615,42 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(err.full_key, "???", "a value (it has no default)") from None
 
     visit(cfg)
+
+
+def collection_config(cfg: Any) -> CollectionConfig:
+    """The typed :class:`CollectionConfig` of ``cfg`` (a composed config, its ``env``/``batch``/``data_dir`` nodes as a
+    mapping, or a :class:`CollectionConfig`): ``batch`` typed by the schema of its ``recipe``, every rule checked
+    (the first failure raises :class:`ConfigError` naming ``env.<key>`` or ``batch.<key>``). A node the command line
+    composed comes back with the values it has; a plain mapping must give every value (no defaults are assumed).
+
+    Examples:
+        >>> from hydra import compose, initialize_config_dir
+        >>> with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        ...     cfg = compose("config", overrides=["+exp=hopper_ddpg05"])
+        >>> collection = collection_config(cfg)
+        >>> type(collection.batch).__name__, collection.batch.agent.tau, collection.env.id
+        ('DDPGBatchConfig', 0.005, 'Hopper-v5')
+        >>> collection_config({"env": cfg.env, "batch": {**cfg.batch, "recipe": "dqn"}})
+        Traceback (most recent call last):
+        ...
+        torchrl_bail.errors.ConfigError: config key batch.recipe = 'dqn': expected one of ddpg, sac, sac_exec
+    """
+    if isinstance(cfg, CollectionConfig):
+        return cfg
+    get = cfg.get if hasattr(cfg, "get") else lambda key, default=None: getattr(cfg, key, default)
+    recipe = (get("batch") or {}).get("recipe")
+    schema = BATCH_SCHEMAS.get(recipe)
+    if schema is None:
+        raise ConfigError("batch.recipe", recipe, f"one of {', '.join(BATCH_SCHEMAS)}")
+    node = OmegaConf.structured(CollectionConfig(env=OmegaConf.structured(EnvConfig),
+                                                 batch=OmegaConf.structured(schema)))
+    try:
+        node = OmegaConf.merge(node, {"env": get("env"), "batch": get("batch"), "data_dir": get("data_dir")})
+    except Exception as err:  # noqa: BLE001 - OmegaConf's type errors: one line naming the key
+        key = getattr(err, "full_key", None) or "batch"
+        raise ConfigError(key, getattr(err, "value", None), str(getattr(err, "msg", err)).splitlines()[0]) from None
+    validate_config(node)
+    return OmegaConf.to_object(node)
 
 
 def algo_config(name: str, /, **overrides: Any) -> DictConfig:

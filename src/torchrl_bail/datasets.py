@@ -33,7 +33,7 @@ from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.data.replay_buffers.writers import ImmutableDatasetWriter, Writer
 
-from torchrl_bail.config import config_dir, validate_config
+from torchrl_bail.config import collection_config, config_dir, validate_config
 from torchrl_bail.data.batch import OfflineBatch
 from torchrl_bail.data.cache import batch_path, load_cached_batch
 from torchrl_bail.data.importers import import_dataset
@@ -64,7 +64,7 @@ def resolve_batch(dataset_id: str, *, overrides: Sequence[str] = (),
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=command)
     validate_config(cfg)
-    location = batch_path(cfg)
+    location = batch_path(collection_config(cfg))
     batch = load_cached_batch(location)
     if batch is None:
         raise FileNotFoundError(f"bail:{dataset_id}: not collected yet (no batch at {location}); make it with "

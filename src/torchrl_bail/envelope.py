@@ -9,8 +9,8 @@ It is built from named steps that Progressive BAIL (:mod:`torchrl_bail.algorithm
 :func:`envelope_split`, :func:`train_one_epoch` (made of :func:`envelope_step`), :func:`validation_loss`, and the
 one early-stopping rule, :class:`EarlyStoppingTracker`, with its :class:`BestWeights` record ``phi'``.
 
-:func:`envelope_values` evaluates a fitted envelope over a whole batch, :func:`fraction_below` measures how
-many returns it fails to cover and :func:`plot_envelope` draws the paper's Fig. 13.
+:func:`envelope_values` evaluates a fitted envelope over a whole batch and :func:`fraction_below` measures how
+many returns it fails to cover (:func:`torchrl_bail.plots.plot_envelope` draws the paper's Fig. 13).
 
 Examples:
     >>> import torch
@@ -34,7 +34,6 @@ import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Literal
 
 import torch
@@ -43,7 +42,6 @@ from tensordict.nn import TensorDictModuleBase
 from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.plots import new_figure, save_figure
 from torchrl_bail.stacking import SeedSlice
 
 __all__ = [
@@ -60,7 +58,6 @@ __all__ = [
     "validation_loss",
     "envelope_values",
     "fraction_below",
-    "plot_envelope",
 ]
 
 #: ``"paper"`` (= ``"paper_best"``): revert to a real copy of the best weights after ``patience`` consecutive
@@ -650,42 +647,3 @@ def fraction_below(values: torch.Tensor, returns: torch.Tensor) -> float:
     if values.numel() == 0:
         return math.nan
     return float((values < returns.to(values.device, values.dtype)).to(torch.float64).mean())
-
-
-def plot_envelope(
-    values: torch.Tensor, returns: torch.Tensor, path: str | Path, *, title: str | None = None
-) -> Path:
-    """The paper's Fig. 13: states sorted by ``V`` ascending, the envelope as a line, the returns as dots.
-
-    The figure is written atomically (temporary file in the same directory, then renamed over ``path``).
-
-    Args:
-        values (torch.Tensor): ``V(s_i)``, ``[N]``.
-        returns (torch.Tensor): ``G_i``, ``[N]``.
-        path (str or Path): the image file (``.png``, ``.pdf``, ...).
-
-    Keyword Args:
-        title (str, optional): the figure title. Defaults to ``None``.
-
-    Returns:
-        the path written.
-    """
-    values = values.detach().reshape(-1).to("cpu", torch.float64)
-    returns = returns.detach().reshape(-1).to("cpu", torch.float64)
-    if values.shape != returns.shape:
-        raise ValueError(f"values and returns must have the same number of elements, got "
-                         f"{values.numel()} and {returns.numel()}")
-    order = torch.argsort(values, stable=True)
-    x = torch.arange(len(values)).numpy()
-    below = fraction_below(values, returns) if len(values) else math.nan
-    fig = new_figure(figsize=(6.4, 4.0))
-    ax = fig.subplots()
-    ax.plot(x, returns[order].numpy(), linestyle="none", marker=".", markersize=1.0, alpha=0.5,
-            color="tab:blue", label="return G", rasterized=True)
-    ax.plot(x, values[order].numpy(), color="tab:red", linewidth=1.5, label="upper envelope V")
-    ax.set_xlabel("states, sorted by V (ascending)")
-    ax.set_ylabel("return")
-    ax.set_title(title if title is not None else f"Upper envelope ({below:.1%} of returns above V)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", markerscale=8)
-    return save_figure(fig, Path(path))

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["BatchValidationError", "CollectionConfigError", "CommandLineError", "ConfigError", "ResumeError",
-           "USER_ERRORS"]
+__all__ = ["BatchValidationError", "CommandLineError", "ConfigError", "ResumeError", "USER_ERRORS"]
 
 
 class ConfigError(ValueError):
@@ -40,10 +39,5 @@ class BatchValidationError(ValueError):
     """A batch (in memory or on disk) breaks the format; the message names the file, the key, the expectation."""
 
 
-class CollectionConfigError(ValueError):
-    """A behaviour-data recipe value is missing or out of range; the message names the config key."""
-
-
 #: what the command-line front reports as one line (with Hydra's and OmegaConf's own errors and a missing file)
-USER_ERRORS = (ConfigError, CommandLineError, ResumeError, BatchValidationError, CollectionConfigError,
-               FileNotFoundError)
+USER_ERRORS = (ConfigError, CommandLineError, ResumeError, BatchValidationError, FileNotFoundError)

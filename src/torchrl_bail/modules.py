@@ -19,6 +19,8 @@ Examples:
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from collections.abc import Sequence
 
 import torch
@@ -31,9 +33,9 @@ from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 
-from torchrl_bail import fast_tensordict_outputs
 
 __all__ = [
+    "fast_tensordict_outputs",
     "mlp",
     "action_spec_from_bounds",
     "make_deterministic_actor",
@@ -51,10 +53,26 @@ __all__ = [
 ]
 
 
+def fast_tensordict_outputs() -> None:
+    """Works around a per-call cost in tensordict 0.14: every ``TensorDictModule`` output goes through
+    ``TensorDict.from_any``, which calls ``importlib.util.find_spec("pandas")`` -- a scan of ``sys.path`` (about
+    0.2 ms, several times per update) when pandas is not installed. Registering pandas as absent in ``sys.modules``
+    makes that lookup instant; ``import pandas`` fails exactly as before (``ImportError``). No-op when pandas is
+    installed, and after the first call (one dictionary lookup).
+
+    Not applied at import: every network builder of this module calls it (through :func:`mlp`), so the package's
+    algorithms, behaviour agents and evaluation are fast without anything happening when :mod:`torchrl_bail` is
+    merely imported. Call it yourself when you use the loss modules with networks of your own. The one visible
+    effect: pandas installed *later in the same process* needs a restart to import.
+    """
+    if "pandas" not in sys.modules and importlib.util.find_spec("pandas") is None:
+        sys.modules["pandas"] = None  # type: ignore[assignment]
+
+
 def mlp(in_features: int, out_features: int, hidden: Sequence[int]) -> MLP:
     """A ReLU MLP ``in -> hidden... -> out`` with PyTorch's default init (never TorchRL's 1-layer default).
 
-    Every builder below goes through here, which applies :func:`torchrl_bail.fast_tensordict_outputs` once.
+    Every builder below goes through here, which applies :func:`fast_tensordict_outputs` once.
     """
     fast_tensordict_outputs()
     return MLP(

@@ -1,6 +1,6 @@
-"""Figures a person would rather look at than read: a run's learning curve and the helpers of the report's
-figures (:mod:`torchrl_bail.report`; the envelope plot is in :mod:`torchrl_bail.envelope`). All figures are written
-atomically (temp file, then rename).
+"""Figures a person would rather look at than read: a run's learning curve, BAIL's upper envelope (the paper's
+Fig. 13) and the helpers of the report's figures (:mod:`torchrl_bail.report`). All figures are written atomically
+(temp file, then rename).
 
 Figures are plain :class:`matplotlib.figure.Figure` objects rendered straight to files: importing this module
 neither imports matplotlib nor selects a backend, so a notebook or GUI using :mod:`torchrl_bail` keeps its own.
@@ -8,12 +8,15 @@ neither imports matplotlib nor selects a backend, so a notebook or GUI using :mo
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from torchrl_bail.io import atomic_path
 
-__all__ = ["new_figure", "save_figure", "plot_learning_curve", "read_eval_curve", "mean_curve"]
+__all__ = ["new_figure", "save_figure", "plot_learning_curve", "plot_envelope", "read_eval_curve", "mean_curve"]
 
 
 def new_figure(**kwargs):
@@ -75,6 +78,41 @@ def plot_learning_curve(
 # ---------------------------------------------------------------------------------------------------------------
 # evaluation curves of finished runs (the report's figures)
 # ---------------------------------------------------------------------------------------------------------------
+
+
+def plot_envelope(values, returns, path: str | Path, *, title: str | None = None) -> Path:
+    """The paper's Fig. 13: states sorted by ``V`` ascending, the envelope as a line, the returns as dots.
+
+    Args:
+        values: ``V(s_i)``, ``[N]`` (a CPU tensor or array, e.g. :func:`~torchrl_bail.envelope.envelope_values`).
+        returns: ``G_i``, ``[N]``.
+        path (str or Path): the image file (``.png``, ``.pdf``, ...).
+
+    Keyword Args:
+        title (str, optional): the figure title. Defaults to the share of returns above the envelope.
+
+    Returns:
+        the path written.
+    """
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
+    returns = np.asarray(returns, dtype=np.float64).reshape(-1)
+    if values.shape != returns.shape:
+        raise ValueError(f"values and returns must have the same number of elements, got "
+                         f"{values.size} and {returns.size}")
+    order = np.argsort(values, kind="stable")
+    x = np.arange(len(values))
+    below = float(np.mean(values < returns)) if len(values) else math.nan  # envelope.fraction_below
+    fig = new_figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
+    ax.plot(x, returns[order], linestyle="none", marker=".", markersize=1.0, alpha=0.5,
+            color="tab:blue", label="return G", rasterized=True)
+    ax.plot(x, values[order], color="tab:red", linewidth=1.5, label="upper envelope V")
+    ax.set_xlabel("states, sorted by V (ascending)")
+    ax.set_ylabel("return")
+    ax.set_title(title if title is not None else f"Upper envelope ({below:.1%} of returns above V)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", markerscale=8)
+    return save_figure(fig, Path(path))
 
 
 def _read_scalar_csv(path: Path) -> dict[int, float]:

@@ -14,6 +14,6 @@ Modules: :mod:`~torchrl_bail.behaviour.recipes` (catalogue and validation), :mod
 """
 
 from torchrl_bail.behaviour.catalogue import collect_batch, ensure_batch
-from torchrl_bail.behaviour.recipes import RECIPES, CollectionConfigError, validate_recipe
+from torchrl_bail.behaviour.recipes import RECIPES
 
-__all__ = ["RECIPES", "CollectionConfigError", "collect_batch", "ensure_batch", "validate_recipe"]
+__all__ = ["RECIPES", "collect_batch", "ensure_batch"]

@@ -16,8 +16,8 @@ from pathlib import Path
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.ddpg import collect_ddpg
 from torchrl_bail.behaviour.execution import collect_sac_exec
-from torchrl_bail.behaviour.recipes import validate_recipe
 from torchrl_bail.behaviour.sac import collect_sac, run_checkpoint, sac_run_lock
+from torchrl_bail.config import collection_config
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     HEARTBEAT,
@@ -26,7 +26,6 @@ from torchrl_bail.data.cache import (
     batch_name,
     batch_path,
     clean_stale,
-    config_value,
     file_lock,
     liveness_settings,
     load_cached_batch,
@@ -41,10 +40,13 @@ log = logging.getLogger("torchrl_bail")
 def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | None = None):
     """Loads the cached batch for ``cfg.env`` x ``cfg.batch``, collecting it first when it is not there yet.
 
+    ``cfg``: a composed config (or its ``env``/``batch``/``data_dir``), typed and checked first
+    (:func:`~torchrl_bail.config.collection_config`).
+
     Returns:
         the :class:`~torchrl_bail.data.batch.OfflineBatch`.
     """
-    validate_recipe(cfg)
+    cfg = collection_config(cfg)
     path = batch_path(cfg, data_dir)
     batch = load_cached_batch(path)
     if batch is not None:
@@ -74,12 +76,12 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
     checkpoint of a killed attempt; the checkpoint is removed once the batch is saved. Call it under the batch's
     lock (:func:`ensure_batch` does).
     """
-    validate_recipe(cfg)
+    cfg = collection_config(cfg)
     path = Path(path)
     root = path.parent
-    recipe = config_value(cfg, "batch.recipe")
+    recipe = cfg.batch.recipe
     start = time.perf_counter()
-    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, config_value(cfg, "batch.steps"),
+    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, cfg.batch.steps,
              path)
     beat = liveness_settings(cfg)[1]
     checkpoint = run_checkpoint(cfg, root) if recipe == "sac" else CollectionCheckpoint.for_config(cfg, root, path.name)

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_bail.data.cache import HEARTBEAT, config_value, partial_directory
+from torchrl_bail.data.cache import HEARTBEAT, partial_directory
 from torchrl_bail.io import atomic_path
 
 __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_rng_state", "set_global_rng_state"]
@@ -120,10 +120,11 @@ class CollectionCheckpoint:
 
     @classmethod
     def for_config(cls, cfg, data_dir: Path, key: str) -> CollectionCheckpoint:
-        """The checkpoint ``<data_dir>/.partial/<key>`` with ``batch.checkpoint_every_s`` (default 120) and
-        ``batch.checkpoint_every_steps`` (default ``None``)."""
-        return cls(partial_directory(data_dir, key), every_s=config_value(cfg, "batch.checkpoint_every_s", 120.0),
-                   every_steps=config_value(cfg, "batch.checkpoint_every_steps"))
+        """The checkpoint ``<data_dir>/.partial/<key>`` every ``batch.checkpoint_every_s`` seconds and
+        ``batch.checkpoint_every_steps`` env steps (``null``: never) of ``cfg``, a
+        :class:`~torchrl_bail.config.CollectionConfig`."""
+        return cls(partial_directory(data_dir, key), every_s=cfg.batch.checkpoint_every_s,
+                   every_steps=cfg.batch.checkpoint_every_steps)
 
     def due(self, t: int) -> bool:
         """Whether a checkpoint should be taken now, ``t`` env steps into the run."""

@@ -49,7 +49,7 @@ from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
                                          make_collection_env, seed_all)
-from torchrl_bail.data.cache import batch_name, behaviour_seed, config_value, episode_limit, oracle_settings
+from torchrl_bail.data.cache import batch_name, behaviour_seed, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
     fused_soft_update,
@@ -219,18 +219,18 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         checkpoint: resume from it if it holds a checkpoint, and save checkpoints there (removed by the caller
             once the batch is saved); ``None``: no checkpoints.
     """
-    steps = int(config_value(cfg, "batch.steps"))
-    sigma = float(config_value(cfg, "batch.sigma"))
-    start_steps = int(config_value(cfg, "batch.start_steps"))
+    steps = int(cfg.batch.steps)
+    sigma = float(cfg.batch.sigma)
+    start_steps = int(cfg.batch.start_steps)
     seed = behaviour_seed(cfg)
     seed_all(seed)
-    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    env = make_collection_env(cfg.env.id, max_episode_steps=episode_limit(cfg), seed=seed)
     try:
         low, high = env_bounds(env)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim = low.shape[-1]
         agent = DDPGAgent(obs_dim, action_spec_from_bounds(low, high),
-                          **agent_kwargs(DDPGAgent, config_value(cfg, "batch.agent")))
+                          **agent_kwargs(DDPGAgent, cfg.batch.agent))
         if agent_hook is not None:
             agent_hook(agent)
         buffers = BehaviourBuffers(steps, Path(scratch), oracle=oracle_settings(cfg),

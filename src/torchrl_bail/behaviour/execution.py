@@ -25,7 +25,6 @@ from torchrl_bail.behaviour.sac import ensure_sac_run
 from torchrl_bail.data.cache import (
     batch_name,
     behaviour_seed,
-    config_value,
     data_dir_of,
     episode_limit,
     oracle_settings,
@@ -44,15 +43,15 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None
 
     ``checkpoint``: resumed from and saved to (the loop, the transitions, the RNG states; the policy is frozen),
     or ``None``."""
-    steps = int(config_value(cfg, "batch.steps"))
-    stochastic = bool(config_value(cfg, "batch.stochastic"))
-    which = config_value(cfg, "batch.policy")
+    steps = int(cfg.batch.steps)
+    stochastic = bool(cfg.batch.stochastic)
+    which = cfg.batch.policy
     root = data_dir_of(cfg, data_dir)
     run = ensure_sac_run(cfg, progress=progress, data_dir=root)
     if which == "optimal":
         evaluation, reached = run.optimal(), True
     else:
-        threshold = float(config_value(cfg, "env.mediocre_threshold"))
+        threshold = float(cfg.env.mediocre_threshold)
         evaluation, reached = run.mediocre(threshold)
         if not reached:
             log.warning("no evaluation of SAC run %s reached the mediocre threshold %.0f; using the best one "
@@ -61,7 +60,7 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None
     actor = run.load_actor(evaluation)
     seed = behaviour_seed(cfg) + EXEC_SEED_OFFSET
     seed_all(seed)
-    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=episode_limit(cfg), seed=seed)
+    env = make_collection_env(cfg.env.id, max_episode_steps=episode_limit(cfg), seed=seed)
     mode = ExplorationType.RANDOM if stochastic else ExplorationType.DETERMINISTIC
     try:
         low, high = env_bounds(env)
@@ -90,7 +89,7 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None
             "eval_step": evaluation["step"],
             "eval_return_mean": evaluation["return_mean"],
             "eval_return_std": evaluation["return_std"],
-            "mediocre_threshold": None if which == "optimal" else float(config_value(cfg, "env.mediocre_threshold")),
+            "mediocre_threshold": None if which == "optimal" else float(cfg.env.mediocre_threshold),
             "threshold_reached": reached,
         },
         "behaviour_return": evaluation["return_mean"],

@@ -46,6 +46,7 @@ stochastic (``sigma = sigma(s)``); the metadata keeps the policy file, its evalu
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import os
@@ -56,7 +57,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
@@ -68,15 +68,14 @@ from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
                                          make_collection_env, seed_all)
+from torchrl_bail.config import BatchConfig, SACBatchConfig
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     LOCKS,
-    OPERATIONAL_KEYS,
     batch_metadata,
     batch_path,
     behaviour_seed,
     clean_stale,
-    config_value,
     data_dir_of,
     episode_limit,
     file_lock,
@@ -268,7 +267,7 @@ class _FastSACTerms:
 
 
 def _sac_block(cfg) -> dict:
-    return dict(plain(config_value(cfg, "batch.sac")))
+    return dict(plain(cfg.batch.sac))
 
 
 def sac_run_identity(cfg) -> dict:
@@ -277,18 +276,18 @@ def sac_run_identity(cfg) -> dict:
     A ``sac`` batch in oracle mode trains its own run on 2000-step episodes; execution batches always use the run
     on the env's normal time limit (oracle mode only changes how they are executed).
     """
-    if config_value(cfg, "batch.recipe") == "sac":
+    if cfg.batch.recipe == "sac":
         limit = episode_limit(cfg)
     else:
-        limit = config_value(cfg, "env.max_episode_steps")
+        limit = cfg.env.max_episode_steps
         limit = 1000 if limit is None else int(limit)
-    return {"env_id": config_value(cfg, "env.id"), "max_episode_steps": limit, "seed": behaviour_seed(cfg),
-            "sac": sac_identity(_sac_block(cfg), config_value(cfg, "env.id"))}
+    return {"env_id": cfg.env.id, "max_episode_steps": limit, "seed": behaviour_seed(cfg),
+            "sac": sac_identity(_sac_block(cfg), cfg.env.id)}
 
 
 def sac_run_dir(cfg, data_dir=None) -> Path:
     identity = sac_run_identity(cfg)
-    name = f"{config_value(cfg, 'env.name')}_sac_b{int(config_value(cfg, 'batch.index'))}-{stable_hash(identity)}"
+    name = f"{cfg.env.name}_sac_b{int(cfg.batch.index)}-{stable_hash(identity)}"
     return data_dir_of(cfg, data_dir) / "policies" / name
 
 
@@ -341,7 +340,7 @@ def run_checkpoint(cfg, data_dir=None) -> CollectionCheckpoint:
     """Where the SAC run of ``cfg`` checkpoints: ``<data_dir>/.partial/<run name>[_oracle]`` (shared by the
     ``sac``, ``med_*`` and ``opt_*`` batches that need the same run; written under the run's lock)."""
     root = data_dir_of(cfg, data_dir)
-    oracle = config_value(cfg, "batch.recipe") == "sac" and oracle_settings(cfg) is not None
+    oracle = cfg.batch.recipe == "sac" and oracle_settings(cfg) is not None
     return CollectionCheckpoint.for_config(cfg, root, sac_run_dir(cfg, root).name + ("_oracle" if oracle else ""))
 
 
@@ -362,11 +361,11 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
     train_steps = int(sac["train_steps"])
     start_steps = int(sac["start_steps"])
     eval_every = int(sac["eval_every"])
-    oracle = oracle_settings(cfg) if config_value(cfg, "batch.recipe") == "sac" else None
+    oracle = oracle_settings(cfg) if cfg.batch.recipe == "sac" else None
     seed_all(seed)
-    env = make_collection_env(config_value(cfg, "env.id"), max_episode_steps=identity["max_episode_steps"], seed=seed)
-    eval_limit = config_value(cfg, "env.max_episode_steps")
-    evaluator = Evaluator(config_value(cfg, "env.id"), episodes=int(sac["eval_episodes"]), seed=seed + EVAL_SEED_OFFSET,
+    env = make_collection_env(cfg.env.id, max_episode_steps=identity["max_episode_steps"], seed=seed)
+    eval_limit = cfg.env.max_episode_steps
+    evaluator = Evaluator(cfg.env.id, episodes=int(sac["eval_episodes"]), seed=seed + EVAL_SEED_OFFSET,
                           max_steps=int(eval_limit or 1000), max_episode_steps=eval_limit)
     try:
         low, high = env_bounds(env)
@@ -379,7 +378,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         span = high - low
         evaluations: list[dict] = []
         snapshots: dict[str, dict[str, torch.Tensor]] = {}
-        desc = f"SAC {config_value(cfg, 'env.name')} b{config_value(cfg, 'batch.index')}"
+        desc = f"SAC {cfg.env.name} b{cfg.batch.index}"
         tracker = ReturnTracker(train_steps, desc=desc, progress=progress)
         timers = {"train": 0.0, "eval": 0.0}
 
@@ -403,7 +402,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
                                 "gradient_steps": agent.updates, "file": fname})
             timers["eval"] += time.perf_counter() - t0
             tracker.note(eval=f"{result.mean_return:.0f}")
-            log.info("SAC %s step %d: eval return %.1f +- %.1f", config_value(cfg, "env.id"), t, result.mean_return,
+            log.info("SAC %s step %d: eval return %.1f +- %.1f", cfg.env.id, t, result.mean_return,
                      result.std_return)
 
         def on_step(t: int) -> None:
@@ -483,19 +482,13 @@ def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
 
 
 def _run_cfg(cfg):
-    """``cfg`` with ``batch`` replaced by the ``sac`` training batch this run produces (steps = train_steps)."""
-    run_cfg = copy.deepcopy(cfg)
-    sac = _sac_block(cfg)
-    batch = {"kind": "sac", "recipe": "sac", "index": int(config_value(cfg, "batch.index")),
-             "seed": config_value(cfg, "batch.seed"), "steps": int(sac["train_steps"]), "sac": sac}
-    batch.update({k: config_value(cfg, f"batch.{k}") for k in OPERATIONAL_KEYS  # how, not what: same hash
-                  if config_value(cfg, f"batch.{k}") is not None})
-    if OmegaConf.is_config(run_cfg):
-        with open_dict(run_cfg):
-            run_cfg.batch = OmegaConf.create(batch)
-    else:
-        run_cfg["batch"] = batch
-    return run_cfg
+    """``cfg`` with ``batch`` replaced by the ``sac`` training batch this run produces: ``steps = train_steps``,
+    oracle mode off, and the execution batch's collection settings (outside the hash)."""
+    batch = cfg.batch
+    shared = {f.name: getattr(batch, f.name) for f in dataclasses.fields(BatchConfig)}
+    run_batch = SACBatchConfig(**{**shared, "kind": "sac", "recipe": "sac", "steps": int(batch.sac.train_steps),
+                                  "oracle": dataclasses.replace(batch.oracle, enabled=False)}, sac=batch.sac)
+    return dataclasses.replace(cfg, batch=run_batch)
 
 
 def sac_run_lock(cfg, data_dir=None):
@@ -575,7 +568,7 @@ def collect_sac(cfg, *, scratch: Path, progress: bool = True, data_dir=None,
     ``checkpoint``: :func:`run_checkpoint` of ``cfg`` (resumed from, saved to; the caller removes it, under
     :func:`sac_run_lock`, once the batch is saved), or ``None``.
     """
-    steps = int(config_value(cfg, "batch.steps"))
+    steps = int(cfg.batch.steps)
     root = data_dir_of(cfg, data_dir)
     path = sac_run_dir(cfg, root)
     with sac_run_lock(cfg, root):

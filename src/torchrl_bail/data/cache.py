@@ -26,22 +26,23 @@ older than ``stale_after_s`` (:func:`liveness_settings`; compared on the file se
 removes only what a gone owner left; a waiter takes over a gone owner's lock and logs whom it waited for.
 The ``batch`` keys that tune this and the checkpoints (:data:`OPERATIONAL_KEYS`) are outside the recipe hash.
 
-This module reads configs (an OmegaConf ``DictConfig`` or a plain nested ``dict``) but never produces data: the
-behaviour agents that fill the cache live in :mod:`torchrl_bail.behaviour`.
+The functions that name and hash a batch read a typed collection config (``cfg.env``, ``cfg.batch``,
+``cfg.data_dir``: a :class:`torchrl_bail.config.CollectionConfig`, whose schemas checked every value), but never
+produce data: the behaviour agents that fill the cache live in :mod:`torchrl_bail.behaviour`.
 
 Examples:
-    >>> cfg = {"env": {"name": "hopper", "id": "Hopper-v5", "max_episode_steps": 1000},
-    ...        "batch": {"kind": "ddpg05", "recipe": "ddpg", "index": 2, "steps": 1000,
-    ...                  "sigma": 0.5, "start_steps": 100}}
-    >>> batch_name(cfg), behaviour_seed(cfg), config_value(cfg, "batch.sigma")
-    ('hopper_ddpg05_b2', 2, 0.5)
-    >>> len(recipe_hash(cfg))
-    8
+    >>> from types import SimpleNamespace as Node
+    >>> cfg = Node(env=Node(name="hopper", id="Hopper-v5", max_episode_steps=1000),
+    ...            batch=Node(kind="ddpg05", recipe="ddpg", index=2, seed=None, steps=1000, sigma=0.5,
+    ...                       oracle=Node(enabled=False)))
+    >>> batch_name(cfg), behaviour_seed(cfg), episode_limit(cfg)
+    ('hopper_ddpg05_b2', 2, 1000)
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import functools
 import hashlib
@@ -69,7 +70,6 @@ __all__ = [
     "default_data_dir",
     "data_dir_of",
     "plain",
-    "config_value",
     "oracle_settings",
     "behaviour_seed",
     "batch_name",
@@ -130,59 +130,47 @@ def default_data_dir() -> Path:
 
 
 def plain(node: Any) -> Any:
-    """``node`` as plain Python containers (an OmegaConf node is resolved and converted; anything else as is)."""
+    """``node`` as plain Python containers (an OmegaConf node is resolved and converted, a dataclass -- a typed
+    config -- becomes a dict; anything else as is)."""
     if isinstance(node, DictConfig) or OmegaConf.is_config(node):
         return OmegaConf.to_container(node, resolve=True)
-    return node
-
-
-def config_value(cfg: Any, dotted: str, default: Any = None) -> Any:
-    """The value at ``dotted`` (e.g. ``"batch.agent.tau"``) of a ``DictConfig`` or a nested ``dict``, as plain
-    Python (see :func:`plain`); ``default`` when a key on the way is missing."""
-    if OmegaConf.is_config(cfg):
-        value = OmegaConf.select(cfg, dotted, default=default)
-        return plain(value)
-    node = cfg
-    for part in dotted.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return default
-        node = node[part]
+    if dataclasses.is_dataclass(node) and not isinstance(node, type):
+        return dataclasses.asdict(node)
     return node
 
 
 def oracle_settings(cfg) -> dict | None:
-    """The resolved ``batch.oracle`` block when oracle mode is on, else ``None``."""
-    oracle = config_value(cfg, "batch.oracle")
-    if not oracle or not oracle.get("enabled", False):
-        return None
-    return {"horizon": 2000, "keep": 1000, "gamma": 0.99, **oracle}
+    """The ``batch.oracle`` block (``enabled``, ``horizon``, ``keep``, ``gamma``) when oracle mode is on, else
+    ``None``."""
+    oracle = cfg.batch.oracle
+    return plain(oracle) if oracle.enabled else None
 
 
 def behaviour_seed(cfg) -> int:
     """``batch.seed`` when set, else ``batch.index``: B1 and B2 differ; the training ``seed`` is not used."""
-    seed = config_value(cfg, "batch.seed")
-    return int(config_value(cfg, "batch.index") if seed is None else seed)
+    seed = cfg.batch.seed
+    return int(cfg.batch.index if seed is None else seed)
 
 
 def batch_name(cfg) -> str:
     """``<env.name>_<batch.kind>_b<batch.index>`` (``_oracle`` before ``_b`` in oracle mode)."""
     oracle = "_oracle" if oracle_settings(cfg) else ""
-    env, kind, index = config_value(cfg, "env.name"), config_value(cfg, "batch.kind"), config_value(cfg, "batch.index")
-    return f"{env}_{kind}{oracle}_b{int(index)}"
+    return f"{cfg.env.name}_{cfg.batch.kind}{oracle}_b{int(cfg.batch.index)}"
 
 
 def episode_limit(cfg) -> int:
-    """The collection env's time limit: ``env.max_episode_steps`` (``oracle.horizon`` in oracle mode)."""
+    """The collection env's time limit: ``env.max_episode_steps`` (``oracle.horizon`` in oracle mode; the
+    gymnasium default of the MuJoCo envs, 1000, for ``null``)."""
     oracle = oracle_settings(cfg)
     if oracle:
         return int(oracle["horizon"])
-    limit = config_value(cfg, "env.max_episode_steps")
+    limit = cfg.env.max_episode_steps
     return 1000 if limit is None else int(limit)
 
 
 def recipe_identity(cfg) -> dict:
     """Everything that determines a batch's content, as plain JSON-able data (hashed by :func:`recipe_hash`)."""
-    batch = dict(plain(config_value(cfg, "batch")))
+    batch = dict(plain(cfg.batch))
     batch.pop("kind", None)  # cosmetic: it is part of the batch's name
     for key in OPERATIONAL_KEYS:  # how to collect (checkpoints, locks), never what
         batch.pop(key, None)
@@ -190,10 +178,10 @@ def recipe_identity(cfg) -> dict:
         batch.pop("oracle", None)  # off == absent, so adding the block never changes existing hashes
     batch["seed"] = behaviour_seed(cfg)
     if isinstance(batch.get("sac"), Mapping):
-        batch["sac"] = sac_identity(batch["sac"], config_value(cfg, "env.id"))
-    identity = {"env_id": config_value(cfg, "env.id"), "max_episode_steps": episode_limit(cfg), "batch": batch}
+        batch["sac"] = sac_identity(batch["sac"], cfg.env.id)
+    identity = {"env_id": cfg.env.id, "max_episode_steps": episode_limit(cfg), "batch": batch}
     if batch.get("recipe") == "sac_exec" and batch.get("policy") == "mediocre":
-        identity["mediocre_threshold"] = config_value(cfg, "env.mediocre_threshold")
+        identity["mediocre_threshold"] = cfg.env.mediocre_threshold
     return identity
 
 
@@ -246,7 +234,7 @@ def recipe_hash(cfg) -> str:
 def data_dir_of(cfg=None, data_dir: str | os.PathLike | None = None) -> Path:
     """``data_dir`` argument, else ``cfg.data_dir``, else :func:`default_data_dir`."""
     if data_dir is None and cfg is not None:
-        data_dir = config_value(cfg, "data_dir")
+        data_dir = cfg.data_dir
     if data_dir is None:
         data_dir = default_data_dir()
     return Path(os.path.expanduser(str(data_dir))).absolute()
@@ -263,12 +251,12 @@ def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float) -> dict
     low, high = extra.pop("action_low"), extra.pop("action_high")
     return {
         "name": batch_name(cfg),
-        "env_id": config_value(cfg, "env.id"),
-        "env_name": config_value(cfg, "env.name"),
-        "kind": config_value(cfg, "batch.kind"),
-        "index": int(config_value(cfg, "batch.index")),
-        "recipe": {**plain(config_value(cfg, "batch")), "env": config_value(cfg, "env.name"),
-                   "env_id": config_value(cfg, "env.id"), "max_episode_steps": episode_limit(cfg)},
+        "env_id": cfg.env.id,
+        "env_name": cfg.env.name,
+        "kind": cfg.batch.kind,
+        "index": int(cfg.batch.index),
+        "recipe": {**plain(cfg.batch), "env": cfg.env.name, "env_id": cfg.env.id,
+                   "max_episode_steps": episode_limit(cfg)},
         "recipe_hash": recipe_hash(cfg),
         "identity": identity,
         "seed": behaviour_seed(cfg),
@@ -323,8 +311,8 @@ def pid_alive(pid: int) -> bool:
 def liveness_settings(cfg=None) -> tuple[float, float]:
     """``(stale_after_s, heartbeat_every_s)``: ``batch.lock_stale_after_s`` / ``batch.heartbeat_every_s`` of
     ``cfg``, else ``$TORCHRL_BAIL_LOCK_STALE_AFTER_S`` / :data:`STALE_AFTER_S`, and :data:`HEARTBEAT_EVERY_S`."""
-    stale = config_value(cfg, "batch.lock_stale_after_s") if cfg is not None else None
-    beat = config_value(cfg, "batch.heartbeat_every_s") if cfg is not None else None
+    stale = cfg.batch.lock_stale_after_s if cfg is not None else None
+    beat = cfg.batch.heartbeat_every_s if cfg is not None else None
     if stale is None:
         stale = float(os.environ.get(STALE_ENV, STALE_AFTER_S))
     return float(stale), float(HEARTBEAT_EVERY_S if beat is None else beat)
