@@ -141,6 +141,16 @@ def test_no_constructor_restates_a_default_of_the_yaml(name):
     assert OmegaConf.to_container(algo.config) == OmegaConf.to_container(yaml)
 
 
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_every_state_attribute_exists(name):
+    """What ``state_attributes`` lists is real state: each name is an attribute of a freshly built algorithm (a
+    listed name that exists nowhere would silently leave its state out of every checkpoint)."""
+    algo = ALGORITHMS[name](OBS, SPEC, algo_config(name))
+    missing = [k for k in type(algo).state_attributes if not hasattr(algo, k)]
+    assert not missing, f"{type(algo).__name__}.state_attributes names attributes that do not exist: {missing}"
+    assert set(algo.state_dict()["attributes"]) == set(type(algo).state_attributes)
+
+
 def test_a_mapping_takes_the_yaml_values_it_leaves_out_and_is_checked():
     algo = ALGORITHMS["bc"](OBS, SPEC, {"policy": {"hidden": [8]}, "batch_size": 4})
     assert algo.config == algo_config("bc", batch_size=4, **{"policy.hidden": [8]})

@@ -207,7 +207,7 @@ class Algorithm(ABC):
         return {
             "modules": {k: m.state_dict() for k, m in self.modules.items()},
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-            "attributes": {k: copy.deepcopy(getattr(self, k)) for k in self.state_attributes if hasattr(self, k)},
+            "attributes": {k: copy.deepcopy(getattr(self, k)) for k in self.state_attributes},  # all must exist
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

@@ -78,6 +78,14 @@ class MARWIL(DeterministicActorAlgorithm):
             return self._value_update(batch)
         return self._joint_update(batch)
 
+    # -- several seeds in one process (torchrl_bail.stacking.SeedStack): the seeds share the update clock ---------
+    def stack_attributes(self, algorithms: list[MARWIL]) -> None:
+        self.updates_done = algorithms[0].updates_done
+
+    def unstack_attributes(self, algorithms: list[MARWIL]) -> None:
+        for algorithm in algorithms:
+            algorithm.updates_done = self.updates_done
+
     def _value_update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self.loss(batch)  # the same diagnostics (and the same c^2 schedule) as a joint update
         value_optimizer = self.optimizers["value"]

@@ -36,7 +36,7 @@ from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
 from torchrl_bail.algorithms.base import PrepareContext
-from torchrl_bail.algorithms.bc import BehaviourCloning, make_bc_loss
+from torchrl_bail.algorithms.bc import DeterministicActorAlgorithm, make_bc_loss
 from torchrl_bail.envelope import EarlyStoppingTracker, validation_loss
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
@@ -48,7 +48,7 @@ __all__ = ["ProgressiveBAIL"]
 VALIDATION_KEY = "envelope_validation"
 
 
-class ProgressiveBAIL(BehaviourCloning):
+class ProgressiveBAIL(DeterministicActorAlgorithm):
     """Progressive BAIL (Alg. 2 of the supplementary material), from ``conf/algo/pbail.yaml``'s config (arguments
     as in :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
@@ -59,9 +59,9 @@ class ProgressiveBAIL(BehaviourCloning):
     """
 
     name = "pbail"
-    #: the early-stopping state: best snapshot and loss, consecutive increases, update clock, reverts
-    state_attributes = ("_best_state", "_best_val", "_increases", "_iteration", "_reverts", "_last_selected",
-                        "_last_val")
+    #: the update clock (validations happen every ``validate_every`` updates); the early-stopping state (best
+    #: snapshot and loss, consecutive increases, reverts) travels as :meth:`state_dict`'s ``"early_stopping"``
+    state_attributes = ("_iteration",)
 
     def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
         super().__init__(obs_dim, action_spec, config, device)
