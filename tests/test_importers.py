@@ -17,13 +17,8 @@ import pytest
 import torch
 
 from torchrl_bail.data import BatchValidationError, importers, load_batch, save_batch
-from torchrl_bail.data.importers import (
-    D4RL_REF_SCORES,
-    DatasetImportError,
-    import_cache_path,
-    import_dataset,
-    normalized_score,
-)
+from torchrl_bail.data.importers import DatasetImportError, import_cache_path, import_dataset
+from torchrl_bail.data.scores import D4RL_REF_SCORES, normalized_score
 
 HOPPER_OBS, HOPPER_ACT = 11, 3
 

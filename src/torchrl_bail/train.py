@@ -415,7 +415,7 @@ def job_threads(cfg: DictConfig, launcher=None) -> int | None:
 
 def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = None) -> None:
     """``<key>_normalized`` (D4RL normalised score, or the dataset's own Minari reference) where one exists."""
-    from torchrl_bail.data.importers import normalized_score, score_reference
+    from torchrl_bail.data.scores import normalized_score, score_reference
 
     reference = score_reference(env_id, metadata)
     if reference is None:
