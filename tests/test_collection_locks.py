@@ -12,7 +12,7 @@ import threading
 import time
 from pathlib import Path
 
-from torchrl_bail.data.cache import (
+from torchrl_bail.data.locks import (
     LOCKS,
     OWNER_FILE,
     SCRATCH,
@@ -138,7 +138,7 @@ def test_two_jobs_asking_for_the_same_batch_make_it_once(tmp_path):
 
 
 def test_a_job_whose_lock_was_taken_over_stops_before_writing(tmp_path):
-    from torchrl_bail.data.cache import HEARTBEAT, LockLost
+    from torchrl_bail.data.locks import HEARTBEAT, LockLost
 
     lock = tmp_path / LOCKS / "b.lock"
     with file_lock(lock, heartbeat_every_s=60):

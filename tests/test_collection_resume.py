@@ -16,7 +16,8 @@ from torchrl_bail.behaviour import ensure_batch
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.ddpg import DDPGAgent
 from torchrl_bail.behaviour.sac import SACAgent
-from torchrl_bail.data.cache import PARTIAL, batch_path
+from torchrl_bail.data.cache import batch_path
+from torchrl_bail.data.locks import PARTIAL
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from _collection_drill import collection_trial  # noqa: E402

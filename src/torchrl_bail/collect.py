@@ -101,7 +101,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def format_listing(rows: list[dict]) -> str:
     """The ``--list`` table."""
-    from torchrl_bail.data.cache import format_bytes
+    from torchrl_bail.data.listing import format_bytes
 
     if not rows:
         return "no cached batches"
@@ -126,7 +126,8 @@ def format_listing(rows: list[dict]) -> str:
 
 
 def _list_main(argv: list[str]) -> int:
-    from torchrl_bail.data.cache import data_dir_of, list_batches
+    from torchrl_bail.data.cache import data_dir_of
+    from torchrl_bail.data.listing import list_batches
 
     data_dir = None
     it = iter(argv)

@@ -19,18 +19,8 @@ from torchrl_bail.behaviour.execution import collect_sac_exec
 from torchrl_bail.behaviour.sac import collect_sac, run_checkpoint, sac_run_lock
 from torchrl_bail.config import collection_config
 from torchrl_bail.data.batch import save_batch
-from torchrl_bail.data.cache import (
-    HEARTBEAT,
-    LOCKS,
-    batch_metadata,
-    batch_name,
-    batch_path,
-    clean_stale,
-    file_lock,
-    liveness_settings,
-    load_cached_batch,
-    scratch_directory,
-)
+from torchrl_bail.data.cache import batch_metadata, batch_name, batch_path, load_cached_batch
+from torchrl_bail.data.locks import HEARTBEAT, LOCKS, clean_stale, file_lock, liveness_settings, scratch_directory
 
 __all__ = ["ensure_batch", "collect_batch"]
 

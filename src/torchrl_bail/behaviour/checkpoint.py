@@ -1,6 +1,6 @@
 """Checkpoints of a behaviour run: a killed collection continues from its last checkpoint and makes the *same* batch.
 
-A checkpoint lives in ``<data_dir>/.partial/<key>/`` (:func:`~torchrl_bail.data.cache.partial_directory`; ``key``
+A checkpoint lives in ``<data_dir>/.partial/<key>/`` (:func:`~torchrl_bail.data.locks.partial_directory`; ``key``
 is the batch's directory name, or the SAC run's, hash included) and is written only by the holder of that batch's
 (or run's) lock. It is removed once the batch (or the run) is saved. Layout:
 
@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_bail.data.cache import HEARTBEAT, partial_directory
+from torchrl_bail.data.locks import HEARTBEAT, partial_directory
 from torchrl_bail.io import atomic_path
 
 __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_rng_state", "set_global_rng_state"]
@@ -152,7 +152,7 @@ class CollectionCheckpoint:
     def save(self, state: dict[str, Any], stores: Mapping[str, Any]) -> None:
         """Writes the rows the ``stores`` (name -> :class:`~torchrl_bail.behaviour.buffers.EpisodeStore`) gained
         since the last checkpoint, then ``state`` (atomically, last). Raises
-        :class:`~torchrl_bail.data.cache.LockLost` instead if this job's lock was taken over meanwhile."""
+        :class:`~torchrl_bail.data.locks.LockLost` instead if this job's lock was taken over meanwhile."""
         HEARTBEAT.check()
         for name, store in stores.items():
             done, n = self._saved_rows.get(name, 0), len(store)

@@ -71,22 +71,17 @@ from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwar
 from torchrl_bail.config import BatchConfig, SACBatchConfig
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
-    LOCKS,
     batch_metadata,
     batch_path,
     behaviour_seed,
-    clean_stale,
     data_dir_of,
     episode_limit,
-    file_lock,
-    liveness_settings,
     oracle_settings,
-    owned_name,
     plain,
     sac_identity,
-    scratch_directory,
     stable_hash,
 )
+from torchrl_bail.data.locks import LOCKS, clean_stale, file_lock, liveness_settings, owned_name, scratch_directory
 from torchrl_bail.evaluation import Evaluator
 from torchrl_bail.io import atomic_path
 from torchrl_bail.modules import action_spec_from_bounds, fused_soft_update, make_qvalue_network, make_sac_actor

@@ -1,8 +1,9 @@
-"""The bottom layer: the offline batch format, Monte-Carlo returns, dataset importers and the on-disk cache.
+"""The bottom layer: the offline batch format, Monte-Carlo returns, dataset importers, the on-disk cache (names and
+hashes: ``cache``; multi-host locks: ``locks``; listing: ``listing``) and normalised scores.
 
-Nothing here imports the rest of :mod:`torchrl_bail` (only :mod:`torchrl_bail.io`, the atomic writes): the online
-behaviour agents that *produce* batches live in :mod:`torchrl_bail.behaviour`, the learners that consume them in
-:mod:`torchrl_bail.algorithms`.
+Nothing here imports the rest of :mod:`torchrl_bail` (only :mod:`torchrl_bail.io`, the atomic writes, and
+:mod:`torchrl_bail.errors`): the online behaviour agents that *produce* batches live in
+:mod:`torchrl_bail.behaviour`, the learners that consume them in :mod:`torchrl_bail.algorithms`.
 """
 
 from torchrl_bail.data.batch import (

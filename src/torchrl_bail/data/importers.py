@@ -96,7 +96,8 @@ from torchrl_bail.data.batch import (
     load_batch,
     save_batch,
 )
-from torchrl_bail.data.cache import LOCKS, data_dir_of, file_lock, load_cached_batch, stable_hash
+from torchrl_bail.data.cache import data_dir_of, load_cached_batch, stable_hash
+from torchrl_bail.data.locks import LOCKS, file_lock
 
 __all__ = [
     "D4RL_KEYS",
