@@ -36,7 +36,8 @@ from torchrl_bail.behaviour.buffers import EpisodeStore  # noqa: E402
 from torchrl_bail import config_dir  # noqa: E402
 from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg  # noqa: E402
 from torchrl_bail.behaviour.loop import BehaviourRun, make_collection_env  # noqa: E402
-from torchrl_bail.behaviour.sac import SACAgent, train_sac  # noqa: E402
+from torchrl_bail.behaviour.sac import SACAgent  # noqa: E402
+from torchrl_bail.behaviour.sac_run import train_sac  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 

@@ -86,18 +86,18 @@ def test_exec_and_sac_recipes_are_validated():
 @pytest.fixture(scope="module")
 def sac_family(tmp_path_factory):
     """med_det first (trains the SAC run once), then opt_stoch and sac reuse it."""
-    from torchrl_bail.behaviour import sac
+    from torchrl_bail.behaviour import sac_run
 
     data_dir = tmp_path_factory.mktemp("sac")
     runs = []
-    original = sac.train_sac
+    original = sac_run.train_sac
 
     def spy(*args, **kwargs):
         runs.append(1)
         return original(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(sac, "train_sac", spy)
+        mp.setattr(sac_run, "train_sac", spy)
         med = ensure_batch(_compose("+exp=hopper_med_det", *TINY_SAC), progress=False, data_dir=data_dir)
         opt = ensure_batch(_compose("+exp=hopper_opt_stoch", *TINY_SAC), progress=False, data_dir=data_dir)
         sac_batch = ensure_batch(_compose("+exp=hopper_sac", *TINY_SAC), progress=False, data_dir=data_dir)
@@ -105,7 +105,7 @@ def sac_family(tmp_path_factory):
 
 
 def test_one_sac_run_serves_mediocre_optimal_and_training_batches(sac_family):
-    from torchrl_bail.behaviour.sac import load_sac_run
+    from torchrl_bail.behaviour.sac_run import load_sac_run
 
     assert len(sac_family["runs"]) == 1, "the SAC run must be trained once and reused"
     med, opt, sac_batch = sac_family["med"], sac_family["opt"], sac_family["sac"]
@@ -129,7 +129,7 @@ def test_execution_batches_follow_the_saved_policy(sac_family):
     from tensordict import TensorDict
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from torchrl_bail.behaviour.sac import SACRun, load_sac_run
+    from torchrl_bail.behaviour.sac_run import SACRun, load_sac_run
 
     med, opt = sac_family["med"], sac_family["opt"]
     run = load_sac_run(Path(med.metadata["behaviour_policy"]["run"]))
@@ -150,7 +150,7 @@ def test_execution_batches_follow_the_saved_policy(sac_family):
 
 
 def test_mediocre_is_the_first_evaluation_reaching_the_threshold(tmp_path):
-    from torchrl_bail.behaviour.sac import SACRun
+    from torchrl_bail.behaviour.sac_run import SACRun
 
     evals = [{"step": s, "return_mean": r, "file": f"e{s}"} for s, r in [(5, 10.0), (10, 60.0), (15, 40.0),
                                                                           (20, 90.0)]]

@@ -5,12 +5,12 @@ Layering: this package reads and writes the bottom layer :mod:`torchrl_bail.data
 networks from :mod:`torchrl_bail.modules`; the offline learners (:mod:`torchrl_bail.algorithms`) never import it.
 Only the entry points (``torchrl_bail.collect``, ``torchrl_bail.train``) do.
 
-Modules: :mod:`~torchrl_bail.behaviour.recipes` (catalogue and validation), :mod:`~torchrl_bail.behaviour.catalogue`
+Modules: :mod:`~torchrl_bail.behaviour.recipes` (the recipe catalogue), :mod:`~torchrl_bail.behaviour.catalogue`
 (``ensure_batch`` / ``collect_batch``), :mod:`~torchrl_bail.behaviour.loop` (the step loop),
 :mod:`~torchrl_bail.behaviour.buffers` (episode store, plain/oracle batch sink),
 :mod:`~torchrl_bail.behaviour.checkpoint` (checkpoints: a killed collection resumes to the same batch),
-:mod:`~torchrl_bail.behaviour.ddpg`,
-:mod:`~torchrl_bail.behaviour.sac` (the shared SAC run), :mod:`~torchrl_bail.behaviour.execution`.
+:mod:`~torchrl_bail.behaviour.ddpg`, :mod:`~torchrl_bail.behaviour.sac` (the agent),
+:mod:`~torchrl_bail.behaviour.sac_run` (the shared SAC run), :mod:`~torchrl_bail.behaviour.execution`.
 """
 
 from torchrl_bail.behaviour.catalogue import collect_batch, ensure_batch

@@ -16,7 +16,7 @@ from pathlib import Path
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.ddpg import collect_ddpg
 from torchrl_bail.behaviour.execution import collect_sac_exec
-from torchrl_bail.behaviour.sac import collect_sac, run_checkpoint, sac_run_lock
+from torchrl_bail.behaviour.sac_run import collect_sac, run_checkpoint, sac_run_lock
 from torchrl_bail.config import collection_config
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import batch_metadata, batch_name, batch_path, load_cached_batch

@@ -2,7 +2,7 @@
 optimal, deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic
 (``sigma = sigma(s)``).
 
-The policy comes from the shared SAC run (:func:`~torchrl_bail.behaviour.sac.ensure_sac_run`: trained once, reused
+The policy comes from the shared SAC run (:func:`~torchrl_bail.behaviour.sac_run.ensure_sac_run`: trained once, reused
 by every execution batch of the same env, seed and ``batch.sac`` block). The metadata keeps the policy file, its
 evaluation step and its measured return (``behaviour_return``).
 """
@@ -21,7 +21,7 @@ from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, collect_timed, env_bounds, make_collection_env,
                                          seed_all)
-from torchrl_bail.behaviour.sac import ensure_sac_run
+from torchrl_bail.behaviour.sac_run import ensure_sac_run
 from torchrl_bail.data.cache import (
     batch_name,
     behaviour_seed,

@@ -4,7 +4,7 @@ Recipes (``cfg.batch.recipe``):
 
 * ``ddpg`` -- :mod:`torchrl_bail.behaviour.ddpg`: the whole replay buffer of an online DDPG run with N(0, sigma^2)
   exploration noise (supp. C.2, final buffer).
-* ``sac`` -- :mod:`torchrl_bail.behaviour.sac`: the first ``steps`` transitions of an online SAC run (paper Sec. 5;
+* ``sac`` -- :mod:`torchrl_bail.behaviour.sac_run`: the first ``steps`` transitions of an online SAC run (paper Sec. 5;
   supp. E).
 * ``sac_exec`` -- :mod:`torchrl_bail.behaviour.execution`: ``steps`` transitions of a frozen SAC policy (mediocre or
   optimal, deterministic or stochastic; paper Sec. 5; supp. E). The SAC run behind it is shared with the ``sac`` batch.
