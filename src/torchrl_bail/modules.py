@@ -24,6 +24,7 @@ import sys
 from collections.abc import Sequence
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded, TensorSpec
@@ -33,6 +34,7 @@ from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 
+from torchrl_bail.stacking import linear
 
 __all__ = [
     "fast_tensordict_outputs",
@@ -48,6 +50,7 @@ __all__ = [
     "TanhGaussianParams",
     "TanhNormalScoredOnTanh",
     "make_sac_actor",
+    "PlainMLP",
     "FusedSoftUpdate",
     "fused_soft_update",
 ]
@@ -414,6 +417,65 @@ def make_sac_actor(obs_dim: int, action_spec, hidden: Sequence[int] = (256, 256)
         distribution_kwargs={"low": low, "high": high, "tanh_loc": False}, return_log_prob=False,
         default_interaction_type=ExplorationType.RANDOM,
     )
+
+
+class PlainMLP:
+    """A ``Sequential`` of ``nn.Linear`` and parameter-free layers (a TorchRL ``MLP``) run from plain tensors: the
+    one plain-tensor network runner of the package (BCQ's and BEAR's twin critics, the SAC behaviour agent's).
+
+    ``params.to_module`` swaps every tensor into the module on each call; at batch 100 on one CPU thread that
+    bookkeeping costs about as much as a 400-300 forward, and twin critics run several times per update. This
+    reads the (stacked) weights straight from the parameter TensorDict and calls ``F.linear`` and the layers'
+    own activations: the same operations in the same order as ``module(torch.cat(inputs, -1))``, so the numbers
+    are identical. :meth:`build` returns ``None`` for any other architecture (the caller then uses ``to_module``).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> net = mlp(3, 1, (8,))
+        >>> plain = PlainMLP.build(net, ())
+        >>> params = TensorDict.from_module(net)
+        >>> x = torch.randn(4, 3)
+        >>> torch.equal(plain({k: params.get(k) for k in plain.keys}, x), net(x))
+        True
+    """
+
+    def __init__(self, steps: list) -> None:
+        self.steps = steps  # (weight key, bias key | None) for a Linear, torch.relu_ or the layer itself otherwise
+        self.keys = [key for step in steps if isinstance(step, tuple) for key in step if key is not None]
+
+    @classmethod
+    def build(cls, module: nn.Module, prefix: tuple[str, ...]) -> PlainMLP | None:
+        if not isinstance(module, nn.Sequential) or getattr(module, "_reshape_out", False):
+            return None
+        if type(module).forward not in (nn.Sequential.forward, MLP.forward):
+            return None
+        steps: list = []
+        for name, layer in module.named_children():
+            if type(layer) is nn.Linear:
+                steps.append((prefix + (name, "weight"), prefix + (name, "bias") if layer.bias is not None else None))
+            elif type(layer) is nn.ReLU and steps and isinstance(steps[-1], tuple):
+                steps.append(torch.relu_)
+            elif next(layer.parameters(), None) is None and next(layer.buffers(), None) is None:
+                steps.append(layer)
+            else:
+                return None
+        return cls(steps)
+
+    def members(self, params: TensorDictBase | dict, count: int, *, detach: bool = False) -> list[dict]:
+        """For stacked parameters ``[count, ...]`` (a parameter TensorDict, or ``{key: tensor}``): one
+        ``{key: tensor}`` per member, views of the stack (``detach``: outside the autograd graph)."""
+        stacked = {key: params.get(key) for key in self.keys}
+        return [{key: value[i].detach() if detach else value[i] for key, value in stacked.items()}
+                for i in range(count)]
+
+    def __call__(self, weights: dict, *inputs: torch.Tensor) -> torch.Tensor:
+        x = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
+        for step in self.steps:
+            if isinstance(step, tuple):
+                x = linear(x, weights[step[0]], None if step[1] is None else weights[step[1]])
+            else:  # torch.relu_ after a Linear (whose backward never reads its output) or a parameter-free layer
+                x = step(x)
+        return x
 
 
 class FusedSoftUpdate(SoftUpdate):

@@ -37,7 +37,7 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent
-from torchrl_bail.modules import fused_soft_update, make_qvalue_network, make_sac_actor
+from torchrl_bail.modules import PlainMLP, fused_soft_update, make_qvalue_network, make_sac_actor
 
 __all__ = ["SACAgent"]
 
@@ -124,44 +124,31 @@ class SACAgent(CheckpointableAgent):
         return {k: v.detach().clone() for k, v in self.actor.state_dict().items()}
 
 
-def _mlp_layers(params: TensorDictBase) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """``[(weight, bias), ...]`` of a TorchRL :class:`~torchrl.modules.MLP`'s parameters, in layer order."""
-    leaves = dict(params.items(True, True))
-    layers = sorted({key[:-1] for key in leaves}, key=lambda k: int(k[-1]))
-    return [(leaves[(*k, "weight")], leaves[(*k, "bias")]) for k in layers]
-
-
 class _FastSACTerms:
     """SACLoss v2's losses as plain tensor code over the loss module's own parameter tensors (no copies).
 
-    The twin critics are the stacked ``[2, ...]`` parameters of ``SACLoss`` (and their targets), run as
-    ``linear -> relu`` chains per critic; the actor is the agent's policy network and distribution class.
+    The twin critics are the stacked ``[2, ...]`` parameters of ``SACLoss`` (and their targets), each run by
+    :class:`~torchrl_bail.modules.PlainMLP` from views of the stack; the actor is the agent's policy network and
+    distribution class.
     """
 
     def __init__(self, agent: SACAgent):
         loss = agent.loss
         self.loss = loss
-        self.critic = _mlp_layers(loss.qvalue_network_params)
-        self.target_critic = _mlp_layers(loss.target_qvalue_network_params)
+        self.num_critics = loss.num_qvalue_nets
+        self.runner = PlainMLP.build(loss.qvalue_network.module, ("module",))
+        # the stacked [num_critics, ...] tensors themselves (members are sliced per call: always the live weights)
+        self.critic = {key: loss.qvalue_network_params.get(key) for key in self.runner.keys}
+        self.target_critic = {key: loss.target_qvalue_network_params.get(key) for key in self.runner.keys}
         self.params_net = agent.actor.module[0].module  # obs -> (loc, scale)
         kwargs = agent.actor.module[1].distribution_kwargs
         self.distribution = agent.actor.module[1].distribution_class
         self.low, self.high = kwargs["low"], kwargs["high"]
-        self.num_critics = loss.num_qvalue_nets
 
-    def _q(self, layers, observation: torch.Tensor, action: torch.Tensor, detach: bool = False) -> torch.Tensor:
+    def _q(self, stacked: dict, observation: torch.Tensor, action: torch.Tensor, detach: bool = False) -> torch.Tensor:
         """``[num_critics, N]`` action values."""
-        x0 = torch.cat([observation, action], -1)
-        values = []
-        for i in range(self.num_critics):
-            x = x0
-            for j, (weight, bias) in enumerate(layers):
-                weight, bias = (weight[i].detach(), bias[i].detach()) if detach else (weight[i], bias[i])
-                x = torch.nn.functional.linear(x, weight, bias)
-                if j < len(layers) - 1:
-                    x = torch.relu(x)
-            values.append(x)
-        return torch.stack(values).squeeze(-1)
+        members = self.runner.members(stacked, self.num_critics, detach=detach)
+        return torch.stack([self.runner(weights, observation, action) for weights in members]).squeeze(-1)
 
     def distribution_at(self, observation: torch.Tensor):
         """The policy's action distribution at ``observation``."""

@@ -22,13 +22,13 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey, unravel_key
 from torch import nn
-from torchrl.modules import MLP, ValueOperator
+from torchrl.modules import ValueOperator
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import _cache_values, _vmap_func
 
+from torchrl_bail.modules import PlainMLP
 from torchrl_bail.objectives._shared import check_reduction, reduce_per_seed, required_entry
 from torchrl_bail.objectives.vae import conditional_vae_loss
-from torchrl_bail.stacking import linear
 
 __all__ = ["BestOfNPolicy", "TwinCriticVAELoss", "soft_clipped_double_q_target", "expand_samples"]
 
@@ -83,53 +83,6 @@ def _next(key: NestedKey) -> NestedKey:
 def expand_samples(tensor: torch.Tensor, num_samples: int) -> torch.Tensor:
     """``[*B, F] -> [*B, N, F]`` (a view)."""
     return tensor.unsqueeze(-2).expand(*tensor.shape[:-1], num_samples, tensor.shape[-1])
-
-
-class _PlainMLP:
-    """A ``Sequential`` of ``nn.Linear`` and parameter-free layers (a TorchRL ``MLP``) run from plain tensors.
-
-    ``params.to_module`` swaps every tensor into the module on each call; at batch 100 on one CPU thread that
-    bookkeeping costs about as much as a 400-300 forward, and the twin critics run five times per update. This
-    reads the (stacked) weights straight from the parameter TensorDict and calls ``F.linear`` and the layers'
-    own activations: the same operations in the same order as ``module(torch.cat(inputs, -1))``, so the numbers
-    are identical. :meth:`build` returns ``None`` for any other architecture (the loss then uses ``to_module``).
-    """
-
-    def __init__(self, steps: list) -> None:
-        self.steps = steps  # (weight key, bias key | None) for a Linear, torch.relu_ or the layer itself otherwise
-        self.keys = [key for step in steps if isinstance(step, tuple) for key in step if key is not None]
-
-    @classmethod
-    def build(cls, module: nn.Module, prefix: tuple[str, ...]) -> _PlainMLP | None:
-        if not isinstance(module, nn.Sequential) or getattr(module, "_reshape_out", False):
-            return None
-        if type(module).forward not in (nn.Sequential.forward, MLP.forward):
-            return None
-        steps: list = []
-        for name, layer in module.named_children():
-            if type(layer) is nn.Linear:
-                steps.append((prefix + (name, "weight"), prefix + (name, "bias") if layer.bias is not None else None))
-            elif type(layer) is nn.ReLU and steps and isinstance(steps[-1], tuple):
-                steps.append(torch.relu_)
-            elif next(layer.parameters(), None) is None and next(layer.buffers(), None) is None:
-                steps.append(layer)
-            else:
-                return None
-        return cls(steps)
-
-    def members(self, params: TensorDictBase, count: int) -> list[dict]:
-        """For stacked parameters ``[count, ...]``: one ``{key: tensor}`` per member (views of the stack)."""
-        stacked = {key: params.get(key) for key in self.keys}
-        return [{key: value[i] for key, value in stacked.items()} for i in range(count)]
-
-    def __call__(self, weights: dict, *inputs: torch.Tensor) -> torch.Tensor:
-        x = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
-        for step in self.steps:
-            if isinstance(step, tuple):
-                x = linear(x, weights[step[0]], None if step[1] is None else weights[step[1]])
-            else:  # torch.relu_ after a Linear (whose backward never reads its output) or a parameter-free layer
-                x = step(x)
-        return x
 
 
 class TwinCriticVAELoss(LossModule):
@@ -225,7 +178,7 @@ class TwinCriticVAELoss(LossModule):
         self._vmap_qvalue = _vmap_func(self.qvalue_network, (None, 0), randomness=self.vmap_randomness,
                                        pseudo_vmap=self.deactivate_vmap)
         network = self.qvalue_network
-        self._plain_critic = (_PlainMLP.build(network.module, ("module",))
+        self._plain_critic = (PlainMLP.build(network.module, ("module",))
                               if type(network) in (TensorDictModule, ValueOperator) else None)
 
     def _plain_critic_members(self, params: TensorDictBase) -> list[dict] | None:
