@@ -7,6 +7,10 @@ and writes an atomic checkpoint before the first update, after each evaluation a
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
 as a run that was never interrupted (see the README's "Interrupted runs and preemption").
 
+The loop itself is :func:`train_seeds`: it trains a :class:`Trainee` of ``S >= 1`` seeds and keeps every per-seed
+value (loggers, callbacks, histories, checkpoint paths) in lists. ``train`` is its one-seed edge, with an
+:class:`AlgorithmTrainee`; :class:`~torchrl_bail.stacking.StackedTrainee` trains ``S`` seeds stacked.
+
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
