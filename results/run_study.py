@@ -159,7 +159,7 @@ def job_status(job: Job, workdir: Path) -> str:
     recent = log.is_file() and time.time() - log.stat().st_mtime < 600
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
-        if re.search(r"saved batch|using cached batch", text):
+        if re.search(r": (collected|already cached) at ", text):
             return "done"
         return "running" if recent else ("left (partial)" if text else "left")
     run = run_dir_of(job, workdir)
