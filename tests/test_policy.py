@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -154,6 +155,15 @@ def test_onnx_weights_too_large_to_embed_go_beside_the_file_under_its_name(tmp_p
     monkeypatch.undo()  # small again: the weights go back inside and the old weights file goes away
     export_policy(path, out, "onnx")
     assert sorted(p.name for p in out.parent.iterdir()) == ["bc.onnx"]
+
+
+def test_a_loaded_policy_acts_without_a_graph_and_takes_numpy_observations(tmp_path):
+    policy = load_policy(_tiny_bc(tmp_path))
+    obs = np.random.default_rng(0).standard_normal((4, 11))  # float64, as gymnasium returns it
+    action = policy(TensorDict({"observation": torch.as_tensor(obs, dtype=torch.float32)}, [4]))["action"]
+    assert action.grad_fn is None and not action.requires_grad
+    from_numpy = policy_actions(policy, obs)  # cast once, at the edge
+    assert from_numpy.dtype == torch.float32 and torch.equal(from_numpy, action)
 
 
 def _tiny_bcq(tmp_path):

@@ -165,7 +165,9 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         device: where the policy runs. Defaults to ``"cpu"``.
         best (bool): the best-evaluated policy instead of the final one (run directories only).
 
-    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights).
+    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights). The policy is
+    for acting: in eval mode, its parameters without ``requires_grad`` (actions carry no graph); call
+    ``policy.requires_grad_(True)`` to fine-tune it.
     """
     record = read_policy_file(source, best=best)
     policy = _rebuild(record, device).to(device)
@@ -173,7 +175,7 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         policy.load_state_dict(record.pop("state_dict"))
     except RuntimeError as err:
         raise PolicyFileError(f"{record['path']}: weights do not fit the recorded networks ({err})") from None
-    policy.eval()
+    policy.eval().requires_grad_(False)
     policy.record = record
     return policy
 
@@ -192,8 +194,16 @@ class _ObservationToAction(nn.Module):
         return self.policy(td).get("action")
 
 
-def policy_actions(policy, observation: torch.Tensor) -> torch.Tensor:
-    """Actions of a TensorDict ``policy`` for a ``[B, obs_dim]`` observation tensor (no gradient)."""
+def policy_actions(policy, observation) -> torch.Tensor:
+    """Actions of a TensorDict ``policy`` for ``[B, obs_dim]`` observations (no gradient).
+
+    ``observation`` may be a tensor or an array (e.g. gymnasium's float64 NumPy observations): it is cast once,
+    here, to the dtype and device of the policy's parameters.
+    """
+    reference = next(iter(policy.parameters()), None)
+    dtype = reference.dtype if reference is not None else torch.get_default_dtype()
+    device = reference.device if reference is not None else None
+    observation = torch.as_tensor(observation, dtype=dtype, device=device)
     with torch.no_grad():
         return _ObservationToAction(policy)(observation)
 

@@ -24,6 +24,10 @@ Examples:
     ',dataset=%data%hopper.hdf5'
     >>> diff_configs({"a": 1, "b": {"c": 2}}, {"a": 1, "b": {"c": 3}})
     ['b.c: 2 -> 3']
+    >>> batch_label("hopper", "ddpg05", 1, None), batch_label("hopper", "ddpg05", 1, "/data/hopper_medium-v2.hdf5")
+    ('hopper_ddpg05_b1', 'hopper_medium-v2')
+    >>> batch_label("hopper", "ddpg05", 1, "~/.minari/datasets/mujoco/hopper/expert-v0/data")
+    'hopper_expert-v0'
 """
 
 from __future__ import annotations
@@ -37,8 +41,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs", "register_resolvers",
-           "run_dir_suffix"]
+from torchrl_bail.io import write_text_atomic
+
+__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "batch_label", "diff_configs",
+           "record_config", "register_resolvers", "run_dir_suffix"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -71,11 +77,24 @@ def run_dir_suffix(override_dirname: str) -> str:
     return "," + text
 
 
+def batch_label(env: str, kind: str, index: int, dataset: str | None) -> str:
+    """What a run trained on, for its logger group (``conf/config.yaml``'s ``batch_label`` resolver):
+    ``<env>_<kind>_b<index>`` for a generated batch; for a ``dataset=`` run, whose ``batch`` group is not read, the
+    dataset's name (a file's stem, a Minari folder's name), prefixed with the env unless it starts with it."""
+    if not dataset:
+        return f"{env}_{kind}_b{index}"
+    path = Path(str(dataset))
+    name = path.parent.name if path.name == "data" else (path.stem if path.suffix in (".hdf5", ".h5") else path.name)
+    return name if name.startswith(str(env)) else f"{env}_{name}"
+
+
 def register_resolvers() -> None:
-    """Registers :func:`run_dir_suffix` as the OmegaConf resolver the run directories of ``conf/config.yaml`` use
+    """Registers :func:`run_dir_suffix` and :func:`batch_label`, the OmegaConf resolvers ``conf/config.yaml`` uses
     (called by :func:`torchrl_bail.config.config_dir`; idempotent)."""
     if not OmegaConf.has_resolver("run_dir_suffix"):
         OmegaConf.register_new_resolver("run_dir_suffix", run_dir_suffix)
+    if not OmegaConf.has_resolver("batch_label"):
+        OmegaConf.register_new_resolver("batch_label", batch_label)
 
 
 def comparable_config(cfg: DictConfig) -> dict[str, Any]:
@@ -86,9 +105,20 @@ def comparable_config(cfg: DictConfig) -> dict[str, Any]:
 
 def _comparable(container: dict[str, Any]) -> dict[str, Any]:
     """A config's top level without what a checkpoint's numbers do not depend on: :data:`RUN_ONLY_KEYS`, Hydra's
-    node and :data:`ADDED_KEYS` at their old behaviour."""
-    return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
+    node, :data:`ADDED_KEYS` at their old behaviour and, in a ``dataset=`` run, the unread ``batch`` group."""
+    return {k: v for k, v in _recorded(container).items() if k not in RUN_ONLY_KEYS and k != "hydra"
             and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
+
+
+def _recorded(container: dict[str, Any]) -> dict[str, Any]:
+    """The config a run records: without the ``batch`` group when ``dataset=`` replaced it."""
+    return {k: v for k, v in container.items() if not (k == "batch" and container.get("dataset"))}
+
+
+def record_config(cfg: DictConfig, path: Path) -> Path:
+    """Writes the run's resolved config (``config.yaml``, the record of what ran; no ``batch`` group in a
+    ``dataset=`` run, which never reads it) atomically."""
+    return write_text_atomic(path, OmegaConf.to_yaml(_recorded(OmegaConf.to_container(cfg, resolve=True))))
 
 
 def diff_configs(old: Any, new: Any, prefix: str = "") -> list[str]:

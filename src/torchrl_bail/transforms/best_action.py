@@ -332,9 +332,10 @@ class BestActionFilter(Transform):
                 UserWarning,
                 stacklevel=2,
             )
-        self._num_seen += len(mask)
-        self._num_selected += int(mask.sum())
-        self._border.copy_(torch.fmin(self._border, border.to(self._border)))  # fmin: nan before the first
+        # new tensors, not in-place updates: a clone (Transform.clone shares the buffers' tensors) keeps its own
+        self._num_seen = self._num_seen + len(mask)
+        self._num_selected = self._num_selected + int(mask.sum())
+        self._border = torch.fmin(self._border, border.to(self._border))  # fmin: nan before the first selection
         return tensordict[mask.to(tensordict.device or mask.device)]
 
     # -- sample time: never change the batch size --------------------------------------------------
