@@ -52,7 +52,7 @@ import torch
 from torch import nn
 
 from torchrl_bail.algorithms import build_algorithm
-from torchrl_bail.io import atomic_path
+from torchrl_bail.io import atomic_path, write_atomic
 from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
 
 __all__ = ["POLICY_FORMAT", "EXPORT_FORMATS", "PolicyFileError", "save_policy", "read_policy_file", "load_policy",
@@ -115,9 +115,7 @@ def save_policy(path: str | Path, algorithm, cfg, *, obs_dim: int, action_spec, 
         "info": {k: (float(v) if isinstance(v, float) else v) for k, v in info.items()},
         "state_dict": {k: v.detach().cpu() for k, v in algorithm.policy.state_dict().items()},
     }
-    with atomic_path(path) as tmp:
-        torch.save(record, tmp)
-    return Path(path)
+    return write_atomic(path, lambda f: torch.save(record, f))
 
 
 def _policy_path(source: str | Path, best: bool = False) -> Path:
