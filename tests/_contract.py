@@ -164,10 +164,11 @@ class AlgoCase:
     cli: tuple[str, ...]
     not_updated: frozenset[str] = frozenset()
 
-    def build(self):
-        """The algorithm with tiny networks; the suite seeds torch before calling it."""
-        config = algo_config(self.name, batch_size=ALGO_BATCH, epochs=1, **self.overrides)
-        return ALGORITHMS[self.name](OBS, SPEC, config)
+    def build(self, device="cpu", **overrides):
+        """The algorithm with tiny networks (and ``overrides``, dotted keys into a block: ``**{"envelope.patience":
+        1}``) on ``device``; the suite seeds torch before calling it."""
+        config = algo_config(self.name, batch_size=ALGO_BATCH, epochs=1, **{**self.overrides, **overrides})
+        return ALGORITHMS[self.name](OBS, SPEC, config, device)
 
     def __repr__(self) -> str:
         return self.name
@@ -193,6 +194,9 @@ ALGO_CASES = {case.name: case for case in [
     AlgoCase("bcq", _NETS, ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
     AlgoCase("bear", {**_NETS, "warm_start_updates": 2},
              ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
+    # the actor steps at every update here, so that every optimizer steps in one (tests/test_td3bc.py: the delay)
+    AlgoCase("td3bc", {"actor": _NET, "critic": _NET, "policy_delay": 1},
+             ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")),
 ]}
 
 #: transitions in the tiny batch every tiny end-to-end run shares

@@ -28,10 +28,16 @@ import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.config import exit_on_config_error
 from torchrl_bail.resume import ResumeError
-from torchrl_bail.train import run
+from torchrl_bail.train import run as run_seeds
 
 REPO = Path(__file__).resolve().parents[1]
 VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
+
+
+def run(cfg, run_dir: Path) -> dict:
+    """The single-seed run's summary."""
+    (summary,) = run_seeds(cfg, run_dir)
+    return summary
 
 
 def _cfg(data_dir, *overrides):
@@ -137,7 +143,7 @@ class _Disk:
         self.written: list[tuple[str, int]] = []
 
     def open(self, file, mode="r", *args, **kwargs):
-        handle = builtins.open(file, mode, *args, **kwargs)
+        handle = builtins.open(file, mode, *args, **kwargs)  # noqa: SIM115 - closed by its _FillingFile or caller
         return handle if "w" not in mode else _FillingFile(handle, self, Path(file).name)
 
 

@@ -1,4 +1,5 @@
-"""Monte-Carlo returns and the authors' "gain" augmentation (paper Sec. 4, augmented returns), against hand values and brute force."""
+"""Monte-Carlo returns and the authors' "gain" augmentation (paper Sec. 4, augmented returns), against hand values and
+brute force."""
 
 from __future__ import annotations
 

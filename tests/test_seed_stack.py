@@ -11,7 +11,8 @@ from _contract import ALGO_BATCH, ALGO_CASES, OBS, TINY_RUN, loss_batch, row_noi
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.algorithms import PrepareContext
+from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
+from torchrl_bail.config import algo_config
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
 from torchrl_bail.trainer import train
 
@@ -76,8 +77,11 @@ def _vmapped_critics(case):
     return dataclasses.replace(case, overrides={**case.overrides, "critic": {**case.overrides["critic"], "vmap": True}})
 
 
-CASES = [*(pytest.param(ALGO_CASES[name], id=name) for name in ("bc", "bail", "pbail", "marwil", "bcq", "bear")),
-         *(pytest.param(_vmapped_critics(ALGO_CASES[name]), id=f"{name}_vmap") for name in ("bcq", "bear"))]
+#: every algorithm that stacks seeds, and those with a critic ``vmap`` switch once more with it on
+STACKED = [case for name, case in ALGO_CASES.items() if ALGORITHMS[name].seed_stack_refusal is None]
+CASES = [*(pytest.param(case, id=case.name) for case in STACKED),
+         *(pytest.param(_vmapped_critics(case), id=f"{case.name}_vmap") for case in STACKED
+           if "vmap" in algo_config(case.name).get("critic", {}))]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -165,7 +169,7 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
 
     common = ("algo=bc", *ALGO_CASES["bc"].cli, f"data_dir={tiny_run_data_dir}")
     stacked = run(_tiny_config(*common, "seeds=[1,2]"), tmp_path / "stacked")
-    single = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
+    (single,) = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
     assert [s["seed"] for s in stacked] == [1, 2]
     for name in ("summary.json", "policy.pt", "policy_best.pt", "config.yaml", "learning_curve.png"):
         assert (tmp_path / "stacked" / "seed2" / name).stat().st_size > 0, name

@@ -329,6 +329,7 @@ class MARWILConfig(AlgoConfig):
     vf_coeff: float = non_negative()
     max_exponent: float = positive()
     eps: float = non_negative()
+    value_warmup_updates: int = at_least(0)
     value: NetConfig = MISSING
     policy: NetConfig = MISSING
 
@@ -377,7 +378,7 @@ class BEARActorConfig(NetConfig):
 class BEARConfig(TwinCriticVAEConfig):
     kernel_sigma: float = positive()
     num_samples_match: int = at_least(1)
-    mmd_stabiliser: float = non_negative()
+    mmd_stabilizer: float = non_negative()
     epsilon: float = non_negative()
     log_alpha_init: Optional[float] = None
     log_alpha_min: float = MISSING
@@ -389,6 +390,20 @@ class BEARConfig(TwinCriticVAEConfig):
     def check(self) -> None:
         super().check()
         self._ordered("log_alpha_min", "log_alpha_max")
+
+
+@dataclass
+class TD3BCConfig(AlgoConfig):
+    alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
+    policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
+    noise_clip: float = non_negative("a non-negative clip of the target policy's noise, times max_action")
+    policy_delay: int = at_least(1, "a positive number of critic updates per actor update")
+    gamma: float = discount()
+    tau: float = _rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    normalize_observations: bool = MISSING
+    normalize_eps: float = positive("a positive number added to the observations' standard deviation")
+    actor: NetConfig = MISSING
+    critic: CriticConfig = MISSING
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -499,7 +514,7 @@ class Config(_Checked):
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
-                "bcq": BCQConfig, "bear": BEARConfig}
+                "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig}
 BATCH_SCHEMAS = {"ddpg": DDPGBatchConfig, "sac": SACBatchConfig, "sac_exec": SACExecBatchConfig}
 
 

@@ -61,8 +61,8 @@ def describe_file_error(err: BaseException, path: str | os.PathLike | None = Non
     ``None`` for any other error. An error raised while handling such a fault counts as the fault.
 
     Examples:
-        >>> describe_file_error(OSError(errno.ENOSPC, "No space left on device"), "run/checkpoint.pt")
-        'cannot write run/checkpoint.pt: No space left on device; free space on that disk, or write elsewhere (another hydra.run.dir, data_dir=)'
+        >>> describe_file_error(OSError(errno.EROFS, "Read-only file system"), "run/checkpoint.pt")[:55]
+        'cannot write run/checkpoint.pt: Read-only file system; '
         >>> describe_file_error(ValueError("not a file-system fault")) is None
         True
     """

@@ -127,7 +127,8 @@ def make_qvalue_network(
 
 
 def _bounds_affine(low: torch.Tensor, high: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(loc, scale)`` with ``loc + scale * tanh(x)`` spanning ``[low, high]``; ``max_action * tanh`` when symmetric."""
+    """``(loc, scale)`` with ``loc + scale * tanh(x)`` spanning ``[low, high]`` (``max_action * tanh`` when
+    symmetric)."""
     low = torch.as_tensor(low, dtype=torch.float32)
     high = torch.as_tensor(high, dtype=torch.float32)
     return (high + low) / 2, (high - low) / 2

@@ -4,8 +4,9 @@ A run writes ``policy.pt`` (the final policy) and ``policy_best.pt`` (the best-e
 :func:`save_policy`. Each is a plain ``torch.save`` dict holding everything needed to rebuild the actor without the
 run's data: the algorithm, observation size, action size and bounds, the hidden sizes of its networks, the env id,
 the run's resolved config, where in training it was taken (iteration, epoch, evaluation return) and the policy's
-state dict. :func:`load_policy` returns a ready TensorDict policy (reads ``"observation"``, writes ``"action"``):
-the deterministic tanh actor of BAIL, Progressive BAIL, BC and MARWIL, or the best-of-N policy of BCQ and BEAR
+state dict. :func:`load_policy` returns a ready TensorDict policy (reads ``"observation"``, writes ``"action"``),
+rebuilt as the algorithm's class says (:meth:`~torchrl_bail.algorithms.base.Algorithm.rebuild_policy`): the
+deterministic tanh actor of BAIL, Progressive BAIL, BC and MARWIL, or the best-of-N policy of BCQ and BEAR
 (``num_samples`` candidates, the best by ``Q_1``; it draws its candidates from torch's random stream).
 
 :func:`export_policy` writes a file that runs with plain torch (or onnxruntime), without this package, as a
@@ -51,18 +52,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchrl_bail.algorithms import build_algorithm
+from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.io import atomic_path, write_atomic
-from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+from torchrl_bail.modules import action_spec_from_bounds
 
 __all__ = ["POLICY_FORMAT", "EXPORT_FORMATS", "PolicyFileError", "save_policy", "read_policy_file", "load_policy",
            "policy_actions", "export_policy", "onnx_external_data"]
 
 POLICY_FORMAT = 1
-#: algorithms whose policy is a deterministic tanh actor (``algo.policy.hidden``)
-DETERMINISTIC = ("bail", "pbail", "bc", "marwil")
-#: algorithms whose policy is the best of ``num_samples`` sampled candidates
-BEST_OF_N = ("bcq", "bear")
 EXPORT_FORMATS = {"pt2": ".pt2", "onnx": ".onnx", "torchscript": ".ts"}
 #: weight bytes up to which an ONNX export embeds its weights (torch's own switch to external data, 1.5 GiB:
 #: protobuf files cannot exceed 2 GiB)
@@ -82,7 +79,8 @@ def _container(cfg: Any) -> dict:
 
 
 def _network_sizes(algo_cfg: dict) -> dict[str, list[int]]:
-    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with ``hidden``."""
+    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with
+    ``hidden``."""
     return {k: [int(h) for h in v["hidden"]] for k, v in algo_cfg.items() if isinstance(v, dict) and "hidden" in v}
 
 
@@ -144,13 +142,10 @@ def read_policy_file(source: str | Path, *, best: bool = False) -> dict:
 def _rebuild(record: dict, device) -> nn.Module:
     spec = action_spec_from_bounds(record["action_low"], record["action_high"])
     algo = record["algo"]
-    if algo in DETERMINISTIC:
-        return make_deterministic_actor(record["obs_dim"], spec, tuple(record["hidden"]["policy"]))
-    if algo in BEST_OF_N:  # the loss module holds every network the best-of-N policy uses
-        from omegaconf import OmegaConf
-
-        return build_algorithm(OmegaConf.create(record["config"]["algo"]), record["obs_dim"], spec, device).policy
-    raise PolicyFileError(f"{record['path']}: unknown algorithm {algo!r}")
+    if algo not in ALGORITHMS:
+        raise PolicyFileError(f"{record['path']}: unknown algorithm {algo!r} (this version knows "
+                              f"{', '.join(ALGORITHMS)})")
+    return ALGORITHMS[algo].rebuild_policy(record, spec, device)
 
 
 def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best: bool = False):
@@ -252,8 +247,8 @@ def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> 
         raise ValueError(f"--export {fmt!r}: expected one of {', '.join(EXPORT_FORMATS)}")
     policy = source if isinstance(source, nn.Module) else load_policy(source, best=best)
     algo = policy.record["algo"]
-    if fmt == "torchscript" and algo in BEST_OF_N:
-        raise ValueError(f"--export torchscript: {algo}'s best-of-N policy samples candidates, which TorchScript "
+    if fmt == "torchscript" and ALGORITHMS[algo].policy_samples:
+        raise ValueError(f"--export torchscript: {algo}'s policy samples (best-of-N candidates), which TorchScript "
                          f"tracing cannot carry; use --export pt2 (same actions for the same torch seed) or onnx")
     # tracing would leave fake tensors in the loss' cached parameters: export a copy
     module = _ObservationToAction(copy.deepcopy(policy)).eval()

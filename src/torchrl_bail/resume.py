@@ -50,7 +50,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
 
-__all__ = ["ADDED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "batch_label", "diff_configs",
+__all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "batch_label", "diff_configs",
            "record_config", "register_resolvers", "run_dir_suffix"]
 
 log = logging.getLogger("torchrl_bail")
@@ -61,6 +61,9 @@ RUN_ONLY_KEYS = ("progress", "logger", "resume", "device", "data_dir", "checkpoi
 #: top-level keys added after checkpoints and runs were made, with the value those older runs behaved as: at that
 #: value a key is left out of the comparison, so an older run still resumes and still groups with newer ones
 ADDED_KEYS = {"compile": False, "seeds": None}
+#: config keys renamed after runs were made (old dotted key -> new): an older run's config is read under the new
+#: names, so it still resumes and still groups with newer runs (one spelling: "-ize", as TorchRL's names)
+RENAMED_KEYS = {"algo.mmd_stabiliser": "algo.mmd_stabilizer"}
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
 #: the suffix a damaged checkpoint or summary is set aside with
@@ -114,8 +117,15 @@ def comparable_config(cfg: DictConfig) -> dict[str, Any]:
 
 def _comparable(container: dict[str, Any]) -> dict[str, Any]:
     """A config's top level without what a checkpoint's numbers do not depend on: :data:`RUN_ONLY_KEYS`, Hydra's
-    node, :data:`ADDED_KEYS` at their old behaviour and, in a ``dataset=`` run, the unread ``batch`` group."""
-    return {k: v for k, v in _recorded(container).items() if k not in RUN_ONLY_KEYS and k != "hydra"
+    node, :data:`ADDED_KEYS` at their old behaviour, in a ``dataset=`` run the unread ``batch`` group;
+    :data:`RENAMED_KEYS` under their new names."""
+    container = _recorded(container)
+    for old, new in RENAMED_KEYS.items():
+        (group, leaf), new_leaf = old.split("."), new.split(".")[1]
+        node = container.get(group)
+        if isinstance(node, dict) and leaf in node:
+            container[group] = {new_leaf if k == leaf else k: v for k, v in node.items()}
+    return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
             and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
 
 

@@ -148,7 +148,8 @@ class VAELoss(LossModule):
         return TensorDict({"loss_vae": loss, **metadata})
 
 
-def conditional_vae_loss(module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def conditional_vae_loss(module: LossModule,
+                         tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The VAE loss of any loss module holding ``vae_network`` (+ params), ``kl_weight`` and the two keys."""
     observation = required_entry(module, tensordict, module.tensor_keys.observation)
     action = required_entry(module, tensordict, module.tensor_keys.action)
