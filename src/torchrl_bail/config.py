@@ -40,6 +40,7 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_bail.io import describe_file_error
 from torchrl_bail.resume import ResumeError, register_resolvers
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
@@ -696,7 +697,8 @@ def _precompose(argv: list[str]) -> None:
 
 @contextlib.contextmanager
 def exit_on_config_error() -> Iterator[None]:
-    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+    """A configuration or dataset error, or a file-system fault (:func:`~torchrl_bail.io.describe_file_error`),
+    inside the body ends the process: ONE line on stderr, exit code 2.
 
     Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
     the first bad job without Hydra's multi-line report. Other errors keep their traceback.
@@ -705,6 +707,12 @@ def exit_on_config_error() -> Iterator[None]:
         yield
     except _config_errors() as err:
         print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
+        sys.exit(2)
+    except Exception as err:  # a full disk, no permission, a read-only file system: the file and the remedy
+        message = describe_file_error(err)
+        if message is None:
+            raise
+        print(f"torchrl_bail: {message}", file=sys.stderr)
         sys.exit(2)
 
 

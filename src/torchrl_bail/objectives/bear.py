@@ -181,6 +181,8 @@ class BEARLoss(TwinCriticVAELoss):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to, beside the shared ones (an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"kernel_sigma", "epsilon", "mmd_stabilizer", "log_alpha_min", "log_alpha_max"})
     out_keys = ["loss_vae", "loss_qvalue", "loss_actor", "loss_alpha", "recon_loss", "kl_loss", "q_mean",
                 "target_value_mean", "mmd", "actor_q_mean", "alpha", "warm_start"]
 
