@@ -108,7 +108,8 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     half.mkdir(parents=True)
     torch.save({"iteration": 2500, "iterations": 10000}, half / "checkpoint.pt")
     (tmp_path / "logs").mkdir()
-    (tmp_path / "logs" / "collect__hopper_ddpg05.log").write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
+    collect_log = tmp_path / "logs" / "collect__hopper_ddpg05.log"
+    collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
     assert run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path) == "done"
     assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path) == "left"
     assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "left (2500/10000 updates)"
