@@ -65,6 +65,11 @@ ABLATIONS = {
     "D3_regression": ["algo.envelope.penalty=1"],
 }
 
+#: MARWIL with V fitted alone for its first 200 of 2000 updates (README "MARWIL"), on Hopper's batches where MARWIL
+#: is below BC
+MARWIL_WARMUP = ["algo.value_warmup_updates=200"]
+MARWIL_WARMUP_KINDS = ("sac", "med_stoch", "opt_det")
+
 
 #: what a finished training run logs last (torchrl_bail.train)
 FINISHED = re.compile(r"final_return [-0-9.]+ \(best")
@@ -97,6 +102,8 @@ def study_jobs() -> list[Job]:
         jobs += [j for kind in KINDS for algo in EVERY_BATCH for j in train(env, kind, algo)]
         if env == "hopper":
             jobs += [j for name, extra in ABLATIONS.items() for j in train(env, "ddpg05", "bail", extra, "/" + name)]
+            jobs += [j for kind in MARWIL_WARMUP_KINDS
+                     for j in train(env, kind, "marwil", MARWIL_WARMUP, "/value_warmup")]
         bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in DDPG_ONLY]
         jobs += [cell[i] for i in range(len(SEEDS)) for cell in bcq_bear]  # seed 1 of every cell first
     return jobs
