@@ -1,4 +1,4 @@
-"""Reruns the results study of the README ("Results"), or any row of it, from scratch.
+"""Reruns the results study of the docs ("Results"), or any row of it, from scratch.
 
     python results/run_study.py                              # everything: 11 batches, 156 runs, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports

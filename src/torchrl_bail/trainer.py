@@ -5,7 +5,7 @@ update step, evaluates the deterministic policy every ``eval_every_epochs`` (an 
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
 and writes an atomic checkpoint before the first update, after each evaluation and every few minutes. Given
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
-as a run that was never interrupted (see the README's "Interrupted runs and preemption").
+as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
 Examples:
     >>> import torch
