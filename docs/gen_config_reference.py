@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import html
+import inspect
 import re
 import sys
 import typing
@@ -152,7 +153,7 @@ def type_name(annotation: Any) -> str:
 
 def _home(schema: type, name: str) -> type:
     """The class of ``schema``'s MRO that declares field ``name``."""
-    return next(c for c in schema.__mro__ if name in c.__dict__.get("__annotations__", {}))
+    return next(c for c in schema.__mro__ if name in inspect.get_annotations(c))
 
 
 def _rows(node: DictConfig, raw: dict, group: str | None, prefix: str = "") -> list[Row]:

@@ -125,7 +125,7 @@ def train(
             has ``state_dict``/``load_state_dict`` (its random stream), that state is checkpointed too.
         samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
         eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
-        logger: a TorchRL logger (``log_scalar``), optional.
+        logger (Logger, optional): a TorchRL logger (``log_scalar``).
         checkpoint_path: where to write the checkpoint: before the first update, after every evaluation and
             every ``checkpoint_every_s`` seconds of training. Optional.
         checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).

@@ -14,7 +14,7 @@ border are all kept, so slightly more than ``p N`` pairs may survive).
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
@@ -318,7 +318,7 @@ def select_best_actions(
     tensordict: TensorDictBase,
     value_network: TensorDictModuleBase | None = None,
     percentile: float = 0.30,
-    **kwargs,
+    **kwargs: Any,
 ) -> TensorDictBase:
     """The rows of ``tensordict`` that BAIL keeps (a new TensorDict; the input is not modified).
 
