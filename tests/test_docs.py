@@ -103,8 +103,8 @@ TINY = [o for o in TINY_RUN if not o.startswith(("+exp=", "preset="))] + ["algo.
 def _tutorial(name: str, *args: str, cwd: Path, data_dir: Path) -> str:
     env = {**os.environ, "TORCHRL_BAIL_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1",
            "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run([sys.executable, str(TUTORIALS / name), *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
+    proc = subprocess.run([sys.executable, str(TUTORIALS / name), *args], check=False, cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc.stdout
 
@@ -121,7 +121,8 @@ def test_tutorial_reproduce_a_row(tmp_path, tiny_run_data_dir):
     out = _tutorial("reproduce_a_row.py", "--seeds", "1,2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
     table = (tmp_path / "tutorial_row" / "row.md").read_text()
     assert table.splitlines()[0].startswith("| batch | data | bail | bc |")
-    assert "hopper_ddpg05_b1" in table and out.count("final_return") == 4
+    scores = [line for line in out.splitlines() if re.match(r" *(bail|bc) seed [12]: final_return ", line)]
+    assert "hopper_ddpg05_b1" in table and len(scores) == 4
 
 
 def test_tutorial_bring_your_own_data(tmp_path, tiny_run_data_dir):

@@ -1,6 +1,6 @@
 """Load a trained policy, evaluate it, and export it to files that run without this package.
 
-    python docs/tutorials/load_evaluate_export.py outputs/hopper_ddpg05_b1/bail/seed1,preset=quick
+    python docs/tutorials/load_evaluate_export.py --run-dir outputs/hopper_ddpg05_b1/bail/seed1,preset=quick
     python docs/tutorials/load_evaluate_export.py      # no run at hand: trains a quick BAIL run first
 
 Any further argument is a Hydra override of that training run.
@@ -29,7 +29,7 @@ def sh(*args: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", nargs="?", type=Path, help="a run directory (default: train one)")
+    parser.add_argument("--run-dir", type=Path, help="a finished run's directory (default: train one)")
     parser.add_argument("--work-dir", type=Path, default=Path("tutorial_policy"))
     parser.add_argument("--episodes", type=int, default=10)
     args, overrides = parser.parse_known_args()

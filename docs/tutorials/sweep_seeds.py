@@ -71,5 +71,6 @@ def summary(root: Path, seed: str) -> float:
             return values["final_return"]
     raise FileNotFoundError(f"no summary.json of seed {seed} below {root}")
 
+
 if __name__ == "__main__":
     main()
