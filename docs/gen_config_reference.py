@@ -49,7 +49,7 @@ class Row:
     type: str
     allowed: str
     defaults: dict[str, Any]    # option -> default (paper preset)
-    presets: dict[str, dict[str, Any]] = field(default_factory=dict)  # option -> preset -> value where it differs
+    presets: dict[str, dict[str, Any]] = field(default_factory=dict)  # option -> preset label -> value, if changed
     doc: str = ""
     home: tuple = ()            # (group, defining schema, key): where a comment of this field may come from
     value: Any = None           # the value in the option being read (collect's scratch)
@@ -188,19 +188,14 @@ def collect(conf: Path | None = None) -> list[Section]:
     conf = Path(conf) if conf is not None else config_dir()
     config_dir()  # registers the schemas with Hydra's ConfigStore
 
-    def composed(overrides: list[str], group: str | None) -> tuple[DictConfig, dict]:
-        cfg = compose("config", overrides=overrides)
-        node = cfg if group is None else cfg[group]
-        return node, OmegaConf.to_container(node, resolve=False)
-
     sections: dict[tuple, Section] = {}
     with initialize_config_dir(str(conf.resolve()), version_base="1.3"):
         for group in (None, *GROUPS):
             for option in ([None] if group is None else _options(conf, group)):
-                base = [] if group is None else [f"{group}={option}"]
-                node, raw = composed(base, group)
+                cfg = compose("config", overrides=[] if group is None else [f"{group}={option}"])
+                node = cfg if group is None else cfg[group]
                 schema = OmegaConf.get_type(node)
-                rows = _rows(node, raw, group)
+                rows = _rows(node, OmegaConf.to_container(node, resolve=False), group)
                 comments = _option_comments(conf, group, option)
                 label = option or "default"
                 section = sections.setdefault((group, schema), Section(group, schema, [], rows))
@@ -211,12 +206,26 @@ def collect(conf: Path | None = None) -> list[Section]:
                     kept.defaults[label] = row.value
                     if not kept.doc and comments.get(row.key):
                         kept.doc = comments[row.key]
-                for preset in PRESETS:
-                    _, preset_raw = composed([*base, f"preset={preset}"], group)
-                    for row in section.rows:
-                        value = _lookup(preset_raw, row.key)
-                        if value != row.defaults[label]:
-                            row.presets.setdefault(label, {})[preset] = value
+        # presets: preset/<p>.yaml sets the same values whatever the env and batch, algo_preset/<algo>_<p>.yaml
+        # depends on the algorithm, so one composition per (algorithm, preset) shows every preset's values
+        algos = _options(conf, "algo")
+        for preset in PRESETS:
+            changed: dict[str, dict[str, Any]] = {}  # dotted key -> algo -> value under the preset
+            for algo in algos:
+                plain = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}"]), resolve=False))
+                chosen = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}", f"preset={preset}"]),
+                                                      resolve=False))
+                for key, value in chosen.items():
+                    if plain.get(key) != value:
+                        changed.setdefault(key, {})[algo] = value
+            for (group, _), section in sections.items():
+                for row in section.rows:
+                    by_algo = changed.get(row.key if group is None else f"{group}.{row.key}", {})
+                    if group == "algo":  # the algorithm's own section: its own preset file
+                        by_algo = {a: v for a, v in by_algo.items() if [a] == section.options}
+                    for label, value in _preset_labels(preset, by_algo, algos, group == "algo"):
+                        for option in section.options:
+                            row.presets.setdefault(option, {})[label] = value
     # a field documented in one option's yaml is documented for every option sharing that schema field
     docs = {}
     for section in sections.values():
@@ -229,10 +238,29 @@ def collect(conf: Path | None = None) -> list[Section]:
     return list(sections.values())
 
 
-def _lookup(raw: dict, dotted: str) -> Any:
-    for part in dotted.split("."):
-        raw = raw[part]
-    return raw
+def _preset_labels(preset: str, by_algo: dict[str, Any], algos: list[str], own: bool) -> list[tuple[str, Any]]:
+    """``[(label, value)]`` of one preset's values of a key: ``quick`` when every algorithm's composition agrees
+    (or the key is the algorithm's own), else ``quick with bcq, bear`` per value."""
+    if not by_algo:
+        return []
+    values = list(by_algo.values())
+    if own or (len(by_algo) == len(algos) and all(v == values[0] for v in values)):
+        return [(preset, values[0])]
+    groups: dict[str, list[str]] = {}
+    for algo, value in by_algo.items():
+        groups.setdefault(repr(value), []).append(algo)
+    return [(f"{preset} with {', '.join(names)}", by_algo[names[0]]) for names in groups.values()]
+
+
+def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists are values)."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def missing_docs(sections: list[Section]) -> list[str]:

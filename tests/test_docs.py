@@ -62,6 +62,9 @@ def test_a_row_joins_the_schema_and_the_yaml(sections):
     assert steps.defaults == {"ddpg01": 1000000, "ddpg05": 1000000}
     assert steps.presets == {"ddpg01": {"quick": 50000, "study": 50000}, "ddpg05": {"quick": 50000, "study": 50000}}
     assert _row(sections, None, "checkpoint.every_minutes").type == "float or null"
+    # a top-level key that only some algorithms' preset files set says which
+    every = _row(sections, None, "eval.every_epochs").presets["default"]
+    assert every["quick with bcq, bear"] == 0.1 and "quick" not in every
     # a comment continued on the next line is one meaning; a field documented in bail.yaml serves pbail.yaml
     assert _row(sections, None, "seeds").doc.endswith("(docs: Many seeds in one process)")
     pbail = next(s for s in sections if s.options == ["pbail"])
@@ -160,3 +163,28 @@ def test_tutorial_load_evaluate_export(tmp_path, tiny_run_data_dir):
     for fmt in ("pt2", "onnx"):
         line = next(l for l in out.splitlines() if l.startswith(f"{fmt} export"))
         assert float(line.split()[-1]) < 1e-5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the README: short, its two commands those of Getting started, its links alive (mkdocs checks the site's own)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _first_bash_block(text: str) -> str:
+    return re.search(r"```bash\n(.*?)```", text[text.index("## Two commands"):], re.S).group(1)
+
+
+def test_readme_is_short_and_shares_its_two_commands_with_getting_started():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 200, "the README is the front door; long sections belong on a docs page"
+    commands = _first_bash_block(readme)
+    assert "python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick seed=1" in commands
+    assert commands == _first_bash_block((ROOT / "docs" / "getting-started.md").read_text())
+
+
+def test_readme_links_point_to_files_that_exist():
+    readme = (ROOT / "README.md").read_text()
+    targets = [t for t in re.findall(r"\]\(([^)\s]+)\)", readme) if not t.startswith(("http://", "https://"))]
+    assert len(targets) > 10
+    missing = [t for t in targets if not (ROOT / t.split("#")[0]).exists()]
+    assert missing == []
