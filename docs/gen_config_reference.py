@@ -209,14 +209,14 @@ def collect(conf: Path | None = None) -> list[Section]:
         # presets: preset/<p>.yaml sets the same values whatever the env and batch, algo_preset/<algo>_<p>.yaml
         # depends on the algorithm, so one composition per (algorithm, preset) shows every preset's values
         algos = _options(conf, "algo")
+        plain = {a: _flat(OmegaConf.to_container(compose("config", [f"algo={a}"]), resolve=False)) for a in algos}
         for preset in PRESETS:
             changed: dict[str, dict[str, Any]] = {}  # dotted key -> algo -> value under the preset
             for algo in algos:
-                plain = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}"]), resolve=False))
                 chosen = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}", f"preset={preset}"]),
                                                       resolve=False))
                 for key, value in chosen.items():
-                    if plain.get(key) != value:
+                    if plain[algo].get(key) != value:
                         changed.setdefault(key, {})[algo] = value
             for (group, _), section in sections.items():
                 for row in section.rows:

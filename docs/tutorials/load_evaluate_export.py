@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail import load_policy
-from torchrl_bail.policy import read_policy_file
+from torchrl_bail.policy import export_policy, read_policy_file
 
 
 def sh(*args: str) -> None:
@@ -51,10 +51,10 @@ def main() -> None:
     sh(sys.executable, "-m", "torchrl_bail.evaluate", str(args.run_dir), "--episodes", str(args.episodes))
 
     # 3. Export: observation [B, obs_dim] -> action [B, act_dim], loadable without torchrl_bail, TorchRL or tensordict.
-    pt2, onnx = args.work_dir / "policy.pt2", args.work_dir / "policy.onnx"
+    #    The command line does the same: python -m torchrl_bail.evaluate RUN_DIR --export pt2 --out policy.pt2
     args.work_dir.mkdir(parents=True, exist_ok=True)
-    for path, fmt in ((pt2, "pt2"), (onnx, "onnx")):
-        sh(sys.executable, "-m", "torchrl_bail.evaluate", str(args.run_dir), "--export", fmt, "--out", str(path))
+    pt2 = export_policy(args.run_dir, args.work_dir / "policy.pt2", "pt2")
+    onnx = export_policy(args.run_dir, args.work_dir / "policy.onnx", "onnx")
     exported = torch.export.load(str(pt2)).module()
     session = onnxruntime.InferenceSession(str(onnx))
     with torch.no_grad():
