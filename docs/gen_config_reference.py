@@ -278,14 +278,18 @@ def _value(v: Any) -> str:
     if isinstance(v, (DictConfig, ListConfig)):
         v = OmegaConf.to_container(v, resolve=False)
     text = "null" if v is None else str(v).lower() if isinstance(v, bool) else str(v)
-    return f"`{text}`".replace("|", "\\|")
+    if "|" in text:  # a pipe would end the table cell, and an escaped one shows its backslash inside `code`
+        return "<code>" + html.escape(text).replace("|", "&#124;") + "</code>"
+    return f"`{text}`"
 
 
 def _cell(text: str) -> str:
     """Plain text in a table cell: HTML-escaped outside `code` spans (``<run_dir>`` is no tag), pipes escaped."""
     parts = text.split("`")
-    parts[::2] = [html.escape(part, quote=False) for part in parts[::2]]
-    return "`".join(parts).replace("|", "\\|")
+    if len(parts) % 2 == 0:  # an unpaired backtick: no code spans
+        parts = [text]
+    return "".join(html.escape(part, quote=False).replace("|", "\\|") if i % 2 == 0 else _value(part)
+                   for i, part in enumerate(parts))
 
 
 def _default_cell(row: Row, options: list[str]) -> str:
