@@ -171,7 +171,7 @@ def test_tutorial_load_evaluate_export(tmp_path, tiny_run_data_dir):
 
 
 def _first_bash_block(text: str) -> str:
-    return re.search(r"```bash\n(.*?)```", text[text.index("## Two commands"):], re.S).group(1)
+    return re.search(r"```bash\n(.*?)```", text[text.index("## Two commands"):], re.DOTALL).group(1)
 
 
 def test_readme_is_short_and_shares_its_two_commands_with_getting_started():
