@@ -120,6 +120,14 @@ def test_every_tutorial_script_has_a_page_and_a_test():
         assert f'_tutorial("{script.name}"' in tested, script.name
 
 
+def test_tutorial_pages_use_the_options_their_scripts_define():
+    for page in [*TUTORIALS.glob("*.md"), *TUTORIALS.glob("*.py")]:  # the pages and the scripts' usage lines
+        for script, args in re.findall(r"python docs/tutorials/(\w+\.py)([^\n#]*)", page.read_text()):
+            source = (TUTORIALS / script).read_text()
+            for flag in re.findall(r"(?<!\S)--[a-z][\w-]*", args):
+                assert f'"{flag}"' in source, f"{page.name}: {script} has no option {flag}"
+
+
 def test_tutorial_reproduce_a_row(tmp_path, tiny_run_data_dir):
     out = _tutorial("reproduce_a_row.py", "--seeds", "1,2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
     table = (tmp_path / "tutorial_row" / "row.md").read_text()
