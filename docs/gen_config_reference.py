@@ -51,7 +51,7 @@ class Row:
     defaults: dict[str, Any]    # option -> default (paper preset)
     presets: dict[str, dict[str, Any]] = field(default_factory=dict)  # option -> preset label -> value, if changed
     doc: str = ""
-    home: tuple = ()            # (group, defining schema, key): where a comment of this field may come from
+    home: tuple = ()            # (group, block's schema, field's schema, key): who may lend a comment (_rows)
     value: Any = None           # the value in the option being read (collect's scratch)
 
 
@@ -156,9 +156,14 @@ def _home(schema: type, name: str) -> type:
     return next(c for c in schema.__mro__ if name in inspect.get_annotations(c))
 
 
-def _rows(node: DictConfig, raw: dict, group: str | None, prefix: str = "") -> list[Row]:
+def _rows(node: DictConfig, raw: dict, group: str | None, prefix: str = "", block: type | None = None) -> list[Row]:
     """One row per leaf field of ``node``'s schema (nested schemas become dotted keys); group nodes are skipped at
-    the top level."""
+    the top level.
+
+    A row's ``home`` says which other options may lend it their comment: the same key, declared by the same schema
+    class, inside a block (the key's first part) declared by the same schema class. So ``bear.yaml`` shares the
+    comments of ``vae.*`` with ``bcq.yaml`` (``TwinCriticVAEConfig`` declares ``vae`` for both), but not of
+    ``actor.hidden``: BCQ's perturbation actor and BEAR's Gaussian actor are different blocks of the same type."""
     schema = OmegaConf.get_type(node)
     hints = typing.get_type_hints(schema)
     rows = []
@@ -166,12 +171,14 @@ def _rows(node: DictConfig, raw: dict, group: str | None, prefix: str = "") -> l
         child = node._get_node(f.name)
         if group is None and not prefix and f.name in GROUPS:
             continue
+        declared = _home(schema, f.name)
         if isinstance(child, DictConfig) and dataclasses.is_dataclass(OmegaConf.get_type(child)):
-            rows += _rows(child, raw[f.name], group, f"{prefix}{f.name}.")
+            rows += _rows(child, raw[f.name], group, f"{prefix}{f.name}.", block or declared)
             continue
         key = prefix + f.name
+        home = (group, (block or declared).__name__, declared.__name__, key)
         rows.append(Row(key=key, type=type_name(hints[f.name]), allowed=f.metadata.get("expected", ""),
-                        defaults={}, home=(group, _home(schema, f.name).__name__, key), value=raw.get(f.name)))
+                        defaults={}, home=home, value=raw.get(f.name)))
     return rows
 
 

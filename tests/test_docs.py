@@ -65,18 +65,20 @@ def test_a_row_joins_the_schema_and_the_yaml(sections):
     # a top-level key that only some algorithms' preset files set says which
     every = _row(sections, None, "eval.every_epochs").presets["default"]
     assert every["quick with bcq, bear"] == 0.1 and "quick" not in every
-    # a comment continued on the next line is one meaning; a field documented in bail.yaml serves pbail.yaml
+    # a comment continued on the next line is one meaning
     assert _row(sections, None, "seeds").doc.endswith("(docs: Many seeds in one process)")
-    pbail = next(s for s in sections if s.options == ["pbail"])
-    assert next(r for r in pbail.rows if r.key == "envelope.lr").doc == _row(sections, "algo", "envelope.lr").doc
+    # bear.yaml borrows bcq.yaml's comments of the block both inherit (vae), never those of a block of its own
+    bcq, bear = ({r.key: r.doc for r in s.rows} for name in ("bcq", "bear") for s in sections if s.options == [name])
+    assert "vae.hidden" not in gen.yaml_comments(ROOT / "conf" / "algo" / "bear.yaml")
+    assert bear["vae.hidden"] == bcq["vae.hidden"] == "VAE encoder and decoder MLPs"
+    assert bear["actor.hidden"] != bcq["actor.hidden"]
 
 
 def test_an_undocumented_field_fails_with_its_name(tmp_path):
     conf = shutil.copytree(ROOT / "conf", tmp_path / "conf")
     bail = conf / "algo" / "bail.yaml"
     bail.write_text(re.sub(r"(?m)^(  penalty: 1000.0) +#.*$", r"\1  #", bail.read_text()))  # an empty comment
-    with pytest.raises(gen.MissingDocs, match=r"algo\.envelope\.penalty \(BAILConfig\), algo\.envelope\.penalty "
-                                              r"\(PBAILConfig\); add '# <meaning>'"):
+    with pytest.raises(gen.MissingDocs, match=r"yaml: algo\.envelope\.penalty \(BAILConfig\); add '# <meaning>'"):
         gen.generate(conf)
 
 
