@@ -3,9 +3,10 @@ new process, and compare the batch's bytes with an uninterrupted run's.
 
     python benchmarks/_collection_drill.py [--trials 5] [--recipe ddpg|sac] [--seed 0] [--max-delay 8]
 
-The batch's data files (memmapped tensors and layout) must match byte for byte. Prints one line per trial (killed or finished first, the step it resumed from, match or not) and ``matched k/n``;
-exits 1 unless every trial matched. :func:`collection_trial` is the hook ``kill_drill.py --target collection``
-calls. Every process runs with ``OMP_NUM_THREADS=1`` (bit-identity holds for a fixed thread count).
+The batch's data files (memmapped tensors and layout) must match byte for byte. Prints one line per trial (killed or
+finished first, the step it resumed from, match or not) and ``matched k/n``; exits 1 unless every trial matched.
+:func:`collection_trial` is the hook ``kill_drill.py --target collection`` calls. Every process runs with
+``OMP_NUM_THREADS=1`` (bit-identity holds for a fixed thread count).
 """
 
 from __future__ import annotations

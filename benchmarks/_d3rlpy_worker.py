@@ -1,9 +1,18 @@
-"""The d3rlpy side of ``bench_d3rlpy.py``; runs under d3rlpy's own interpreter (``--python``), never imported.
+"""The d3rlpy side of ``bench_d3rlpy.py`` and ``bench_d3rlpy_returns.py``; runs under d3rlpy's own interpreter
+(``--python``), never imported. Only numpy, torch and d3rlpy are imported here.
 
-It builds d3rlpy 2.8's BCQ, BEAR and BC at the sizes ``bench_d3rlpy.py`` passes, then answers lines on stdin:
-``<algo> <n>`` runs ``n`` training iterations of ``<algo>`` (``sample_transition_batch`` + ``update``, what
-d3rlpy's ``fit`` runs per step) and prints ``<updates per wall-clock second> <updates per CPU second>``; ``quit`` ends it. Only numpy, torch and d3rlpy are
-imported here.
+Two modes, chosen by the JSON config in ``argv[1]`` (``"mode"``):
+
+* ``throughput`` (default): builds d3rlpy 2.8's BCQ, BEAR and BC at the sizes ``bench_d3rlpy.py`` passes on
+  synthetic data, then answers lines on stdin: ``<algo> <n>`` runs ``n`` training iterations of ``<algo>``
+  (``sample_transition_batch`` + ``update``, what d3rlpy's ``fit`` runs per step) and prints ``<updates per
+  wall-clock second> <updates per CPU second>``.
+* ``train``: builds one algorithm (``"algo"``) with the matched constants ``bench_d3rlpy_returns.py`` passes, on
+  the arrays of ``"dataset"`` (an ``.npz`` written by that script), seeded with ``d3rlpy.seed(seed)``, and
+  answers ``update <n>`` (``n`` more updates; prints the CPU seconds they took) and ``act`` followed by one line
+  of JSON observations ``[[...], ...]`` (prints ``algo.predict``'s greedy actions as JSON).
+
+``quit`` ends either mode.
 """
 
 from __future__ import annotations
@@ -39,33 +48,42 @@ def dataset(n: int, obs: int, act: int) -> d3rlpy.dataset.MDPDataset:
     )
 
 
-def build(cfg: dict, data: d3rlpy.dataset.MDPDataset) -> dict:
-    net, vae = VectorEncoderFactory(cfg["net_hidden"]), VectorEncoderFactory(cfg["vae_hidden"])
-    common = dict(actor_encoder_factory=net, critic_encoder_factory=net, imitator_encoder_factory=vae,
-                  actor_learning_rate=1e-3, critic_learning_rate=1e-3, imitator_learning_rate=1e-3,
-                  batch_size=cfg["batch"], gamma=0.99, tau=0.005, n_critics=2, lam=0.75)
-    algos = {
-        "bcq": d3rlpy.algos.BCQConfig(**common, n_action_samples=cfg["n_target"], action_flexibility=0.05,
-                                      beta=0.5, rl_start_step=0),
-        "bear": d3rlpy.algos.BEARConfig(**common, n_action_samples=cfg["n_target"],
-                                        n_target_samples=cfg["n_target"], n_mmd_action_samples=cfg["n_match"],
-                                        mmd_kernel="laplacian", mmd_sigma=10.0, alpha_threshold=0.05,
-                                        vae_kl_weight=0.5, alpha_learning_rate=1e-3, warmup_steps=0,
-                                        temp_learning_rate=0.0),
-        "bc": d3rlpy.algos.BCConfig(encoder_factory=net, learning_rate=1e-3, batch_size=cfg["bc_batch"],
-                                    policy_type="deterministic"),
-    }
+def make_config(name: str, cfg: dict):
+    """d3rlpy's config of ``name`` (bcq, bear, bc) from the constants in ``cfg`` (the throughput mode passes only
+    sizes; the rest default to the values it has always used)."""
+    lr = cfg.get("lr", {})
+    if name == "bc":
+        return d3rlpy.algos.BCConfig(encoder_factory=VectorEncoderFactory(cfg.get("bc_hidden", cfg.get("net_hidden"))),
+                                     learning_rate=lr.get("bc", 1e-3), batch_size=cfg["bc_batch"],
+                                     policy_type="deterministic")
+    common = dict(actor_encoder_factory=VectorEncoderFactory(cfg.get("actor_hidden", cfg.get("net_hidden"))),
+                  critic_encoder_factory=VectorEncoderFactory(cfg.get("critic_hidden", cfg.get("net_hidden"))),
+                  imitator_encoder_factory=VectorEncoderFactory(cfg["vae_hidden"]),
+                  actor_learning_rate=lr.get("actor", 1e-3), critic_learning_rate=lr.get("critic", 1e-3),
+                  imitator_learning_rate=lr.get("vae", 1e-3), batch_size=cfg["batch"], gamma=cfg.get("gamma", 0.99),
+                  tau=cfg.get("tau", 0.005), n_critics=2, lam=cfg.get("lmbda", 0.75))
+    if name == "bcq":
+        return d3rlpy.algos.BCQConfig(**common, n_action_samples=cfg["n_target"],
+                                      action_flexibility=cfg.get("phi", 0.05), beta=cfg.get("kl_weight", 0.5),
+                                      rl_start_step=0)
+    return d3rlpy.algos.BEARConfig(**common, n_action_samples=cfg["n_target"], n_target_samples=cfg["n_target"],
+                                   n_mmd_action_samples=cfg["n_match"], mmd_kernel="laplacian",
+                                   mmd_sigma=cfg.get("kernel_sigma", 10.0), alpha_threshold=cfg.get("epsilon", 0.05),
+                                   vae_kl_weight=cfg.get("kl_weight", 0.5), alpha_learning_rate=lr.get("alpha", 1e-3),
+                                   warmup_steps=cfg.get("warmup", 0), temp_learning_rate=0.0,
+                                   initial_temperature=cfg.get("temperature", 1.0))
+
+
+def build(cfg: dict, data: d3rlpy.dataset.MDPDataset, names=("bcq", "bear", "bc")) -> dict:
     out = {}
-    for name, config in algos.items():
-        algo = config.create(device="cpu:0")
+    for name in names:
+        algo = make_config(name, cfg).create(device="cpu:0")
         algo.build_with_dataset(data)
         out[name] = algo
     return out
 
 
-def main() -> None:
-    cfg = json.loads(sys.argv[1])
-    torch.set_num_threads(cfg["threads"])
+def throughput_main(cfg: dict) -> None:
     torch.manual_seed(0)
     np.random.seed(0)
     data = dataset(cfg["transitions"], cfg["obs"], cfg["act"])
@@ -82,6 +100,38 @@ def main() -> None:
         for _ in range(n):
             algo.update(data.sample_transition_batch(batch_size))
         print(n / (time.perf_counter() - wall), n / (time.process_time() - cpu), file=REPLY, flush=True)
+
+
+def train_main(cfg: dict) -> None:
+    arrays = np.load(cfg["dataset"])
+    data = d3rlpy.dataset.MDPDataset(
+        observations=arrays["observations"], actions=arrays["actions"], rewards=arrays["rewards"],
+        terminals=arrays["terminals"], timeouts=arrays["timeouts"],
+        action_space=d3rlpy.constants.ActionSpace.CONTINUOUS,
+    )
+    d3rlpy.seed(cfg["seed"])
+    algo = build(cfg, data, names=(cfg["algo"],))[cfg["algo"]]
+    batch_size = algo.config.batch_size
+    print(json.dumps({"d3rlpy": d3rlpy.__version__, "torch": torch.__version__,
+                      "transitions": int(data.transition_count)}), file=REPLY, flush=True)
+    for line in sys.stdin:
+        parts = line.split()
+        if not parts or parts[0] == "quit":
+            break
+        if parts[0] == "update":
+            cpu = time.process_time()
+            for _ in range(int(parts[1])):
+                algo.update(data.sample_transition_batch(batch_size))
+            print(time.process_time() - cpu, file=REPLY, flush=True)
+        elif parts[0] == "act":
+            obs = np.asarray(json.loads(sys.stdin.readline()), dtype=np.float32)
+            print(json.dumps(algo.predict(obs).tolist()), file=REPLY, flush=True)
+
+
+def main() -> None:
+    cfg = json.loads(sys.argv[1])
+    torch.set_num_threads(cfg["threads"])
+    (train_main if cfg.get("mode") == "train" else throughput_main)(cfg)
 
 
 if __name__ == "__main__":

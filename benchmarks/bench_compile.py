@@ -1,6 +1,6 @@
 """``compile=true`` against eager: training updates per second of every algorithm, compiled and eager side by side.
 
-    python benchmarks/bench_compile.py [--algos bail,pbail,bc,marwil,bcq,bear] [--modes true] [--device cpu]
+    python benchmarks/bench_compile.py [--algos bail,pbail,...: default every algorithm] [--modes true] [--device cpu]
                                        [--updates 30] [--repeats 5] [--threads 1] [--json PATH]
 
 Each case builds the algorithm twice from the same seed at the paper's sizes (``conf/algo/<name>.yaml``: BC/BAIL's
@@ -87,7 +87,7 @@ def measure(name: str, mode, device: torch.device, data: TensorDict, n: int, rep
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--algos", default="bail,pbail,bc,marwil,bcq,bear")
+    parser.add_argument("--algos", default=",".join(ALGORITHMS))
     parser.add_argument("--modes", default="true", help="comma-separated compile settings (true, default, "
                         "reduce-overhead, max-autotune)")
     parser.add_argument("--device", default="cpu")

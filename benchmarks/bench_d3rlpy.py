@@ -81,6 +81,19 @@ TRANSITIONS = 100_000
 WORKER = Path(__file__).with_name("_d3rlpy_worker.py")
 
 
+def start_worker(python: str, cfg: dict, threads: int) -> tuple[subprocess.Popen, dict]:
+    """``_d3rlpy_worker.py`` under ``python`` with ``cfg`` (its mode and constants), ``threads`` torch threads and
+    none of our ``PYTHONPATH``; returns the process and the JSON header it answers with (d3rlpy's versions)."""
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    env.pop("PYTHONPATH", None)
+    proc = subprocess.Popen([python, str(WORKER), json.dumps({**cfg, "threads": threads})], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+    header = proc.stdout.readline()
+    if not header:
+        raise SystemExit(f"the d3rlpy worker did not start under {python} (is d3rlpy 2.8 installed there?)")
+    return proc, json.loads(header)
+
+
 class D3rlpySide:
     """The d3rlpy subprocess: ``rate(name, n)`` runs ``n`` of its updates and returns updates/s."""
 
@@ -88,14 +101,7 @@ class D3rlpySide:
         cfg = {"threads": threads, "transitions": TRANSITIONS, "obs": OBS, "act": ACT, "net_hidden": [400, 300],
                "vae_hidden": [750, 750], "batch": BATCH, "n_target": N_TARGET, "n_match": N_MATCH,
                "bc_batch": BC_BATCH}
-        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-        env.pop("PYTHONPATH", None)
-        self.proc = subprocess.Popen([python, str(WORKER), json.dumps(cfg)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
-        header = self.proc.stdout.readline()
-        if not header:
-            raise SystemExit(f"the d3rlpy worker did not start under {python} (is d3rlpy 2.8 installed there?)")
-        self.versions = json.loads(header)
+        self.proc, self.versions = start_worker(python, cfg, threads)
 
     def rates(self, name: str, n: int) -> tuple[float, float]:
         self.proc.stdin.write(f"{name} {n}\n")

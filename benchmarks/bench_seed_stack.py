@@ -146,7 +146,8 @@ def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--algos", nargs="+", default=["bc", "bail", "pbail", "marwil", "bcq", "bear"])
+    parser.add_argument("--algos", nargs="+", default=[name for name, cls in ALGORITHMS.items()
+                                                       if cls.seed_stack_refusal is None])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None)

@@ -2,15 +2,18 @@
 
 The docstrings are written for ``help()`` and IDEs as much as for the site, in Google style with Sphinx roles. A
 role whose target is rendered on the site becomes a cross-reference (mkdocs-autorefs); any other target (torch,
-TorchRL, a private helper) stays inline code, without a warning. ``~`` shows the last name only, as in Sphinx.
+TorchRL, a private helper) stays inline code, without a warning. As in Sphinx, ``~`` shows the last name only and
+``title <target>`` shows the title.
 """
 
 from __future__ import annotations
 
+import html
 import re
 
 import griffe
 
+_TITLED = re.compile(r"^(?P<title>.+?)\s*<(?P<target>[^<>]+)>$")
 _ROLE = re.compile(r":(?:py:)?(?:func|class|meth|mod|attr|data|exc|obj|const)\s*:`(?P<tilde>~?)(?P<target>[^`]+)`")
 
 
@@ -28,8 +31,13 @@ def _identifier(target: str, obj: griffe.Object) -> str:
 def convert(text: str, obj: griffe.Object) -> str:
     def link(match: re.Match) -> str:
         target = match["target"].strip()
-        shown = target.rsplit(".", 1)[-1] if match["tilde"] else target
-        return f'<autoref identifier="{_identifier(target, obj)}" optional><code>{shown}</code></autoref>'
+        titled = _TITLED.match(target)  # :meth:`title <target>`
+        if titled:
+            shown, target = titled["title"], titled["target"]
+        else:
+            shown = target.rsplit(".", 1)[-1] if match["tilde"] else target
+        return (f'<autoref identifier="{html.escape(_identifier(target, obj))}" optional>'
+                f"<code>{html.escape(shown)}</code></autoref>")
 
     return _ROLE.sub(link, text)
 

@@ -1,8 +1,10 @@
 """Reruns the results study of the docs ("Results"), or any row of it, from scratch.
 
-    python results/run_study.py                              # everything: 11 batches, 156 runs, reports (hours)
+    python results/run_study.py                              # everything: 11 batches, every algorithm, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
     python results/run_study.py --list                       # the jobs, in the order they run
+    python results/run_study.py --study paper_hopper --jobs 2   # the paper-scale Hopper study (days of CPU)
+    python results/run_study.py --study paper_hopper --status   # where its jobs stand: done, running, left
 
 Every job is one ``python -m torchrl_bail.train ... preset=study`` command (or ``torchrl_bail.collect`` for a
 batch), run in ``--workdir`` (its ``outputs/`` holds the run directories) with ``threads=1``, ``--jobs`` at a
@@ -19,10 +21,16 @@ policies or batches), ``timings.json`` (wall time of every job) and the two repo
 over the second half of training (:func:`curve_check`).
 
 The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
-opt_det (B1, 50k transitions); BAIL, Progressive BAIL, BC and MARWIL with seeds 1-3 on each; BCQ and BEAR with
-seeds 1-3 on the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
+opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.config.ALGO_SCHEMAS`: BAIL,
+Progressive BAIL, BC, MARWIL, ...) with seeds 1-3 on each, except BCQ and BEAR (:data:`DDPG_ONLY`), with seeds 1-3 on
+the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
 returns, on the oracle batch of 2000-step episodes), D.2 (selection by return, no envelope) and D.3 (ordinary
 regression, penalty K = 1), seeds 1-3.
+
+``--study paper_hopper`` (results in ``results/paper_hopper``): Hopper-v5 at the paper's batch size (10^6
+transitions, ``preset=paper``), in the order that lands what matters most first (:func:`paper_hopper_jobs`).
+``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
+with the checkpoint's progress (updates done / scheduled) where one exists.
 """
 
 from __future__ import annotations
@@ -39,11 +47,16 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_bail.config import ALGO_SCHEMAS
+
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
 ENVS = ("hopper", "walker")
 KINDS = ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det")
-IMITATION = ("bail", "pbail", "bc", "marwil")
+#: the study's cost rule: a BCQ or BEAR run costs ~10x an imitation run on a 2-core CPU, so these two run on the
+#: two DDPG batches of each env only; every other registered algorithm runs on every batch
+DDPG_ONLY = ("bcq", "bear")
+EVERY_BATCH = tuple(name for name in ALGO_SCHEMAS if name not in DDPG_ONLY)
 #: supp. D.1-D.3 on Hopper ddpg05: name -> overrides (D.1 runs on the oracle batch, with both kinds of returns)
 ABLATIONS = {
     "D1_oracle": ["batch.oracle.enabled=true", "returns.augment=oracle"],
@@ -81,12 +94,84 @@ def study_jobs() -> list[Job]:
                                                            "preset=study", *extra]) for s in SEEDS]
 
     for env in ENVS:
-        jobs += [j for kind in KINDS for algo in IMITATION for j in train(env, kind, algo)]
+        jobs += [j for kind in KINDS for algo in EVERY_BATCH for j in train(env, kind, algo)]
         if env == "hopper":
             jobs += [j for name, extra in ABLATIONS.items() for j in train(env, "ddpg05", "bail", extra, "/" + name)]
-        bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in ("bcq", "bear")]
+        bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in DDPG_ONLY]
         jobs += [cell[i] for i in range(len(SEEDS)) for cell in bcq_bear]  # seed 1 of every cell first
     return jobs
+
+
+#: the paper-scale schedules (imitation: 10^4 updates of 1000, 20 evaluations of 10 episodes; BAIL's envelope may
+#: run up to 200 epochs, so that early stopping, not the cap, ends it; BCQ/BEAR: 10^5 updates of 100)
+PAPER_SCHEDULE = {
+    "imitation": ["algo.epochs=10", "eval.every_epochs=0.5"],
+    "bail": ["algo.envelope.epochs=200"],
+    "offline_rl": ["algo.epochs=10", "eval.every_epochs=0.5"],
+}
+
+
+def paper_hopper_jobs() -> list[Job]:
+    """The paper-scale Hopper study, most important first: (a) the DDPG sigma=0.5 final buffer with BAIL and BC x 5
+    seeds, Progressive BAIL, MARWIL and MARWIL with V fitted first x 3, BCQ x 3 and BEAR x 1; (b) the 10^6-step SAC
+    run's training batch and its execution batches opt_det and med_stoch (BAIL and BC x 5 on sac, x 3 elsewhere);
+    (c) med_det, opt_stoch, ddpg01, and BCQ on opt_det."""
+    def collect(kind):
+        return Job(f"collect/hopper_{kind}", [f"+exp=hopper_{kind}"], "torchrl_bail.collect")
+
+    def train(kind, algo, seeds, extra=(), tag=""):
+        schedule = PAPER_SCHEDULE["offline_rl" if algo in ("bcq", "bear") else "imitation"]
+        schedule = schedule + (PAPER_SCHEDULE["bail"] if algo == "bail" else [])
+        return [Job(f"hopper_{kind}/{algo}{tag}/seed{s}", [f"+exp=hopper_{kind}", f"algo={algo}", f"seed={s}",
+                                                            *schedule, *extra]) for s in range(1, seeds + 1)]
+
+    warmup = (["algo.value_warmup_updates=1000"], "/value_warmup")
+    jobs = [collect("ddpg05")]
+    jobs += train("ddpg05", "bail", 5) + train("ddpg05", "bc", 5) + train("ddpg05", "pbail", 3)
+    jobs += train("ddpg05", "marwil", 3) + train("ddpg05", "marwil", 3, *warmup)
+    jobs += train("ddpg05", "bcq", 3) + train("ddpg05", "bear", 1)
+    jobs += [collect("sac"), collect("opt_det"), collect("med_stoch")]
+    for kind in ("sac", "opt_det", "med_stoch"):
+        seeds = 5 if kind == "sac" else 3
+        jobs += train(kind, "bail", seeds) + train(kind, "bc", seeds) + train(kind, "pbail", 3)
+        jobs += train(kind, "marwil", 3) + train(kind, "marwil", 3, *warmup)
+    for kind in ("med_det", "opt_stoch", "ddpg01"):
+        jobs += [collect(kind)] + [j for algo in ("bail", "pbail", "bc", "marwil") for j in train(kind, algo, 3)]
+    return jobs + train("opt_det", "bcq", 3)
+
+
+STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs}
+
+
+def run_dir_of(job: Job, workdir: Path) -> Path | None:
+    """The run directory a training job writes (Hydra's: ``outputs/<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
+    named = dict(arg.split("=", 1) for arg in job.args)
+    extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=")))
+    for run in sorted((workdir / "outputs" / f"{named['+exp']}_b1" / named["algo"]).glob(f"seed{named['seed']}*")):
+        if run.name.split(",")[0] == f"seed{named['seed']}" and sorted(run.name.split(",")[1:]) == extra:
+            return run
+    return None
+
+
+def job_status(job: Job, workdir: Path) -> str:
+    """``done``, ``running`` or ``left``, with the checkpoint's progress (``updates done/scheduled``) if any."""
+    log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
+    recent = log.is_file() and time.time() - log.stat().st_mtime < 600
+    if job.module != "torchrl_bail.train":
+        text = log.read_text(errors="replace") if log.is_file() else ""
+        if re.search(r": (collected|already cached) at ", text):
+            return "done"
+        return "running" if recent else ("left (partial)" if text else "left")
+    run = run_dir_of(job, workdir)
+    if run is not None and (run / "summary.json").is_file():
+        return "done"
+    progress = ""
+    if run is not None and (run / "checkpoint.pt").is_file():
+        import torch
+
+        state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+        progress = f" ({state['iteration']}/{state['iterations']} updates)"
+    return ("running" if recent else "left") + progress
 
 
 def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | None, float]:
@@ -179,20 +264,31 @@ def curve_check(results: Path) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--study", choices=sorted(STUDIES), default="study",
+                        help="study: the 50k-transition study (docs: Results); paper_hopper: Hopper at paper scale")
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
-    parser.add_argument("--workdir", type=Path, default=Path("study_work"), help="where outputs/ and logs/ go")
+    parser.add_argument("--workdir", type=Path, help="where outputs/ and logs/ go (default: <study>_work)")
     parser.add_argument("--data-dir", type=Path, help="batch cache (default: TORCHRL_BAIL_DATA_DIR or ~/.cache)")
-    parser.add_argument("--results", type=Path, default=HERE / "study", help="where the kept files and reports go")
+    parser.add_argument("--results", type=Path, help="where the kept files and reports go (default: results/<study>)")
     parser.add_argument("--list", action="store_true", help="print the jobs and exit")
+    parser.add_argument("--status", action="store_true", help="print each job's state (done, running, left)")
     parser.add_argument("--report-only", action="store_true", help="only gather the finished runs and report")
     args = parser.parse_args(argv)
+    args.workdir = args.workdir or Path(f"{args.study}_work")
+    args.results = args.results or HERE / args.study
 
-    jobs = study_jobs()
+    jobs = STUDIES[args.study]()
     if args.only:  # a row's batch is collected by its first training job (the others wait on its lock)
         jobs = [j for j in jobs if re.search(args.only, j.name)]
     if args.list:
         print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
+        return 0
+    if args.status:
+        states = [(j.name, job_status(j, args.workdir)) for j in jobs]
+        print("\n".join(f"{state:<32} {name}" for name, state in states))
+        counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
+        print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")
         return 0
     args.workdir.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)

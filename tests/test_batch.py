@@ -51,7 +51,8 @@ def test_float64_is_converted_once_at_the_edge(tmp_path):
     td = make_td()
     td["observation"] = td["observation"].double()
     td["next", "observation"] = td["next", "observation"].double()
-    assert load_batch(save_batch(td, tmp_path / "b", {"env_id": "Toy-v0"}).path).data["observation"].dtype == torch.float32
+    saved = save_batch(td, tmp_path / "b", {"env_id": "Toy-v0"})
+    assert load_batch(saved.path).data["observation"].dtype == torch.float32
     with pytest.raises(BatchValidationError, match="observation.*float32"):
         validate_batch(td)  # validation itself is strict
 

@@ -36,7 +36,7 @@ def test_laplacian_mmd_by_hand():
     kxy = sum(k(u, v) for u in xs for v in ys) / 2
     expected = math.sqrt(kxx + kyy - 2 * kxy + 1e-6)
     torch.testing.assert_close(laplacian_mmd(x, y, sigma), torch.tensor([expected]))
-    # identical sample sets: only the stabiliser is left; a batch of states keeps its shape
+    # identical sample sets: only the stabilizer is left; a batch of states keeps its shape
     same = torch.randn(3, 4, 5, ACT)
     torch.testing.assert_close(laplacian_mmd(same, same.clone(), 10.0), torch.full((3, 4), 1e-3))
     assert (laplacian_mmd(torch.randn(7, 5, ACT), torch.randn(7, 5, ACT), 10.0) > 1e-3).all()
@@ -124,7 +124,8 @@ def test_target_candidates_come_from_the_target_actor():
 
     target = draw(loss._target_candidates)
     assert target.shape == (4, 10, ACT)
-    torch.testing.assert_close(target, draw(lambda o, n: loss._actor_samples(o, n, loss.target_actor_network_params)[0]))
+    target_samples = draw(lambda o, n: loss._actor_samples(o, n, loss.target_actor_network_params)[0])
+    torch.testing.assert_close(target, target_samples)
     assert not torch.allclose(target, draw(loss.candidate_actions))
 
 
@@ -159,3 +160,22 @@ def test_update_runs_in_the_authors_order():
                      "alpha_loss", "step actor+alpha", "clamp_log_alpha_", "count_update", "targets"]
     assert sorted(algo.optimizers) == ["actor", "alpha", "critic", "vae"]
     assert algo.optimizers["alpha"].param_groups[0]["params"] == [algo.loss.log_alpha]
+
+
+def test_state_written_with_the_old_spelling_still_loads(tmp_path):
+    """Checkpoints and BEAR policy files from before the one spelling (``mmd_stabiliser``) load, and the config of
+    such a run still compares equal for resume and groups alike in the report."""
+    from torchrl_bail.report import _read_config
+    from torchrl_bail.resume import _comparable
+
+    algo = _algo()
+    state = algo.state_dict()
+    old = {("mmd_stabiliser" if k == "mmd_stabilizer" else k): v for k, v in state["modules"]["loss"].items()}
+    assert "mmd_stabiliser" in old
+    fresh = _algo(mmd_stabilizer=0.5)
+    fresh.load_state_dict({**state, "modules": {"loss": old}})
+    assert float(fresh.loss.mmd_stabilizer) == float(algo.loss.mmd_stabilizer)
+    assert _comparable({"algo": {"name": "bear", "mmd_stabiliser": 1e-6}}) == \
+        {"algo": {"name": "bear", "mmd_stabilizer": 1e-6}}
+    (tmp_path / "config.yaml").write_text("algo:\n  name: bear\n  mmd_stabiliser: 1.0e-06\n")
+    assert _read_config(tmp_path)["algo.mmd_stabilizer"] == 1e-6 and "algo.mmd_stabiliser" not in _read_config(tmp_path)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+from _contract import ALGO_CASES
 
 TINY = [
     "+exp=hopper_ddpg05", "preset=quick",
@@ -16,16 +17,11 @@ TINY = [
     "eval.episodes=2", "eval.max_steps=200", "eval.every_epochs=0.002", "samples_per_epoch=1000000",
     "returns.horizon=200", "progress=false",
 ]
-ALGO_TINY = {
-    "bail": ["algo.epochs=0.01", "algo.envelope.epochs=5", "algo.envelope.batch_size=100"],
-    "pbail": ["algo.epochs=0.008", "algo.envelope.validate_every=2"],
-    "bc": ["algo.epochs=0.01"],
-    "marwil": ["algo.epochs=0.01"],
-    "bcq": ["algo.epochs=0.001", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-            "algo.critic.hidden=[32,32]", "eval.every_epochs=0.0005"],
-    "bear": ["algo.epochs=0.001", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-             "algo.critic.hidden=[32,32]", "algo.warm_start_updates=3", "eval.every_epochs=0.0005"],
-}
+#: each algorithm's tiny run: the contract's (tests/_contract.py), except BAIL's (an envelope fitted well enough for
+#: the selection and ablation checks below) and BC's (5 evaluations, tests/test_policy.py)
+ALGO_TINY = {**{name: list(case.cli) for name, case in ALGO_CASES.items()},
+             "bail": ["algo.epochs=0.01", "algo.envelope.epochs=5", "algo.envelope.batch_size=100"],
+             "bc": ["algo.epochs=0.01"]}
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +73,7 @@ def test_same_seed_gives_the_same_summary_whether_the_batch_was_collected_or_cac
     assert sa == sb
 
 
-@pytest.mark.parametrize("algo", ["pbail", "bc", "marwil", "bcq", "bear"])
+@pytest.mark.parametrize("algo", [name for name in ALGO_CASES if name != "bail"])  # BAIL: the tests above
 def test_every_algo_runs_from_the_cli(tmp_path, data_dir, algo):
     run_dir = tmp_path / algo
     _train(run_dir, data_dir, f"algo={algo}", *ALGO_TINY[algo])

@@ -66,7 +66,8 @@ CASES = [
      ["returns.augment", "batch.oracle.enabled=true"]),
     # paths
     ("missing_dataset", [EXP, "dataset=/nonexistent/hopper-medium-v2.hdf5"], ["dataset", "existing D4RL"]),
-    ("missing_resume_dir", [EXP, "resume=/nonexistent/run"], ["resume", "auto | true | false | an existing run directory"]),
+    ("missing_resume_dir", [EXP, "resume=/nonexistent/run"],
+     ["resume", "auto | true | false | an existing run directory"]),
     ("data_dir_is_a_file", [EXP, f"data_dir={REPO / 'pyproject.toml'}"], ["data_dir", "a directory"]),
 ]
 
@@ -114,7 +115,11 @@ def test_bad_training_command_line_is_one_line_and_writes_nothing(training_runs,
     ([EXP, "batch.sigma=-1"], ["batch.sigma", "non-negative noise std"]),
     (["+exp=walker_ddpg05", "env=humanoid"], ["batch", "hopper, walker, halfcheetah"]),
     ([EXP, "algo=bal"], ["algo=bal", "bail, bc"]),
-], ids=["negative_sigma", "ddpg_on_humanoid", "mistyped_algo"])
+    (["--export-minari", "bail/noversion", EXP], ["Minari dataset id 'bail/noversion'", "name-v<version>"]),
+    (["--export-minari", "bail/hopper-v0", "-m", EXP], ["--export-minari accepts only", "'-m'"]),
+    (["--export-minari", "bail/hopper-v0", EXP, "batch.sigma=-1"], ["batch.sigma", "non-negative noise std"]),
+], ids=["negative_sigma", "ddpg_on_humanoid", "mistyped_algo", "export_id_without_version", "export_multirun",
+        "export_bad_recipe"])
 def test_bad_collection_command_line_is_one_line_and_collects_nothing(tmp_path, overrides, fragments):
     proc = _run("torchrl_bail.collect", overrides, tmp_path)
     _assert_one_clear_line(proc, fragments)

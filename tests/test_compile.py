@@ -29,29 +29,19 @@ import shutil
 
 import pytest
 import torch
+from _contract import ALGO_CASES
 from tensordict import TensorDict
 
-from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config import algo_config
-from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+from torchrl_bail.algorithms import PrepareContext
+from torchrl_bail.modules import make_deterministic_actor
 from torchrl_bail.trainer import train
 
 #: the device under test, with its index (``cuda:0``): the device a tensor made there reports
 DEVICE = torch.empty(0, device=os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu")).device
-SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
-SMALL = {"hidden": [8]}
-POLICY = {"policy": SMALL, "batch_size": 16, "epochs": 1}
-TWIN_CRITIC = {"vae": SMALL, "actor": SMALL, "critic": SMALL, "batch_size": 16, "epochs": 1}
-#: tiny networks; Progressive BAIL validates every 2 updates and BEAR leaves its warm start after 2 updates, so the
-#: updates compared cross both switches
-OVERRIDES = {
-    "bc": POLICY,
-    "bail": {**POLICY, "envelope": {"hidden": [8], "epochs": 2, "batch_size": 50}},
-    "pbail": {**POLICY, "envelope": {"hidden": [8], "validate_every": 2, "patience": 1}},
-    "marwil": {**POLICY, "value": SMALL, "c2_rate": 0.1},
-    "bcq": TWIN_CRITIC,
-    "bear": {**TWIN_CRITIC, "warm_start_updates": 2},
-}
+#: the contract's tiny configs (tests/_contract.py); Progressive BAIL validates every 2 updates, may stop after one
+#: validation without progress, and BEAR leaves its warm start after 2 updates, so the updates compared cross both
+#: switches
+SWITCHES = {"pbail": {"envelope.patience": 1}}
 #: inductor where it is affordable on 2 cores, aot_eager elsewhere (module docstring); BAIL updates with BC's method.
 #: Progressive BAIL and BCQ run with TORCHRL_BAIL_FULL_COMPILE_TESTS=1 only (see the module docstring)
 #: (a machine without a C++ compiler, which inductor needs on CPU, runs BC through aot_eager too)
@@ -68,14 +58,14 @@ def _data(n: int = 200, seed: int = 0) -> TensorDict:
         "observation": obs, "action": torch.rand(n, 2, generator=g) * 2 - 1,
         "return": obs[:, 0] * 3 + torch.rand(n, generator=g) + 2,
         "next": {"observation": torch.randn(n, 4, generator=g), "reward": torch.randn(n, 1, generator=g),
-                 "terminated": torch.rand(n, 1, generator=g) < 0.05},
+                 "terminated": (end := torch.rand(n, 1, generator=g) < 0.05), "done": end},
     }, [n])
 
 
 def _prepared(name: str, device=DEVICE):
     """A freshly built algorithm (seeded init) and the data it trains on."""
     torch.manual_seed(0)
-    algo = ALGORITHMS[name](4, SPEC, algo_config(name, **OVERRIDES[name]), device=device)
+    algo = ALGO_CASES[name].build(device, **SWITCHES.get(name, {}))
     data = algo.prepare(_data(), PrepareContext(generator=torch.Generator().manual_seed(1))).to(device)
     return algo, data
 
@@ -206,7 +196,7 @@ class _Logger:
         self.scalars.append((name, value, step))
 
 
-@pytest.mark.parametrize("name", sorted(OVERRIDES))
+@pytest.mark.parametrize("name", list(ALGO_CASES))
 def test_training_loop_reads_back_only_at_log_points(name, monkeypatch):
     algo, data = _prepared(name)
     if name == "pbail":  # its early stopping reads the validation loss once every validate_every updates

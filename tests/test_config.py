@@ -7,9 +7,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import ConfigError, validate_config
+from torchrl_bail.config import ALGO_SCHEMAS, ConfigError, validate_config
 
-ALGOS = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
+ALGOS = list(ALGO_SCHEMAS)
 
 
 def _compose(*overrides: str):

@@ -42,7 +42,9 @@ from torchrl.objectives import BCLoss, LossModule
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
-from torchrl_bail.config import ConfigError, algo_config
+from torchrl_bail.modules import action_spec_from_bounds
+from torchrl_bail.policy import load_policy
+from torchrl_bail.config import ALGO_SCHEMAS, ConfigError, algo_config, validate_config
 
 REDUCTIONS = ("none", "mean", "sum")
 loss_cases = pytest.mark.parametrize("case", LOSS_CASES, ids=repr)
@@ -107,6 +109,22 @@ def test_every_loss_and_algorithm_has_a_contract_case():
     missing = {cls.__name__ for cls in losses | {BCLoss}} - {cls.__name__ for cls in covered}
     assert not missing, f"register a LossCase for {sorted(missing)} in tests/_contract.py"
     assert set(ALGO_CASES) == set(ALGORITHMS), "register an AlgoCase for every ALGORITHMS entry in tests/_contract.py"
+    assert list(ALGORITHMS) == list(ALGO_SCHEMAS), "every algorithm class needs its schema in ALGO_SCHEMAS and back"
+
+
+@pytest.mark.parametrize("name", list(ALGORITHMS))
+def test_every_algorithm_has_its_yaml_and_presets(name):
+    """``conf/algo/<name>.yaml`` (the paper's values) and the quick and study presets, each shorter than the paper's
+    schedule and valid."""
+    epochs = {}
+    for preset in ("paper", "quick", "study"):
+        if preset != "paper":
+            assert (config_dir() / "algo_preset" / f"{name}_{preset}.yaml").is_file(), f"{name}_{preset}.yaml"
+        with initialize_config_dir(str(config_dir()), version_base="1.3"):
+            cfg = compose("config", overrides=["+exp=hopper_ddpg05", f"algo={name}", f"preset={preset}"])
+        validate_config(cfg)
+        epochs[preset] = cfg.algo.epochs
+    assert epochs["quick"] < epochs["paper"] and epochs["study"] < epochs["paper"], epochs
 
 
 # -- one default per constant: the yaml --------------------------------------------------------------------------
@@ -408,8 +426,23 @@ def test_tiny_run_through_the_config(case, tiny_run_data_dir, tmp_path):
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=[*TINY_RUN, f"algo={case.name}", *case.cli, f"data_dir={tiny_run_data_dir}"])
-    summary = run(cfg, tmp_path)
+    (summary,) = run(cfg, tmp_path)
     assert (summary["algo"], summary["num_transitions"]) == (case.name, TINY_STEPS)
     assert math.isfinite(summary["final_return"]) and summary["iterations"] >= 1
     for name in ("summary.json", "policy.pt", "checkpoint.pt", "learning_curve.png", "config.yaml"):
         assert (tmp_path / name).stat().st_size > 0, name
+    # policy.pt comes back as the policy the run ended with: the final checkpoint's algorithm acts alike
+    policy = load_policy(tmp_path)
+    assert policy.record["algo"] == case.name
+    spec = action_spec_from_bounds(policy.record["action_low"], policy.record["action_high"])
+    trained = ALGORITHMS[case.name](policy.record["obs_dim"], spec, cfg.algo)
+    checkpoint = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert checkpoint["iteration"] == summary["iterations"]
+    trained.load_state_dict(checkpoint["algorithm"])
+    observation = TensorDict({"observation": torch.randn(5, policy.record["obs_dim"])}, [5])
+    actions = []
+    for acting in (policy, trained.policy):
+        torch.manual_seed(0)  # a best-of-N policy samples its candidates
+        with torch.no_grad():
+            actions.append(acting(observation.clone())["action"])
+    torch.testing.assert_close(actions[0], actions[1], rtol=0, atol=0)

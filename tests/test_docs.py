@@ -91,9 +91,9 @@ def test_yaml_comments_continue_below_and_block_comments_belong_to_no_key(tmp_pa
 
 def test_the_page_renders_pipes_and_tags_inside_tables(sections):
     text = gen.render(sections)
-    line = next(l for l in text.splitlines() if l.startswith("| `device` |"))
+    line = next(row for row in text.splitlines() if row.startswith("| `device` |"))
     assert "cpu \\| cuda \\| cuda:N \\| auto" in line
-    line = next(l for l in text.splitlines() if l.startswith("| `logger.name` |"))
+    line = next(row for row in text.splitlines() if row.startswith("| `logger.name` |"))
     assert "&lt;algo&gt;_seed&lt;seed&gt;" in line
 
 
@@ -157,7 +157,7 @@ def test_tutorial_sweep_seeds(tmp_path, tiny_run_data_dir):
     out = _tutorial("sweep_seeds.py", "--seeds", "1,2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
     assert "hydra/launcher=slurm" in out and "hydra/launcher=joblib" in out
     for seed in (1, 2):  # the stacked run gives each seed its single-seed score
-        line = next(l for l in out.splitlines() if l.startswith(f"seed {seed}: final_return"))
+        line = next(row for row in out.splitlines() if row.startswith(f"seed {seed}: final_return"))
         alone, stacked = (float(w) for w in line.replace(",", "").split() if w.replace(".", "").lstrip("-").isdigit())
         assert stacked == pytest.approx(alone, rel=1e-4, abs=1e-3)
 
@@ -171,7 +171,7 @@ def test_tutorial_load_evaluate_export(tmp_path, tiny_run_data_dir):
     out = _tutorial("load_evaluate_export.py", "--episodes", "2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
     assert "bail policy for Hopper-v5: observation 11 -> action 3" in out
     for fmt in ("pt2", "onnx"):
-        line = next(l for l in out.splitlines() if l.startswith(f"{fmt} export"))
+        line = next(row for row in out.splitlines() if row.startswith(f"{fmt} export"))
         assert float(line.split()[-1]) < 1e-5
 
 

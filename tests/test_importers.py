@@ -196,7 +196,8 @@ def test_bad_d4rl_files_give_one_clear_error(tmp_path, mutate, match):
 
 
 @pytest.mark.parametrize("obs_dim, act_dim, match", [
-    (10, 3, r"key 'observations': expected 11 observation features \(the observation size of env Hopper-v5\), found 10"),
+    (10, 3, r"key 'observations': expected 11 observation features \(the observation size of env Hopper-v5\), "
+            r"found 10"),
     (11, 6, r"key 'actions': expected 3 action dimensions \(the action size of env Hopper-v5\), found 6"),
 ])
 def test_wrong_sizes_for_the_env_are_named(tmp_path, obs_dim, act_dim, match):
@@ -359,7 +360,8 @@ def test_minari_errors_name_the_episode_and_key(tmp_path):
 
     nan = minari_episode(2, "terminal")
     nan["rewards"][1] = np.nan
-    with pytest.raises(DatasetImportError, match=r"key 'episode_0/rewards': expected finite values, found NaN at row 1"):
+    with pytest.raises(DatasetImportError,
+                       match=r"key 'episode_0/rewards': expected finite values, found NaN at row 1"):
         import_dataset(write_minari(tmp_path / "c", [nan]), data_dir=tmp_path / "data")
 
     with pytest.raises(DatasetImportError, match=r"key 'episode_0/observations': expected 17 observation features"):

@@ -3,6 +3,7 @@ seed), the clamp, beta = 0 as BC, and its config (the contract suite in test_con
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -75,6 +76,8 @@ def test_weights_and_losses_by_hand():
     torch.testing.assert_close(out["loss_value"], 2.0 * 0.5 * torch.tensor(adv) ** 2)
     torch.testing.assert_close(out["weight_mean"], torch.tensor(sum(weights) / 3))
     torch.testing.assert_close(out["weight_max"], torch.tensor(max(weights)))
+    torch.testing.assert_close(out["weight_share_max"], torch.tensor(max(weights) / sum(weights)))
+    torch.testing.assert_close(out["squared_error_mean"], torch.tensor(sum(SQUARED_ERRORS) / 3))
     torch.testing.assert_close(out["advantage_mean"], torch.tensor(0.0))
     torch.testing.assert_close(out["value_mean"], torch.tensor(2.0))
     assert out["clamped_fraction"].item() == 0.0
@@ -186,7 +189,8 @@ def test_seed_batch_per_seed_reduction_and_per_seed_c2():
     assert out["loss_actor"].shape == out["loss_value"].shape == (2, 3)
     expected_c2 = torch.tensor([100 + rate * (200 / 3 - 100), 100 + rate * (800 / 3 - 100)], dtype=torch.float64)
     torch.testing.assert_close(loss.c2, expected_c2)
-    for key in ("advantage_mean", "value_mean", "weight_mean", "weight_max", "clamped_fraction", "c2"):
+    for key in ("advantage_mean", "value_mean", "weight_mean", "weight_max", "weight_share_max", "clamped_fraction",
+                "squared_error_mean", "c2"):
         assert out[key].shape == (2,), key
     # each seed's weights use its own normaliser: seed 0 equals the [B] computation
     single = MARWILLoss(*_nets(), c2_init=100.0, c2_rate=rate, reduction="none")(s0)
@@ -266,3 +270,29 @@ def test_registry_builds_marwil_from_its_config():
     assert algo.optimizers["actor"].param_groups[0]["lr"] == cfg.algo.policy.lr
     assert algo.optimizers["value"].param_groups[0]["lr"] == cfg.algo.value.lr
     assert algo.policy is algo.actor
+
+
+def test_value_warmup_fits_v_alone_then_starts_the_actor_with_a_fresh_adam():
+    spec = action_spec_from_bounds([-1.0] * 2, [1.0] * 2)
+    config = algo_config("marwil", policy={"hidden": [16]}, value={"hidden": [8]}, batch_size=16,
+                         value_warmup_updates=3)
+    torch.manual_seed(2)
+    algo = MARWIL(5, spec, config)
+    actor_before = [p.detach().clone() for p in algo.actor.parameters()]
+    value_before = [p.detach().clone() for p in algo.value_network.parameters()]
+    batches = [_random_batch(scale=100.0) for _ in range(5)]
+    for batch in batches[:3]:
+        out = algo.update(batch)
+        assert "loss_actor" in out and "squared_error_mean" in out  # the same logged columns as a joint update
+    assert all(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before))
+    assert not any(torch.equal(p, q) for p, q in zip(algo.value_network.parameters(), value_before))
+    assert algo.optimizers["actor"].state_dict()["state"] == {}, "the actor's Adam has seen no gradient yet"
+    resumed = MARWIL(5, spec, config)
+    resumed.load_state_dict(copy.deepcopy(algo.state_dict()))  # a copy, as a checkpoint on disk is
+    assert resumed.updates_done == 3
+    for batch in batches[3:]:
+        torch.testing.assert_close(algo.update(batch)["loss_actor"], resumed.update(batch)["loss_actor"])
+    assert not any(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before))
+    # the actor's Adam has counted only the two joint updates: its bias correction starts afresh after the warm-up
+    assert {int(state["step"]) for state in algo.optimizers["actor"].state_dict()["state"].values()} == {2}
+    assert {int(state["step"]) for state in algo.optimizers["value"].state_dict()["state"].values()} == {5}

@@ -2,7 +2,7 @@
 
 Unit level: every algorithm's ``state_dict`` is complete (a fresh object loaded from it makes the same updates
 bit for bit), and the training loop resumed from its checkpoint reproduces the uninterrupted loop. Run level
-(in process, on a tiny generated batch): runs of BAIL and BCQ "killed" at random points (an exception escaping
+(in process, on a tiny generated batch): runs of BAIL, BCQ and TD3+BC "killed" at random points (an exception escaping
 the update or the envelope fit leaves the disk as SIGKILL would) and restarted match the reference run's summary,
 scalar logs and weights; a changed config is refused; a finished run is reported, not retrained. The SIGKILL
 version of the drill with real processes is ``benchmarks/kill_drill.py``.
@@ -16,22 +16,21 @@ import random
 
 import pytest
 import torch
+from _contract import ALGO_CASES
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 import torchrl_bail.algorithms as algorithms_module
 import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
-from torchrl_bail.algorithms import ALGORITHMS, BehaviourCloning, PrepareContext
+from torchrl_bail.algorithms import BehaviourCloning, PrepareContext
 from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.resume import ResumeError, Resumption
 from torchrl_bail.trainer import train
 
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
-SMALL = {"hidden": [16, 16]}
 POLICY = {"policy": {"hidden": [16]}, "batch_size": 16, "epochs": 1}
-TWIN_CRITIC = {"vae": SMALL, "actor": SMALL, "critic": SMALL, "batch_size": 16, "epochs": 1}
 
 
 def _data(n: int = 300, seed: int = 0) -> TensorDict:
@@ -41,21 +40,14 @@ def _data(n: int = 300, seed: int = 0) -> TensorDict:
         "observation": obs, "action": torch.rand(n, 2, generator=g) * 2 - 1,
         "return": obs[:, 0] * 3 + torch.rand(n, generator=g),
         "next": {"observation": torch.randn(n, 4, generator=g), "reward": torch.randn(n, 1, generator=g),
-                 "terminated": torch.rand(n, 1, generator=g) < 0.05},
+                 "terminated": (end := torch.rand(n, 1, generator=g) < 0.05), "done": end},
     }, [n])
 
 
-#: each algorithm's config overrides: tiny networks, mini-batches of 16
-OVERRIDES = {
-    "bc": POLICY,
-    "bail": {**POLICY, "envelope": {"hidden": [16], "epochs": 3, "batch_size": 50}},
-    "pbail": {**POLICY, "envelope": {"hidden": [16], "validate_every": 2, "patience": 2}},
-    "marwil": {**POLICY, "value": {"hidden": [16]}, "c2_rate": 0.1},
-    "bcq": TWIN_CRITIC,
-    "bear": {**TWIN_CRITIC, "warm_start_updates": 5},
-}
-ALGOS = {name: lambda name=name: ALGORITHMS[name](4, SPEC, algo_config(name, **OVERRIDES[name]))
-         for name in OVERRIDES}
+#: beyond the contract's tiny configs: the 13 updates compared cross Progressive BAIL's early stop and BEAR's warm
+#: start
+SWITCHES = {"pbail": {"envelope.patience": 2}, "bear": {"warm_start_updates": 5}}
+ALGOS = {name: lambda case=case: case.build(**SWITCHES.get(case.name, {})) for name, case in ALGO_CASES.items()}
 
 
 def _updates(algo, data, n: int, seed: int) -> list[dict]:
@@ -155,6 +147,9 @@ RUN = {
              "algo.batch_size=100"],
     "bcq": ["algo=bcq", "algo.epochs=0.004", "eval.every_epochs=0.001", "algo.vae.hidden=[16,16]",
             "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]", "algo.batch_size=50"],
+    # killed after odd and even updates: the actor's delay counts on from the checkpoint
+    "td3bc": ["algo=td3bc", "algo.epochs=0.004", "eval.every_epochs=0.001", "algo.actor.hidden=[16,16]",
+              "algo.critic.hidden=[16,16]", "algo.batch_size=50"],
 }
 
 
@@ -177,7 +172,7 @@ def _outputs(run_dir) -> dict:
     return {"summary": summary, "logs": logs, "weights": weights}
 
 
-@pytest.mark.parametrize("algo", ["bail", "bcq"])
+@pytest.mark.parametrize("algo", list(RUN))
 def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir, monkeypatch, algo):
     from torchrl_bail import train as train_module
 
@@ -211,7 +206,7 @@ def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir
         with pytest.raises(_Kill):
             train_module.run(cfg, run_dir)
     monkeypatch.setattr(algorithms_module, "build_algorithm", build)
-    summary = train_module.run(cfg, run_dir)
+    (summary,) = train_module.run(cfg, run_dir)
     assert summary["resumed_from_iteration"], "the last start resumed from a checkpoint"
     resumed = _outputs(run_dir)
     assert resumed["summary"] == reference["summary"]
@@ -224,10 +219,10 @@ def test_finished_run_is_reported_and_changed_config_refused(tmp_path, data_dir,
 
     run_dir = tmp_path / "run"
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
-    first = train_module.run(cfg, run_dir)
+    (first,) = train_module.run(cfg, run_dir)
     monkeypatch.setattr(trainer_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     with caplog.at_level("INFO", logger="torchrl_bail"):
-        again = train_module.run(cfg, run_dir)
+        (again,) = train_module.run(cfg, run_dir)
     assert again == first and again["resumed_from_iteration"] == []
     assert "already complete" in caplog.text and "summary.json" in caplog.text
     # run-only keys may change; anything else is refused, naming the key
@@ -236,7 +231,7 @@ def test_finished_run_is_reported_and_changed_config_refused(tmp_path, data_dir,
     with pytest.raises(ResumeError, match=r"algo\.epochs: 0\.002 -> 0\.004"):
         train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001"), run_dir)
     monkeypatch.undo()
-    restarted = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001",
+    (restarted,) = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.004", "eval.every_epochs=0.001",
                                       "resume=false"), run_dir)
     assert restarted["iterations"] == 2 * first["iterations"]
 
@@ -249,14 +244,14 @@ def test_checkpoints_written_before_a_key_existed_still_resume(tmp_path, data_di
 
     run_dir = tmp_path / "run"
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
-    first = train_module.run(cfg, run_dir)
+    (first,) = train_module.run(cfg, run_dir)
     monkeypatch.setattr(trainer_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     path = run_dir / "checkpoint.pt"
     checkpoint = torch.load(path, weights_only=False)
     assert not set(ADDED_KEYS) & set(checkpoint["config"])  # written at the defaults: left out
     for old_layout in ({}, {"seeds": None}, {"seeds": None, "compile": False}):
         torch.save({**checkpoint, "config": {**checkpoint["config"], **old_layout}}, path)
-        assert train_module.run(cfg, run_dir) == first
+        assert train_module.run(cfg, run_dir) == [first]
     torch.save({**checkpoint, "config": {**checkpoint["config"], "compile": True}}, path)
     with pytest.raises(ResumeError, match=r"compile: True -> \(absent\)"):
         train_module.run(cfg, run_dir)
@@ -267,8 +262,8 @@ def test_resume_from_another_run_dir_and_the_lock(tmp_path, data_dir):
 
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
     source = tmp_path / "old_run"
-    expected = train_module.run(cfg, source)
-    moved = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001",
+    (expected,) = train_module.run(cfg, source)
+    (moved,) = train_module.run(_cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001",
                                   f"resume={source}"), tmp_path / "new_run")
     assert moved["final_return"] == expected["final_return"] and moved["resumed_from_iteration"] == [2]
     assert (tmp_path / "new_run" / "logs" / "scalars" / "eval" / "return.csv").read_text() == \
@@ -299,3 +294,25 @@ def test_run_dirs_are_derived_from_the_config_and_slurm_requeues():
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=hopper_ddpg05", "hydra/launcher=slurm"], return_hydra_config=True)
     assert cfg.hydra.launcher.max_num_timeout > 0  # a timed-out job is requeued, and resumes
+
+
+def test_a_dataset_run_records_and_groups_by_its_dataset_not_the_unread_batch(tmp_path):
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.resume import _comparable, comparable_config, diff_configs, record_config
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        generated = compose("config", overrides=["+exp=hopper_ddpg05"])
+        imported = compose("config", overrides=["dataset=/data/hopper_medium-v2.hdf5", "env=hopper", "algo=bc"])
+    assert (generated.logger.group, imported.logger.group) == ("hopper_ddpg05_b1", "hopper_medium-v2")
+    record_config(imported, tmp_path / "config.yaml")
+    recorded = OmegaConf.to_container(OmegaConf.load(tmp_path / "config.yaml"))
+    assert "batch" not in recorded and recorded["dataset"] == "/data/hopper_medium-v2.hdf5"
+    assert "batch" not in comparable_config(imported)
+    # a checkpoint of an older dataset run, which recorded the batch group, still resumes
+    older = {**OmegaConf.to_container(imported, resolve=True), "batch": {"kind": "ddpg05"}}
+    assert diff_configs(_comparable(older), comparable_config(imported)) == []
+    # a generated batch's run records exactly what it recorded before
+    record_config(generated, tmp_path / "generated.yaml")
+    OmegaConf.save(generated, tmp_path / "saved.yaml", resolve=True)
+    assert (tmp_path / "generated.yaml").read_text() == (tmp_path / "saved.yaml").read_text()

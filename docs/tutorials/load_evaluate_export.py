@@ -61,7 +61,8 @@ def main() -> None:
         via_pt2 = exported(observation)
     via_onnx = session.run(None, {session.get_inputs()[0].name: observation.numpy()})[0]
     print(f"pt2 export: largest difference from the loaded policy {float((via_pt2 - action).abs().max()):.2e}")
-    print(f"onnx export: largest difference from the loaded policy {float(np.abs(via_onnx - action.numpy()).max()):.2e}")
+    onnx_gap = float(np.abs(via_onnx - action.numpy()).max())
+    print(f"onnx export: largest difference from the loaded policy {onnx_gap:.2e}")
 
 
 if __name__ == "__main__":

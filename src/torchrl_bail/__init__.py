@@ -11,7 +11,7 @@ import sys
 
 __version__ = "0.1.0"
 
-from torchrl_bail.config import config_dir  # noqa: E402  (light: Hydra/OmegaConf only)
+from torchrl_bail.config import config_dir  # noqa: E402, F401  (re-exported; light: Hydra/OmegaConf only)
 
 
 def fast_tensordict_outputs() -> None:

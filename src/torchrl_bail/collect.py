@@ -1,7 +1,8 @@
 """Make (or find) a behaviour batch: ``python -m torchrl_bail.collect +exp=hopper_ddpg05 [preset=quick]``.
 
 The batch for ``env`` x ``batch`` is collected once and cached under ``data_dir`` (see
-:mod:`torchrl_bail.data.cache`, made by :mod:`torchrl_bail.behaviour`); a second call only reports it. Multirun works as for training::
+:mod:`torchrl_bail.data.cache`, made by :mod:`torchrl_bail.behaviour`); a second call only reports it. Multirun works
+as for training::
 
     python -m torchrl_bail.collect -m +exp=hopper_ddpg05 batch.index=1,2
 
@@ -13,6 +14,12 @@ Convert and cache a dataset you already have (D4RL-layout ``.hdf5``, local Minar
 :mod:`torchrl_bail.data.importers`), checking its sizes against an env (a ``conf/env`` name or a gymnasium id)::
 
     python -m torchrl_bail.collect --import PATH [--env hopper] [--data-dir DIR]
+
+Write a batch as a Minari dataset (made or found as by the plain command; ``dataset=PATH`` exports an imported or
+native batch; see :mod:`torchrl_bail.data.minari_export`) into Minari's data path (``$MINARI_DATASETS_PATH``)::
+
+    python -m torchrl_bail.collect --export-minari bail/hopper-ddpg05-b1-v0 +exp=hopper_ddpg05 [--force]
+        [--ref-max-score R]
 """
 
 from __future__ import annotations
@@ -26,9 +33,9 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
-from torchrl_bail.config import exit_on_config_error, run_cli, validate_config
+from torchrl_bail.config import CommandLineError, exit_on_config_error, run_cli, validate_config
 
-__all__ = ["main", "collect", "format_listing", "import_main"]
+__all__ = ["collect", "export_main", "format_listing", "import_main", "main"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -126,9 +133,7 @@ def _list_main(argv: list[str]) -> int:
     for arg in it:
         if arg == "--data-dir":
             data_dir = next(it, None)
-        elif arg.startswith("--data-dir="):
-            data_dir = arg.split("=", 1)[1]
-        elif arg.startswith("data_dir="):
+        elif arg.startswith(("--data-dir=", "data_dir=")):
             data_dir = arg.split("=", 1)[1]
         elif arg != "--list":
             print(f"--list accepts only --data-dir DIR (or data_dir=DIR), got {arg!r}", file=sys.stderr)
@@ -193,12 +198,81 @@ def import_main(argv: list[str]) -> int:
     return 0
 
 
+def _export_options(argv: list[str]) -> tuple[dict, list[str]]:
+    """``(options, Hydra overrides)`` of an ``--export-minari`` command line; :class:`CommandLineError` for a bad
+    one."""
+    opts: dict = {"dataset_id": None, "force": False, "ref_max_score": None}
+    overrides = []
+    it = iter(argv)
+    for arg in it:
+        key, eq, value = arg.partition("=")
+        if key in ("--export-minari", "--ref-max-score"):
+            value = value if eq else next(it, None)
+            if value is None:
+                raise CommandLineError(f"{key} needs a value")
+            if key == "--ref-max-score":
+                try:
+                    opts["ref_max_score"] = float(value)
+                except ValueError:
+                    raise CommandLineError(f"--ref-max-score {value!r}: expected a number (a return)") from None
+            else:
+                opts["dataset_id"] = value
+        elif arg == "--force":
+            opts["force"] = True
+        elif arg.startswith("-"):
+            raise CommandLineError(f"--export-minari accepts only --force, --ref-max-score R and key=value "
+                                   f"overrides (one batch, no -m), got {arg!r}")
+        else:
+            overrides.append(arg)
+    return opts, overrides
+
+
+def export_main(argv: list[str]) -> int:
+    """``--export-minari DATASET_ID [--force] [--ref-max-score R] <overrides>``: make or find the batch of the
+    overrides (or import ``dataset=PATH``) and write it as a Minari dataset; prints where."""
+    from hydra import compose, initialize_config_dir
+
+    with exit_on_config_error():  # a bad command line, config or batch: one line, exit code 2
+        opts, overrides = _export_options(argv)
+        if opts["dataset_id"] is None:
+            raise CommandLineError("--export-minari needs a dataset id, e.g. bail/hopper-ddpg05-b1-v0")
+        with initialize_config_dir(str(config_dir()), version_base="1.3"):
+            cfg = compose("config", overrides=overrides)
+        validate_config(cfg)
+        from torchrl_bail.data.minari_export import MinariExportError, check_dataset_id, export_minari
+        from torchrl_bail.train import load_training_batch
+
+        logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
+        try:
+            check_dataset_id(opts["dataset_id"], force=opts["force"])  # before a collection that may take hours
+            batch = load_training_batch(cfg)
+            path = export_minari(batch, opts["dataset_id"], force=opts["force"],
+                                 ref_max_score=opts["ref_max_score"])
+        except MinariExportError as err:
+            print(f"torchrl_bail: {err}", file=sys.stderr)
+            return 2
+    import minari
+
+    dataset = minari.MinariDataset(path / "data")
+    meta = dataset.storage.metadata
+    print(f"{opts['dataset_id']}: {dataset.total_episodes} episodes, {dataset.total_steps} steps of "
+          f"{batch.metadata.get('name', Path(str(batch.path)).name)} at {path}")
+    print(f"  env {batch.env_id}; ref_min_score {meta.get('ref_min_score')}, ref_max_score "
+          f"{meta.get('ref_max_score')}")
+    print(f"  load it: minari.load_dataset({opts['dataset_id']!r}) | python -m torchrl_bail.train dataset={path}")
+    sys.stdout.flush()
+    return 0
+
+
 def main() -> None:
     argv = sys.argv[1:]
     if "--list" in argv:
         raise SystemExit(_list_main(argv))
     if any(a == "--import" or a.startswith("--import=") for a in argv):
         raise SystemExit(import_main(argv))
+    if any(a == "--export-minari" or a.startswith("--export-minari=") for a in argv):
+        os.environ.setdefault("RL_WARNINGS", "0")
+        raise SystemExit(export_main(argv))
     # keep collection runs' Hydra files apart from training runs, unless the user chose a directory
     extra = []
     if not any(a.startswith(("hydra.run.dir", "hydra.sweep.dir")) for a in argv):

@@ -40,6 +40,7 @@ from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these a
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_bail.io import describe_file_error
 from torchrl_bail.resume import ResumeError, register_resolvers
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
@@ -328,6 +329,7 @@ class MARWILConfig(AlgoConfig):
     vf_coeff: float = non_negative()
     max_exponent: float = positive()
     eps: float = non_negative()
+    value_warmup_updates: int = at_least(0)
     value: NetConfig = MISSING
     policy: NetConfig = MISSING
 
@@ -376,7 +378,7 @@ class BEARActorConfig(NetConfig):
 class BEARConfig(TwinCriticVAEConfig):
     kernel_sigma: float = positive()
     num_samples_match: int = at_least(1)
-    mmd_stabiliser: float = non_negative()
+    mmd_stabilizer: float = non_negative()
     epsilon: float = non_negative()
     log_alpha_init: Optional[float] = None
     log_alpha_min: float = MISSING
@@ -388,6 +390,20 @@ class BEARConfig(TwinCriticVAEConfig):
     def check(self) -> None:
         super().check()
         self._ordered("log_alpha_min", "log_alpha_max")
+
+
+@dataclass
+class TD3BCConfig(AlgoConfig):
+    alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
+    policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
+    noise_clip: float = non_negative("a non-negative clip of the target policy's noise, times max_action")
+    policy_delay: int = at_least(1, "a positive number of critic updates per actor update")
+    gamma: float = discount()
+    tau: float = _rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    normalize_observations: bool = MISSING
+    normalize_eps: float = positive("a positive number added to the observations' standard deviation")
+    actor: NetConfig = MISSING
+    critic: CriticConfig = MISSING
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -498,7 +514,7 @@ class Config(_Checked):
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
-                "bcq": BCQConfig, "bear": BEARConfig}
+                "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig}
 BATCH_SCHEMAS = {"ddpg": DDPGBatchConfig, "sac": SACBatchConfig, "sac_exec": SACExecBatchConfig}
 
 
@@ -681,7 +697,8 @@ def _precompose(argv: list[str]) -> None:
 
 @contextlib.contextmanager
 def exit_on_config_error() -> Iterator[None]:
-    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+    """A configuration or dataset error, or a file-system fault (:func:`~torchrl_bail.io.describe_file_error`),
+    inside the body ends the process: ONE line on stderr, exit code 2.
 
     Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
     the first bad job without Hydra's multi-line report. Other errors keep their traceback.
@@ -690,6 +707,12 @@ def exit_on_config_error() -> Iterator[None]:
         yield
     except _config_errors() as err:
         print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
+        sys.exit(2)
+    except Exception as err:  # a full disk, no permission, a read-only file system: the file and the remedy
+        message = describe_file_error(err)
+        if message is None:
+            raise
+        print(f"torchrl_bail: {message}", file=sys.stderr)
         sys.exit(2)
 
 

@@ -140,7 +140,8 @@ def envelope_split(
         ``(train_index, val_index)``, int64 CPU tensors; ``train_index[0]`` is the index of the largest return.
 
     Examples:
-        >>> train, val = envelope_split(torch.tensor([0.0, 5.0, 1.0, 2.0, 3.0]), generator=torch.Generator().manual_seed(0))
+        >>> returns = torch.tensor([0.0, 5.0, 1.0, 2.0, 3.0])
+        >>> train, val = envelope_split(returns, generator=torch.Generator().manual_seed(0))
         >>> int(train[0]), len(train), len(val)
         (1, 5, 0)
         >>> train, val = envelope_split(torch.arange(10.0), generator=torch.Generator().manual_seed(0))

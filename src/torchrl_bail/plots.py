@@ -1,5 +1,6 @@
 """Figures a person would rather look at than read: a run's learning curve and the helpers of the report's
-figures (:mod:`torchrl_bail.report`; the envelope plot is in :mod:`torchrl_bail.envelope`). All figures are written atomically (temp file, then rename).
+figures (:mod:`torchrl_bail.report`; the envelope plot is in :mod:`torchrl_bail.envelope`). All figures are written
+atomically (temp file, then rename).
 
 Figures are plain :class:`matplotlib.figure.Figure` objects rendered straight to files: importing this module
 neither imports matplotlib nor selects a backend, so a notebook or GUI using :mod:`torchrl_bail` keeps its own.

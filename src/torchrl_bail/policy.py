@@ -4,8 +4,9 @@ A run writes ``policy.pt`` (the final policy) and ``policy_best.pt`` (the best-e
 :func:`save_policy`. Each is a plain ``torch.save`` dict holding everything needed to rebuild the actor without the
 run's data: the algorithm, observation size, action size and bounds, the hidden sizes of its networks, the env id,
 the run's resolved config, where in training it was taken (iteration, epoch, evaluation return) and the policy's
-state dict. :func:`load_policy` returns a ready TensorDict policy (reads ``"observation"``, writes ``"action"``):
-the deterministic tanh actor of BAIL, Progressive BAIL, BC and MARWIL, or the best-of-N policy of BCQ and BEAR
+state dict. :func:`load_policy` returns a ready TensorDict policy (reads ``"observation"``, writes ``"action"``),
+rebuilt as the algorithm's class says (:meth:`~torchrl_bail.algorithms.base.Algorithm.rebuild_policy`): the
+deterministic tanh actor of BAIL, Progressive BAIL, BC and MARWIL, or the best-of-N policy of BCQ and BEAR
 (``num_samples`` candidates, the best by ``Q_1``; it draws its candidates from torch's random stream).
 
 :func:`export_policy` writes a file that runs with plain torch (or onnxruntime), without this package, as a
@@ -21,6 +22,8 @@ format         BAIL, Progressive BAIL, BC,      BCQ, BEAR (samples candidates)
 =============  ===============================  ===========================================================
 
 ``onnx`` needs the ``export`` extra (``pip install "torchrl_bail[export]"``: onnx, onnxscript, onnxruntime).
+An ONNX file holds its weights (one file to copy); only a model with more than :data:`ONNX_EMBED_LIMIT` bytes of
+weights has them beside it in ``<file>.data`` (:func:`onnx_external_data`). A re-export leaves nothing else.
 
 Examples:
     >>> import torch, tempfile
@@ -41,25 +44,26 @@ Examples:
 from __future__ import annotations
 
 import copy
+import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
-from torchrl_bail.algorithms import build_algorithm
-from torchrl_bail.io import atomic_path
-from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+from torchrl_bail.algorithms import ALGORITHMS
+from torchrl_bail.io import atomic_path, write_atomic
+from torchrl_bail.modules import action_spec_from_bounds
 
 __all__ = ["POLICY_FORMAT", "EXPORT_FORMATS", "PolicyFileError", "save_policy", "read_policy_file", "load_policy",
-           "policy_actions", "export_policy"]
+           "policy_actions", "export_policy", "onnx_external_data"]
 
 POLICY_FORMAT = 1
-#: algorithms whose policy is a deterministic tanh actor (``algo.policy.hidden``)
-DETERMINISTIC = ("bail", "pbail", "bc", "marwil")
-#: algorithms whose policy is the best of ``num_samples`` sampled candidates
-BEST_OF_N = ("bcq", "bear")
 EXPORT_FORMATS = {"pt2": ".pt2", "onnx": ".onnx", "torchscript": ".ts"}
+#: weight bytes up to which an ONNX export embeds its weights (torch's own switch to external data, 1.5 GiB:
+#: protobuf files cannot exceed 2 GiB)
+ONNX_EMBED_LIMIT = 3 * 2**29
 
 
 class PolicyFileError(ValueError):
@@ -75,7 +79,8 @@ def _container(cfg: Any) -> dict:
 
 
 def _network_sizes(algo_cfg: dict) -> dict[str, list[int]]:
-    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with ``hidden``."""
+    """``{"policy": [400, 300]}`` (or ``actor``/``vae``/``critic``...): every block of the algo config with
+    ``hidden``."""
     return {k: [int(h) for h in v["hidden"]] for k, v in algo_cfg.items() if isinstance(v, dict) and "hidden" in v}
 
 
@@ -108,9 +113,7 @@ def save_policy(path: str | Path, algorithm, cfg, *, obs_dim: int, action_spec, 
         "info": {k: (float(v) if isinstance(v, float) else v) for k, v in info.items()},
         "state_dict": {k: v.detach().cpu() for k, v in algorithm.policy.state_dict().items()},
     }
-    with atomic_path(path) as tmp:
-        torch.save(record, tmp)
-    return Path(path)
+    return write_atomic(path, lambda f: torch.save(record, f))
 
 
 def _policy_path(source: str | Path, best: bool = False) -> Path:
@@ -139,13 +142,10 @@ def read_policy_file(source: str | Path, *, best: bool = False) -> dict:
 def _rebuild(record: dict, device) -> nn.Module:
     spec = action_spec_from_bounds(record["action_low"], record["action_high"])
     algo = record["algo"]
-    if algo in DETERMINISTIC:
-        return make_deterministic_actor(record["obs_dim"], spec, tuple(record["hidden"]["policy"]))
-    if algo in BEST_OF_N:  # the loss module holds every network the best-of-N policy uses
-        from omegaconf import OmegaConf
-
-        return build_algorithm(OmegaConf.create(record["config"]["algo"]), record["obs_dim"], spec, device).policy
-    raise PolicyFileError(f"{record['path']}: unknown algorithm {algo!r}")
+    if algo not in ALGORITHMS:
+        raise PolicyFileError(f"{record['path']}: unknown algorithm {algo!r} (this version knows "
+                              f"{', '.join(ALGORITHMS)})")
+    return ALGORITHMS[algo].rebuild_policy(record, spec, device)
 
 
 def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best: bool = False):
@@ -158,7 +158,9 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         device: where the policy runs. Defaults to ``"cpu"``.
         best (bool): the best-evaluated policy instead of the final one (run directories only).
 
-    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights).
+    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights). The policy is
+    for acting: in eval mode, its parameters without ``requires_grad`` (actions carry no graph); call
+    ``policy.requires_grad_(True)`` to fine-tune it.
     """
     record = read_policy_file(source, best=best)
     policy = _rebuild(record, device).to(device)
@@ -166,7 +168,7 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         policy.load_state_dict(record.pop("state_dict"))
     except RuntimeError as err:
         raise PolicyFileError(f"{record['path']}: weights do not fit the recorded networks ({err})") from None
-    policy.eval()
+    policy.eval().requires_grad_(False)
     policy.record = record
     return policy
 
@@ -185,10 +187,48 @@ class _ObservationToAction(nn.Module):
         return self.policy(td).get("action")
 
 
-def policy_actions(policy, observation: torch.Tensor) -> torch.Tensor:
-    """Actions of a TensorDict ``policy`` for a ``[B, obs_dim]`` observation tensor (no gradient)."""
+def policy_actions(policy, observation) -> torch.Tensor:
+    """Actions of a TensorDict ``policy`` for ``[B, obs_dim]`` observations (no gradient).
+
+    ``observation`` may be a tensor or an array (e.g. gymnasium's float64 NumPy observations): it is cast once,
+    here, to the dtype and device of the policy's parameters.
+    """
+    reference = next(iter(policy.parameters()), None)
+    dtype = reference.dtype if reference is not None else torch.get_default_dtype()
+    device = reference.device if reference is not None else None
+    observation = torch.as_tensor(observation, dtype=dtype, device=device)
     with torch.no_grad():
         return _ObservationToAction(policy)(observation)
+
+
+def onnx_external_data(path: str | Path) -> Path:
+    """Where the weights of an ONNX file too large to hold them go: ``<file>.data`` beside it (the name the file
+    itself records, so the pair can be moved together)."""
+    path = Path(path)
+    return path.with_name(path.name + ".data")
+
+
+def _onnx_weight_bytes(program) -> int:
+    return sum(value.const_value.nbytes for value in program.model.graph.initializers.values()
+               if value.const_value is not None)
+
+
+def _save_onnx(program, path: Path) -> None:
+    """Writes ``program`` to ``path`` with its weights inside; above :data:`ONNX_EMBED_LIMIT` bytes of weights
+    (protobuf cannot hold 2 GiB) they go to :func:`onnx_external_data` instead. Either way the files are written
+    under their final names in a scratch directory beside ``path`` and renamed into place (the weights first),
+    and a weights file an earlier export left under that name is removed when this one embeds them."""
+    data = onnx_external_data(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as scratch:
+        staged = Path(scratch) / path.name
+        program.save(staged, external_data=_onnx_weight_bytes(program) > ONNX_EMBED_LIMIT)
+        staged_data = onnx_external_data(staged)
+        if staged_data.exists():
+            os.replace(staged_data, data)
+        else:
+            data.unlink(missing_ok=True)
+        os.replace(staged, path)
 
 
 def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> Path:
@@ -198,13 +238,17 @@ def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> 
         source (str | Path | nn.Module): a run directory, a policy file or a policy from :func:`load_policy`.
         path: the file to write.
         fmt: ``"pt2"`` (``torch.export``), ``"onnx"`` (``torch.onnx.export``) or ``"torchscript"``.
+
+    Returns:
+        ``path``. An ONNX file holds its weights; only above :data:`ONNX_EMBED_LIMIT` bytes of weights are they
+        written beside it as :func:`onnx_external_data` (``<path>.data``), which must travel with it.
     """
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"--export {fmt!r}: expected one of {', '.join(EXPORT_FORMATS)}")
     policy = source if isinstance(source, nn.Module) else load_policy(source, best=best)
     algo = policy.record["algo"]
-    if fmt == "torchscript" and algo in BEST_OF_N:
-        raise ValueError(f"--export torchscript: {algo}'s best-of-N policy samples candidates, which TorchScript "
+    if fmt == "torchscript" and ALGORITHMS[algo].policy_samples:
+        raise ValueError(f"--export torchscript: {algo}'s policy samples (best-of-N candidates), which TorchScript "
                          f"tracing cannot carry; use --export pt2 (same actions for the same torch seed) or onnx")
     # tracing would leave fake tensors in the loss' cached parameters: export a copy
     module = _ObservationToAction(copy.deepcopy(policy)).eval()
@@ -226,7 +270,7 @@ def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> 
                 except ImportError:
                     raise ImportError(f"--export onnx needs the {package!r} package: "
                                       f"pip install \"torchrl_bail[export]\"") from None
-            with atomic_path(path, suffix=".onnx") as tmp:
-                torch.onnx.export(module, (example,), str(tmp), input_names=["observation"], output_names=["action"],
-                                  dynamic_shapes=({0: "batch"},), dynamo=True, verbose=False)
+            program = torch.onnx.export(module, (example,), input_names=["observation"], output_names=["action"],
+                                        dynamic_shapes=({0: "batch"},), dynamo=True, verbose=False)
+            _save_onnx(program, path)
     return path

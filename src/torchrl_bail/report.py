@@ -14,8 +14,8 @@ Finds every ``summary.json`` below the given directories and groups the runs by
 Per group it reports the number of distinct seeds, the mean and sample standard deviation (``ddof=1``) of
 ``final_return`` and ``best_return``, the interquartile mean (IQM) of ``final_return`` with a 95 % stratified
 bootstrap confidence interval (rliable, Agarwal et al. 2021; numpy's stream seeded with ``--bootstrap-seed`` afresh
-for each group, so a group's interval does not depend on the others; see :func:`numpy_seed`) and the mean normalised score where ``summary.json`` has
-one (``final_return_normalized``).
+for each group, so a group's interval does not depend on the others; see :func:`numpy_seed`) and the mean normalized
+score where ``summary.json`` has one (``final_return_normalized``).
 
 ``--out PREFIX`` writes ``PREFIX.md`` (batches as rows, a variant's non-default values in the row name,
 algorithms as columns, the best mean per row in bold), ``PREFIX.csv`` and ``PREFIX.json`` (every group, with
@@ -50,14 +50,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from torchrl_bail.config import ALGO_SCHEMAS
 from torchrl_bail.io import write_json_atomic, write_text_atomic
 from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
-from torchrl_bail.resume import ADDED_KEYS
+from torchrl_bail.resume import ADDED_KEYS, RENAMED_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
            "summarise", "format_markdown", "numpy_seed", "main", "RUN_ONLY_KEYS"]
 
-ALGO_ORDER = ["bail", "pbail", "bc", "marwil", "bcq", "bear"]
+#: the algorithms' order in tables and figures: their schemas' (the registry's)
+ALGO_ORDER = list(ALGO_SCHEMAS)
 #: keys every summary.json must have to enter the report
 REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
 #: config keys (prefixes end in ".") that never separate groups: the seed and what only changes how a run executes
@@ -128,6 +130,9 @@ def _read_config(run_dir: Path) -> dict[str, Any]:
         raise ReportError(f"{path}: unreadable config ({err})") from None
     for key, value in ADDED_KEYS.items():  # runs made before a key existed ran as its default
         config.setdefault(key, value)
+    for old, new in RENAMED_KEYS.items():  # and read a renamed key under its new name
+        if old in config:
+            config[new] = config.pop(old)
     return config
 
 
@@ -431,7 +436,7 @@ def _plot_curves(groups, path: Path) -> Path | None:
     return save_figure(fig, path)
 
 
-def _normalised_scores(groups):
+def _normalized_scores(groups):
     """``label -> (runs x batches)`` matrix and the score's name.
 
     The D4RL/Minari normalised score when every run has one, otherwise ``final_return`` divided by the batch's
@@ -466,7 +471,7 @@ def plot_report(groups, prefix: str, *, reps: int = 2_000, seed: int = 0) -> lis
     curves = _plot_curves(groups, Path(f"{prefix}_curves.png"))
     if curves is not None:
         written.append(curves)
-    matrices, name = _normalised_scores(groups)
+    matrices, name = _normalized_scores(groups)
     if not matrices:
         return written
     library, metrics = _rliable()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
 from torchrl_bail.config import ConfigError, exit_on_config_error, run_cli, validate_config
-from torchrl_bail.resume import Resumption
+from torchrl_bail.resume import Resumption, record_config
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.config.run_cli) in about a second, before they load.
@@ -119,71 +118,15 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return logger
 
 
-def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | list[dict[str, Any]]:
-    """Runs one training job described by ``cfg`` into ``run_dir`` and returns its summary (with ``seeds=``: one
-    summary per seed, see :func:`run_seeds`).
+def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
+    """Runs the training job described by ``cfg`` into ``run_dir``; returns one summary per seed (one for a
+    single-seed run; ``seeds=``: see :func:`run_seeds`).
 
     With ``resume=auto`` (default) a checkpoint in ``run_dir`` is continued and a finished run is reported, not
     trained again (:mod:`torchrl_bail.resume`).
     """
     validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
-    if cfg.get("seeds") is not None:
-        return run_seeds(cfg, run_dir)
-    # -- resume: lock the run directory, then continue, report complete, or start fresh --------------------------
-    with Resumption(cfg, Path(run_dir)) as resumption:
-        if resumption.complete is not None:
-            return resumption.complete
-        return _run(cfg, Path(run_dir), resumption)
-
-
-def _run(cfg: DictConfig, run_dir: Path, resumption: Resumption) -> dict[str, Any]:
-    from torchrl_bail.algorithms import PrepareContext, build_algorithm
-    from torchrl_bail.evaluation import Evaluator
-    from torchrl_bail.policy import save_policy
-    from torchrl_bail.trainer import train
-
-    start = time.perf_counter()
-    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
-    device = _device(cfg.device)
-    batch = load_training_batch(cfg)
-    # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later run,
-    # resumed ones included) leaves the training streams the same
-    generator = seed_everything(int(cfg.seed))
-    evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
-                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device)
-    try:
-        obs_dim = evaluator.obs_dim
-        data = training_data(cfg, batch, evaluator)
-        logger = make_logger(cfg, run_dir)
-        algorithm = build_algorithm(cfg.algo, obs_dim, evaluator.action_spec, device)
-        # -- resume: a checkpoint restores what prepare fitted; nothing is refitted, logged or plotted twice --------
-        resumption.check_data(data)
-        checkpoint = resumption.checkpoint
-        if checkpoint is not None:
-            algorithm.load_state_dict(checkpoint["algorithm"])
-            train_data = algorithm.restore_prepared(data, PrepareContext(generator=generator))
-        else:
-            ctx = PrepareContext(run_dir=run_dir, logger=logger, generator=generator, progress=cfg.progress)
-            train_data = algorithm.prepare(data, ctx)
-        algorithm.compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
-
-        def keep_best(point, index: int) -> None:  # policy_best.pt: the best-evaluated policy so far
-            save_policy(run_dir / "policy_best.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=evaluator.action_spec,
-                        iteration=point.iteration, epoch=point.epoch, evaluation=index, mean_return=point.mean_return)
-
-        every_minutes = cfg.checkpoint.get("every_minutes")
-        history = train(
-            algorithm, train_data, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
-            eval_every_epochs=cfg.eval.every_epochs, logger=logger,
-            checkpoint_path=run_dir / "checkpoint.pt" if cfg.checkpoint.enabled else None,
-            checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
-            checkpoint_extra=resumption.checkpoint_extra, resume_from=checkpoint, progress=cfg.progress,
-            on_new_best=keep_best,
-        )
-    finally:
-        evaluator.close()
-    return finish_run(cfg, run_dir, batch, algorithm, history, evaluator.action_spec, obs_dim, resumption,
-                      wall_time_s=time.perf_counter() - start + (checkpoint or {}).get("wall_time_s", 0.0))
+    return run_seeds(cfg, run_dir)
 
 
 def training_data(cfg: DictConfig, batch, evaluator):
@@ -264,7 +207,9 @@ def seed_list(cfg: DictConfig) -> list[int]:
         >>> seed_list(OmegaConf.create({"seed": 1, "seeds": [7, 2]}))
         [7, 2]
     """
-    seeds = cfg.seeds
+    seeds = cfg.get("seeds")
+    if seeds is None:
+        return [int(cfg.seed)]
     if isinstance(seeds, int):
         return list(range(int(cfg.seed), int(cfg.seed) + seeds))
     return [int(s) for s in seeds]
@@ -296,22 +241,30 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     Each seed runs with the config of the single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory
     (:func:`seed_run_dir`): the same ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt``
     and ``summary.json``. Seeds whose directory already holds a finished run are reported, not trained again
-    (``resume=auto``); the others train together. The checkpoints are single-seed checkpoints: a killed stacked run
+    (``resume=auto``); the others train together (:func:`_train_seeds`; one seed left, or ``seeds`` null, trains as
+    the single-seed run, its algorithm unstacked). The checkpoints are single-seed checkpoints: a killed stacked run
     continues from them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be
     continued alone (``seed=<s>``).
     """
     import contextlib
 
+    from torchrl_bail.algorithms import ALGORITHMS
     from torchrl_bail.resume import ResumeError
 
     seeds = seed_list(cfg)
-    configs, dirs = [], []
-    for seed in seeds:
-        seed_cfg = cfg.copy()
-        with open_dict(seed_cfg):
-            seed_cfg.seed, seed_cfg.seeds = seed, None
-        configs.append(seed_cfg)
-        dirs.append(seed_run_dir(run_dir, int(cfg.seed), seed))
+    refusal = ALGORITHMS[cfg.algo.name].seed_stack_refusal
+    if len(seeds) > 1 and refusal is not None:
+        raise ConfigError("seeds", seeds, f"null with algo={cfg.algo.name}, whose seeds cannot be stacked ({refusal}); "
+                          f"run them one by one: -m seed={','.join(map(str, seeds))}")
+    configs, dirs = [cfg], [Path(run_dir)]  # a single-seed run (seeds null): its own config and directory
+    if cfg.get("seeds") is not None:
+        configs, dirs = [], []
+        for seed in seeds:
+            seed_cfg = cfg.copy()
+            with open_dict(seed_cfg):
+                seed_cfg.seed, seed_cfg.seeds = seed, None
+            configs.append(seed_cfg)
+            dirs.append(seed_run_dir(run_dir, int(cfg.seed), seed))
     summaries: dict[int, dict[str, Any]] = {}
     with contextlib.ExitStack() as stack:
         todo = []
@@ -327,12 +280,22 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
                               f"{stopped}); a stacked run continues seeds that stopped together: continue them one "
                               "by one (seed=<s>, without seeds=) or start over with resume=false")
         if todo:
-            trained = _run_stacked([configs[i] for i, _ in todo], [dirs[i] for i, _ in todo], [r for _, r in todo])
+            trained = _train_seeds([configs[i] for i, _ in todo], [dirs[i] for i, _ in todo], [r for _, r in todo])
             summaries.update(zip([i for i, _ in todo], trained))
-    return [summaries[i] for i in range(len(seeds))]
+    return [summaries[i] for i in range(len(configs))]
 
 
-def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[Resumption]) -> list[dict[str, Any]]:
+def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[Resumption]) -> list[dict[str, Any]]:
+    """The one run path: trains the seeds of ``configs`` (each with its run directory and resumption) together and
+    finishes each; returns their summaries.
+
+    Every step runs once for all seeds: configs, device, batch, evaluator, training data, loggers, then per seed the
+    seeding, the algorithm and its prepared data (or what its checkpoint restores), the compile, the best-policy
+    callbacks, the training loop and the finish. One place picks the trainee: one seed trains its algorithm itself,
+    on the batch as TorchRL's replay buffer samples it (the single-seed run, bit for bit); several train as one
+    :class:`~torchrl_bail.stacking.SeedStack` on a :class:`~torchrl_bail.stacking.SeedBatchSampler`, each seed
+    drawing its single-seed run's mini-batch stream.
+    """
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.policy import save_policy
@@ -342,13 +305,16 @@ def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     start = time.perf_counter()
     cfg = configs[0]
     for seed_cfg, seed_dir in zip(configs, dirs):
-        OmegaConf.save(seed_cfg, seed_dir / "config.yaml", resolve=True)
+        record_config(seed_cfg, seed_dir / "config.yaml")
     device = _device(cfg.device)
     batch = load_training_batch(cfg)
     seeds = [int(c.seed) for c in configs]
-    log.info("training seeds %s of %s in one process (networks stacked)", seeds, cfg.algo.name)
-    evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seeds=seeds, max_steps=cfg.eval.max_steps,
-                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device)
+    stacked = len(seeds) > 1
+    if stacked:
+        log.info("training seeds %s of %s in one process (networks stacked)", seeds, cfg.algo.name)
+    evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, max_steps=cfg.eval.max_steps,
+                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device,
+                          **({"seeds": seeds} if stacked else {"seed": seeds[0]}))
     try:
         obs_dim, action_spec = evaluator.obs_dim, evaluator.action_spec
         data = training_data(cfg, batch, evaluator)
@@ -359,10 +325,11 @@ def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[
         loggers = [make_logger(c, d) for c, d in zip(configs, dirs)]
         algorithms, contexts, streams = [], [], []
         for seed_cfg, seed_dir, logger, checkpoint in zip(configs, dirs, loggers, checkpoints):
-            # exactly what a single-seed run does: seed, build; its mini-batch stream continues the global one
+            # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later
+            # run, resumed ones included) leaves the training streams the same
             generator = seed_everything(int(seed_cfg.seed))
             algorithms.append(build_algorithm(seed_cfg.algo, obs_dim, action_spec, device))
-            streams.append(_sampling_stream(int(seed_cfg.seed), device))
+            streams.append(_sampling_stream(int(seed_cfg.seed), device))  # a stacked seed's mini-batch stream
             if checkpoint is not None:  # a checkpoint restores what prepare fitted: nothing is refitted or logged
                 algorithms[-1].load_state_dict(checkpoint["algorithm"])
                 contexts.append(PrepareContext(generator=generator))
@@ -371,30 +338,43 @@ def _run_stacked(configs: list[DictConfig], dirs: list[Path], resumptions: list[
                                                progress=cfg.progress))
         if resuming:
             prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts)]
-        else:
+        elif stacked:
             prepared = prepare_seeds(algorithms, data, contexts)
-        stack = SeedStack(algorithms)
-        stack.host.compile(cfg.compile)  # the one update all seeds share; a no-op for compile=false
-        sampler = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
+        else:
+            prepared = [algorithms[0].prepare(data, contexts[0])]
+        # -- the trainee: the algorithm itself, or the seeds' stack ---------------------------------------------------
+        if stacked:
+            stack = SeedStack(algorithms)
+            trainee, unstack = stack, stack.unstack
+            source = SeedBatchSampler(prepared, stack.batch_size, streams, device=device)
+            stack.host.compile(cfg.compile)  # the one update all seeds share; a no-op for compile=false
+        else:
+            trainee, source, unstack = algorithms[0], prepared[0], lambda: None
+            trainee.compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
 
-        def keep_best(i: int):
+        def keep_best(i: int):  # policy_best.pt: the best-evaluated policy of seed i so far
             def save(point, index: int) -> None:
-                stack.unstack()
+                unstack()
                 save_policy(dirs[i] / "policy_best.pt", algorithms[i], configs[i], obs_dim=obs_dim,
                             action_spec=action_spec, iteration=point.iteration, epoch=point.epoch, evaluation=index,
                             mean_return=point.mean_return)
             return save
 
+        def per_seed(values: list) -> Any:  # the training loop takes one seed's values bare
+            return values if stacked else values[0]
+
         every_minutes = cfg.checkpoint.get("every_minutes")
         histories = train(
-            stack, sampler, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
-            eval_every_epochs=cfg.eval.every_epochs, logger=loggers, progress=cfg.progress,
-            checkpoint_path=[d / "checkpoint.pt" for d in dirs] if cfg.checkpoint.enabled else None,
+            trainee, source, evaluate=evaluator, samples_per_epoch=cfg.samples_per_epoch,
+            eval_every_epochs=cfg.eval.every_epochs, logger=per_seed(loggers), progress=cfg.progress,
+            checkpoint_path=per_seed([d / "checkpoint.pt" for d in dirs]) if cfg.checkpoint.enabled else None,
             checkpoint_every_s=60.0 * every_minutes if every_minutes else None,
-            checkpoint_extra=[r.checkpoint_extra for r in resumptions], resume_from=checkpoints if resuming else None,
-            on_new_best=[keep_best(i) for i in range(len(configs))],
+            checkpoint_extra=per_seed([r.checkpoint_extra for r in resumptions]),
+            resume_from=per_seed(checkpoints) if resuming else None,
+            on_new_best=per_seed([keep_best(i) for i in range(len(configs))]),
         )
-        stack.unstack()
+        histories = histories if stacked else [histories]
+        unstack()
     finally:
         evaluator.close()
     wall_time_s = time.perf_counter() - start + (checkpoints[0] or {}).get("wall_time_s", 0.0)
@@ -463,9 +443,7 @@ def _hydra_main(cfg: DictConfig) -> float:
         log.info("torch threads: %d", threads)
     with exit_on_config_error():
         summaries = run(cfg, Path(HydraConfig.get().runtime.output_dir))
-    if isinstance(summaries, list):  # seeds=: the sweeper's objective is the mean over the seeds
-        return sum(s["final_return"] for s in summaries) / len(summaries)
-    return summaries["final_return"]
+    return sum(s["final_return"] for s in summaries) / len(summaries)  # the sweeper's objective: the seeds' mean
 
 
 def main() -> None:

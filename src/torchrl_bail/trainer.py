@@ -38,7 +38,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from tqdm.auto import tqdm
 
 from torchrl_bail.algorithms.base import Algorithm
-from torchrl_bail.io import atomic_path
+from torchrl_bail.io import write_atomic
 
 __all__ = ["CHECKPOINT_FORMAT", "EvalPoint", "TrainHistory", "rng_state", "save_checkpoint", "set_rng_state", "train"]
 
@@ -71,9 +71,8 @@ class TrainHistory:
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """``torch.save`` to a temp file in the same directory, then an atomic rename."""
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    """``torch.save`` to a temp file in the same directory, then an atomic rename (a full disk: one line naming it)."""
+    write_atomic(path, lambda f: torch.save(state, f))
 
 
 def rng_state() -> dict[str, Any]:

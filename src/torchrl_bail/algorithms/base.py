@@ -26,7 +26,11 @@ from torchrl.data import TensorSpec
 
 from torchrl_bail.config import COMPILE_MODES, checked_algo_config, is_compile_setting
 
-__all__ = ["Algorithm", "PrepareContext"]
+__all__ = ["REGISTRY", "Algorithm", "PrepareContext"]
+
+#: every algorithm class by its ``name`` (``algo.name``), filled as each class that sets ``name`` is defined
+#: (:meth:`Algorithm.__init_subclass__`); :data:`torchrl_bail.algorithms.ALGORITHMS` is this, in the schemas' order
+REGISTRY: dict[str, type[Algorithm]] = {}
 
 
 class PrepareContext:
@@ -54,19 +58,39 @@ class PrepareContext:
 class Algorithm(ABC):
     """Base class: networks in :attr:`modules`, optimizers in :attr:`optimizers`, a schedule, a policy.
 
-    Subclasses set ``name`` (their ``conf/algo/<name>.yaml``), build their networks/losses/optimizers in
-    ``__init__`` from :attr:`config` and implement :meth:`update`. The defaults of :meth:`prepare` (train on the
-    whole batch) and :meth:`summary` (nothing to add) suit most baselines.
+    Subclasses set ``name`` (their ``conf/algo/<name>.yaml``; setting it registers the class in :data:`REGISTRY`),
+    build their networks/losses/optimizers in ``__init__`` from :attr:`config` and implement :meth:`update`. The
+    defaults of :meth:`prepare` (train on the whole batch), :meth:`summary` (nothing to add),
+    :meth:`rebuild_policy` (the policy of a ``policy.pt`` file) and :attr:`seed_stack_refusal` (``seeds=`` stacks
+    it) suit most baselines. What other modules look up by an algorithm's name lives here, on its class.
 
     Args:
         obs_dim (int): observation size.
         action_spec (TensorSpec): the bounded action spec.
-        config (DictConfig | Mapping): the algorithm's config group (see the module docstring); checked against its schema
-            (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
+        config (DictConfig | Mapping): the algorithm's config group (see the module docstring); checked against its
+            schema (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
         device: training device. Defaults to ``"cpu"``.
     """
 
     name: str = "algorithm"
+    #: why ``seeds=`` cannot train this algorithm's seeds stacked (:mod:`torchrl_bail.stacking`), in a few words;
+    #: ``None`` when it can
+    seed_stack_refusal: str | None = None
+    #: whether the evaluation policy draws random numbers (BCQ's and BEAR's best-of-N candidates): TorchScript
+    #: tracing cannot carry them (:func:`torchrl_bail.policy.export_policy`)
+    policy_samples: bool = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" in vars(cls):
+            REGISTRY[cls.name] = cls
+
+    @classmethod
+    def rebuild_policy(cls, record: dict[str, Any], action_spec: TensorSpec, device) -> nn.Module:
+        """The evaluation policy of a ``policy.pt`` record (:func:`torchrl_bail.policy.read_policy_file`), with
+        fresh weights (:func:`~torchrl_bail.policy.load_policy` loads the file's): the algorithm built from the
+        record's config, its :attr:`policy` (a subclass whose policy needs less overrides this)."""
+        return cls(record["obs_dim"], action_spec, record["config"]["algo"], device).policy
 
     def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device: torch.device | str = "cpu") -> None:
         self.config = checked_algo_config(self.name, config)

@@ -65,6 +65,11 @@ class DeterministicActorAlgorithm(Algorithm):
     def policy(self):
         return self.actor
 
+    @classmethod
+    def rebuild_policy(cls, record, action_spec: TensorSpec, device):
+        """The tanh actor alone, from the record's ``hidden["policy"]`` (nothing else of the algorithm is built)."""
+        return make_deterministic_actor(record["obs_dim"], action_spec, tuple(record["hidden"]["policy"]))
+
 
 class BehaviourCloning(DeterministicActorAlgorithm):
     """BC on whatever :meth:`prepare` returns (the whole batch here), from ``conf/algo/bc.yaml``'s config.

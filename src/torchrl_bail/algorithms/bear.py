@@ -59,7 +59,7 @@ class BEAR(TwinCriticVAEAlgorithm):
                                log_std_max=float(cfg.actor.log_std_max))
         return BEARLoss(actor, critics, vae, action_spec=spec, num_samples=cfg.num_samples,
                         num_samples_match=cfg.num_samples_match, kernel_sigma=cfg.kernel_sigma, epsilon=cfg.epsilon,
-                        noise_clip=cfg.actor.noise_clip, mmd_stabiliser=cfg.mmd_stabiliser,
+                        noise_clip=cfg.actor.noise_clip, mmd_stabilizer=cfg.mmd_stabilizer,
                         warm_start_updates=cfg.warm_start_updates, log_alpha_init=cfg.log_alpha_init,
                         log_alpha_min=cfg.log_alpha_min, log_alpha_max=cfg.log_alpha_max, lmbda=cfg.lmbda,
                         gamma=cfg.gamma, kl_weight=cfg.kl_weight, deactivate_vmap=deactivate_vmap)

@@ -65,6 +65,8 @@ class TwinCriticVAEAlgorithm(Algorithm):
     policy. Arguments as in :class:`~torchrl_bail.algorithms.base.Algorithm`.
     """
 
+    policy_samples = True
+
     def __init__(self, obs_dim: int, action_spec: TensorSpec, config, device="cpu") -> None:
         super().__init__(obs_dim, action_spec, config, device)
         cfg = self.config

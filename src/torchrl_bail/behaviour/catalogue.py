@@ -79,7 +79,8 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
     root = path.parent
     recipe = config_value(cfg, "batch.recipe")
     start = time.perf_counter()
-    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, config_value(cfg, "batch.steps"), path)
+    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, config_value(cfg, "batch.steps"),
+             path)
     beat = liveness_settings(cfg)[1]
     checkpoint = run_checkpoint(cfg, root) if recipe == "sac" else CollectionCheckpoint.for_config(cfg, root, path.name)
     with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:

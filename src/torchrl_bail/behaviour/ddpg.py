@@ -1,4 +1,5 @@
-"""DDPG training batches (supp. C.2, final buffer): the whole replay buffer of an online DDPG run, as in the BCQ repository.
+"""DDPG training batches (supp. C.2, final buffer): the whole replay buffer of an online DDPG run, as in the BCQ
+repository.
 
 The behaviour agent is the BCQ-repo DDPG (Fujimoto et al. 2018/2019, the "final buffer" of the BCQ paper):
 
@@ -127,8 +128,8 @@ class DDPGAgent(CheckpointableAgent):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step: critic, then actor against the updated critic, then the soft target update.
 
-        The losses are TorchRL's :class:`~torchrl.objectives.DDPGLoss` numbers (``tests/test_behaviour_agents.py`` checks
-        them against it); returned detached as 0-d tensors (no sync per update).
+        The losses are TorchRL's :class:`~torchrl.objectives.DDPGLoss` numbers (``tests/test_behaviour_agents.py``
+        checks them against it); returned detached as 0-d tensors (no sync per update).
         """
         loss_value = self.loss_value(batch)
         self.critic_optim.zero_grad(set_to_none=True)

@@ -1,5 +1,6 @@
-"""SAC execution batches (paper Sec. 5; supp. E): ``batch.steps`` transitions of a frozen SAC policy, mediocre or optimal,
-deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``).
+"""SAC execution batches (paper Sec. 5; supp. E): ``batch.steps`` transitions of a frozen SAC policy, mediocre or
+optimal, deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic
+(``sigma = sigma(s)``).
 
 The policy comes from the shared SAC run (:func:`~torchrl_bail.behaviour.sac.ensure_sac_run`: trained once, reused
 by every execution batch of the same env, seed and ``batch.sac`` block). The metadata keeps the policy file, its

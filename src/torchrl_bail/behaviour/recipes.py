@@ -4,7 +4,8 @@ Recipes (``cfg.batch.recipe``):
 
 * ``ddpg`` -- :mod:`torchrl_bail.behaviour.ddpg`: the whole replay buffer of an online DDPG run with N(0, sigma^2)
   exploration noise (supp. C.2, final buffer).
-* ``sac`` -- :mod:`torchrl_bail.behaviour.sac`: the first ``steps`` transitions of an online SAC run (paper Sec. 5; supp. E).
+* ``sac`` -- :mod:`torchrl_bail.behaviour.sac`: the first ``steps`` transitions of an online SAC run (paper Sec. 5;
+  supp. E).
 * ``sac_exec`` -- :mod:`torchrl_bail.behaviour.execution`: ``steps`` transitions of a frozen SAC policy (mediocre or
   optimal, deterministic or stochastic; paper Sec. 5; supp. E). The SAC run behind it is shared with the ``sac`` batch.
 
@@ -15,10 +16,10 @@ Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, sup
 Examples:
     >>> cfg = {"env": {"name": "hopper", "id": "Hopper-v5", "max_episode_steps": 1000},
     ...        "batch": {"kind": "ddpg05", "recipe": "dqn", "index": 1, "steps": 1000}}
-    >>> validate_recipe(cfg)
+    >>> validate_recipe(cfg)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    torchrl_bail.behaviour.recipes.CollectionConfigError: config key batch.recipe = 'dqn': expected one of ddpg, sac, sac_exec
+    torchrl_bail.behaviour.recipes.CollectionConfigError: config key batch.recipe = 'dqn': expected one of ddpg, ...
 """
 
 from __future__ import annotations
@@ -66,9 +67,11 @@ def validate_recipe(cfg) -> None:
     need(isinstance(config_value(cfg, "batch.kind"), str), "batch.kind", "a string such as ddpg05")
     recipe = config_value(cfg, "batch.recipe")
     need(recipe in RECIPES, "batch.recipe", f"one of {', '.join(RECIPES)}")
-    need(integer("batch.index") and config_value(cfg, "batch.index") >= 1, "batch.index", "an integer >= 1 (B1, B2, ...)")
+    need(integer("batch.index") and config_value(cfg, "batch.index") >= 1, "batch.index",
+         "an integer >= 1 (B1, B2, ...)")
     need(config_value(cfg, "batch.seed") is None or integer("batch.seed"), "batch.seed", "null or an integer")
-    need(integer("batch.steps") and config_value(cfg, "batch.steps") > 0, "batch.steps", "a positive number of transitions")
+    need(integer("batch.steps") and config_value(cfg, "batch.steps") > 0, "batch.steps",
+         "a positive number of transitions")
 
     for key in ("checkpoint_every_s", "lock_stale_after_s", "heartbeat_every_s", "checkpoint_every_steps"):
         value = config_value(cfg, f"batch.{key}")
@@ -81,7 +84,8 @@ def validate_recipe(cfg) -> None:
     if oracle_settings(cfg):
         need(integer("batch.oracle.keep") and config_value(cfg, "batch.oracle.keep") >= 1, "batch.oracle.keep",
              "a positive number of steps kept per episode")
-        need(integer("batch.oracle.horizon") and config_value(cfg, "batch.oracle.horizon") > config_value(cfg, "batch.oracle.keep"),
+        need(integer("batch.oracle.horizon")
+             and config_value(cfg, "batch.oracle.horizon") > config_value(cfg, "batch.oracle.keep"),
              "batch.oracle.horizon", "an episode length larger than batch.oracle.keep")
         need(number("batch.oracle.gamma") and 0 < config_value(cfg, "batch.oracle.gamma") <= 1, "batch.oracle.gamma",
              "a discount in (0, 1]")
@@ -110,8 +114,8 @@ def validate_recipe(cfg) -> None:
         _validate_sac_block(cfg, need, number, integer, hidden)
         if recipe == "sac":
             need(config_value(cfg, "batch.steps") <= config_value(cfg, "batch.sac.train_steps"), "batch.steps",
-                 f"at most batch.sac.train_steps = {config_value(cfg, 'batch.sac.train_steps')} (the batch is the first "
-                 "batch.steps transitions of the SAC run)")
+                 f"at most batch.sac.train_steps = {config_value(cfg, 'batch.sac.train_steps')} (the batch is the "
+                 "first batch.steps transitions of the SAC run)")
         if recipe == "sac_exec":
             need(config_value(cfg, "batch.policy") in EXEC_POLICIES, "batch.policy", "mediocre | optimal")
             need(isinstance(config_value(cfg, "batch.stochastic"), bool), "batch.stochastic",
@@ -128,7 +132,8 @@ def _validate_sac_block(cfg, need, number, integer, hidden) -> None:
     for key in ("actor_lr", "critic_lr", "alpha_lr"):
         need(number(f"batch.sac.{key}") and config_value(cfg, f"batch.sac.{key}") > 0, f"batch.sac.{key}",
              "a positive learning rate")
-    need(number("batch.sac.gamma") and 0 < config_value(cfg, "batch.sac.gamma") <= 1, "batch.sac.gamma", "a discount in (0, 1]")
+    need(number("batch.sac.gamma") and 0 < config_value(cfg, "batch.sac.gamma") <= 1, "batch.sac.gamma",
+         "a discount in (0, 1]")
     need(number("batch.sac.polyak") and 0 <= config_value(cfg, "batch.sac.polyak") < 1, "batch.sac.polyak",
          "a target-network decay in [0, 1) (0.995)")
     need(number("batch.sac.alpha_init") and config_value(cfg, "batch.sac.alpha_init") > 0, "batch.sac.alpha_init",
@@ -136,8 +141,8 @@ def _validate_sac_block(cfg, need, number, integer, hidden) -> None:
     te = config_value(cfg, "batch.sac.target_entropy")
     need(te == "auto" or number("batch.sac.target_entropy"), "batch.sac.target_entropy", "auto or a number")
     need(number("batch.sac.log_std_min") and number("batch.sac.log_std_max")
-         and config_value(cfg, "batch.sac.log_std_min") < config_value(cfg, "batch.sac.log_std_max"), "batch.sac.log_std_min",
-         "log_std_min < log_std_max")
+         and config_value(cfg, "batch.sac.log_std_min") < config_value(cfg, "batch.sac.log_std_max"),
+         "batch.sac.log_std_min", "log_std_min < log_std_max")
     for key, lo in (("batch_size", 1), ("start_steps", 0), ("train_steps", 1), ("eval_every", 1),
                     ("eval_episodes", 1)):
         need(integer(f"batch.sac.{key}") and config_value(cfg, f"batch.sac.{key}") >= lo, f"batch.sac.{key}",

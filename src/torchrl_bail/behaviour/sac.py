@@ -1,12 +1,14 @@
-"""SAC training batches (paper Sec. 5; supp. E) and the shared SAC behaviour run that execution batches (paper Sec. 5; supp. E) reuse.
+"""SAC training batches (paper Sec. 5; supp. E) and the shared SAC behaviour run that execution batches (paper Sec. 5;
+supp. E) reuse.
 
 **The SAC agent** ("sac_adapt", the authors' data generator) on TorchRL's :class:`~torchrl.objectives.SACLoss`
 (v2: no state-value net):
 
-* tanh-Gaussian policy (:func:`~torchrl_bail.modules.make_sac_actor`) ``obs -> 256 -> 256 -> (mu, log sigma)``, ``log sigma`` clamped to [-20, 2], action
-  ``max_action * tanh(mu + sigma * eps)``; its log-probability is that of the *unscaled* tanh output in [-1, 1], as
-  in sac_adapt (``sac.log_prob_on: tanh``, :class:`~torchrl_bail.modules.TanhNormalScoredOnTanh`), in the actor
-  loss, the alpha loss and the soft-Q target alike; the critics see the scaled action;
+* tanh-Gaussian policy (:func:`~torchrl_bail.modules.make_sac_actor`) ``obs -> 256 -> 256 -> (mu, log sigma)``,
+  ``log sigma`` clamped to [-20, 2], action ``max_action * tanh(mu + sigma * eps)``; its log-probability is that of
+  the *unscaled* tanh output in [-1, 1], as in sac_adapt (``sac.log_prob_on: tanh``,
+  :class:`~torchrl_bail.modules.TanhNormalScoredOnTanh`), in the actor loss, the alpha loss and the soft-Q target
+  alike; the critics see the scaled action;
 * twin critics ``(s, a) -> 256 -> 256 -> 1`` with target copies, squared TD error summed over the two critics,
   a TD(0) target with gamma 0.99 that bootstraps on ``terminated``, Polyak averaging 0.995
   (``SoftUpdate(eps=0.995)``);
@@ -29,15 +31,16 @@ weights at every evaluation (``evals/step_<t>.pt``). From it:
 * the ``sac`` batch = the first ``batch.steps`` transitions of the run (the whole run with the defaults);
 * the *optimal* behaviour policy = the weights at the final evaluation;
 * the *mediocre* behaviour policy = the weights at the first evaluation whose mean return reaches
-  ``env.mediocre_threshold`` (paper Sec. 5; supp. E; the threshold is applied when the policy is chosen, so changing it needs no
-  retraining). If no evaluation reaches it, the best evaluation is used and the batch's metadata says so.
+  ``env.mediocre_threshold`` (paper Sec. 5; supp. E; the threshold is applied when the policy is chosen, so changing
+  it needs no retraining). If no evaluation reaches it, the best evaluation is used and the batch's metadata says so.
 
 Whichever of the ``sac``/``med_*``/``opt_*`` batches is asked for first trains the run; the others reuse it. When an
 execution batch triggers the run, the ``sac`` training batch it produces as a by-product is saved too.
 
-**Execution batches** (:mod:`torchrl_bail.behaviour.execution`) run the chosen policy for ``batch.steps`` steps (episodes limited as usual), deterministic
-(``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or stochastic (``sigma = sigma(s)``); the
-metadata keeps the policy file, its evaluation step and its measured return (``behaviour_return``).
+**Execution batches** (:mod:`torchrl_bail.behaviour.execution`) run the chosen policy for ``batch.steps`` steps
+(episodes limited as usual), deterministic (``stochastic: false``, sigma = 0: ``max_action * tanh(mu(s))``) or
+stochastic (``sigma = sigma(s)``); the metadata keeps the policy file, its evaluation step and its measured return
+(``behaviour_return``).
 """
 
 from __future__ import annotations
@@ -376,8 +379,8 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         span = high - low
         evaluations: list[dict] = []
         snapshots: dict[str, dict[str, torch.Tensor]] = {}
-        tracker = ReturnTracker(train_steps, desc=f"SAC {config_value(cfg, 'env.name')} b{config_value(cfg, 'batch.index')}",
-                                progress=progress)
+        desc = f"SAC {config_value(cfg, 'env.name')} b{config_value(cfg, 'batch.index')}"
+        tracker = ReturnTracker(train_steps, desc=desc, progress=progress)
         timers = {"train": 0.0, "eval": 0.0}
 
         def act(observation: torch.Tensor, t: int) -> torch.Tensor:

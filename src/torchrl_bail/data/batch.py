@@ -272,7 +272,7 @@ def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = Fa
         "action_dim": int(td.get("action").shape[-1]),
         **batch_statistics(td),
         "library_versions": library_versions(),
-        "created_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "created_at": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
     meta.update(metadata)
     meta.update(num_transitions=int(td.batch_size[0]))

@@ -197,14 +197,14 @@ def recipe_identity(cfg) -> dict:
     return identity
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unit_action_bounds(env_id: str) -> bool:
     """Whether every action dimension of ``env_id`` lies in ``[-1, 1]`` (the env is made once per process to look)."""
     try:
         import gymnasium
 
         env = gymnasium.make(env_id)
-    except Exception:  # an unknown id: treat the bounds as unknown (not unit)
+    except Exception:  # noqa: BLE001 - an unknown id (gymnasium raises several kinds): bounds unknown, not unit
         return False
     try:
         space = env.action_space

@@ -37,7 +37,11 @@ How a file becomes a batch (TED layout, ``float32`` observations, actions and re
 * A trailing unfinished episode in a file *with* ``next_observations`` is kept whole as the batch's final unfinished
   episode (the batch format allows exactly one, at the end).
 * Minari episodes carry their final observation, so nothing is dropped; an episode whose last step has neither
-  ``terminations`` nor ``truncations`` set (a recording stopped by its collector) is flagged ``truncated``.
+  ``terminations`` nor ``truncations`` set (a recording stopped by its collector) is flagged ``truncated``, except
+  the last episode of a dataset this package exported from a batch whose final episode was still running
+  (metadata ``torchrl_bail.unfinished_final_episode``): it stays the batch's final unfinished episode. Such
+  exports also keep a step flagged both terminated and truncated as it is (the batch held gymnasium's flags as
+  they came); every other dataset gets the "a true terminal wins" rule below.
 
 Every check happens at the edge and raises :class:`DatasetImportError` (a
 :class:`~torchrl_bail.data.batch.BatchValidationError`) naming the file, the key and what was expected: a missing
@@ -119,6 +123,8 @@ log = logging.getLogger("torchrl_bail")
 IMPORTER_VERSION = 1
 #: cached conversions are ``<data_dir>/import_<name>-<hash>``
 IMPORT_PREFIX = "import_"
+#: the metadata block this package writes into the Minari datasets it exports (:mod:`torchrl_bail.data.minari_export`)
+EXPORT_KEY = "torchrl_bail"
 #: the keys a D4RL-layout file must hold (``next_observations`` is optional)
 D4RL_KEYS = ("observations", "actions", "rewards", "terminals", "timeouts")
 HDF5_SUFFIXES = (".hdf5", ".h5")
@@ -607,7 +613,9 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
     check.source = str(source)
     episodes = _minari_hdf5_episodes(data_dir, check) if fmt == "hdf5" else _minari_package_episodes(data_dir, fmt)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("obs", "act", "next", "rew", "term", "trunc")}
+    export = meta.get(EXPORT_KEY) if isinstance(meta.get(EXPORT_KEY), Mapping) else {}
     rows = empty = unflagged = 0
+    last_unflagged = False
     obs_dim = act_dim = None
     for name, ep in episodes:
         for key in ("observations", "actions"):
@@ -633,13 +641,15 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
         if steps == 0:
             empty += 1
             continue
-        trunc, _ = _terminal_wins(term, trunc)
+        if not export:  # this package's own exports keep the batch's flags as recorded (gymnasium's, both may be set)
+            trunc, _ = _terminal_wins(term, trunc)
         early = (term | trunc)[:-1]
         if early.any():
             key = f"{name}/terminations" if term[:-1].any() else f"{name}/truncations"
             check.fail(key, "a flag only on an episode's last step", f"one at step {int(np.flatnonzero(early)[0])} "
                        f"of {steps}")
-        if not (term[-1] or trunc[-1]):
+        last_unflagged = not (term[-1] or trunc[-1])
+        if last_unflagged:
             trunc = trunc.copy()
             trunc[-1] = True  # the recording stopped here: a truncation (the final observation is known)
             unflagged += 1
@@ -653,13 +663,17 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
         rows += steps
     if rows == 0:
         check.fail(None, "at least one transition", f"no steps in any episode ({empty} empty episodes)")
+    unfinished = bool(export.get("unfinished_final_episode")) and last_unflagged
+    if unfinished:  # exported from a batch whose last episode was still running: it stays unfinished
+        parts["trunc"][-1][-1] = False
+        unflagged -= 1
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     td = _ted(cat["obs"], cat["act"], cat["next"], cat["rew"], cat["term"], cat["trunc"])
     info: dict[str, Any] = {
         "rows_in_file": int(rows), "dropped_rows": 0, "placeholder_next_observation_rows": 0,
         "next_observation": "episode observations[t + 1]", "empty_episodes_skipped": empty,
         "episodes_without_end_flag": unflagged, "minari_data_format": fmt,
-        "unfinished_final_episode": False,
+        "unfinished_final_episode": unfinished,
     }
     for key in ("dataset_id", "ref_min_score", "ref_max_score", "algorithm_name", "minari_version"):
         if meta.get(key) is not None:

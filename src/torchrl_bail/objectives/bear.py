@@ -20,18 +20,18 @@ __all__ = ["BEARLoss", "laplacian_mmd"]
 
 
 def laplacian_mmd(x: torch.Tensor, y: torch.Tensor, sigma: torch.Tensor | float,
-                  stabiliser: torch.Tensor | float = 1e-6) -> torch.Tensor:
+                  stabilizer: torch.Tensor | float = 1e-6) -> torch.Tensor:
     """Per-state MMD between two sample sets with the Laplacian kernel ``k(u, v) = exp(-|u - v|_1 / (2 sigma))``.
 
-    ``MMD = sqrt(mean k(x, x') + mean k(y, y') - 2 mean k(x, y) + stabiliser)``, the means running over all
+    ``MMD = sqrt(mean k(x, x') + mean k(y, y') - 2 mean k(x, y) + stabilizer)``, the means running over all
     pairs of the ``N`` (resp. ``M``) samples of one state, self-pairs included (the biased estimator of the
-    authors' code). Identical sample sets give ``sqrt(stabiliser)``.
+    authors' code). Identical sample sets give ``sqrt(stabilizer)``.
 
     Args:
         x (torch.Tensor): samples ``[*B, N, d]`` (BEAR: the VAE's pre-tanh actions).
         y (torch.Tensor): samples ``[*B, M, d]`` (BEAR: the actor's pre-tanh actions).
         sigma: the kernel width (10 in the BAIL runs).
-        stabiliser: added under the square root. Defaults to ``1e-6``.
+        stabilizer: added under the square root. Defaults to ``1e-6``.
 
     Returns:
         ``[*B]``.
@@ -50,8 +50,14 @@ def laplacian_mmd(x: torch.Tensor, y: torch.Tensor, sigma: torch.Tensor | float,
         distance = (u.unsqueeze(-2) - v.unsqueeze(-3)).abs().sum(-1)
         return torch.exp(-distance / (2 * sigma)).mean((-2, -1))
 
-    return (mean_kernel(x, x) + mean_kernel(y, y) - 2 * mean_kernel(x, y) + stabiliser).sqrt()
+    return (mean_kernel(x, x) + mean_kernel(y, y) - 2 * mean_kernel(x, y) + stabilizer).sqrt()
 
+
+def _stabilizer_renamed(state_dict: dict, prefix: str, *_) -> None:
+    """Loads a state dict written when the buffer ``mmd_stabilizer`` was spelled ``mmd_stabiliser``."""
+    old = f"{prefix}mmd_stabiliser"
+    if old in state_dict:
+        state_dict[f"{prefix}mmd_stabilizer"] = state_dict.pop(old)
 
 class BEARLoss(TwinCriticVAELoss):
     """BEAR (version 0): a tanh-Gaussian actor kept on the batch's support by an MMD constraint, twin critics.
@@ -98,7 +104,7 @@ class BEARLoss(TwinCriticVAELoss):
         epsilon (float): the MMD threshold of the Lagrangian. Defaults to ``0.05``.
         noise_clip (float): the actor's MMD samples draw ``eps ~ N(0, I)`` clipped to ``+-noise_clip``.
             Defaults to ``0.5``.
-        mmd_stabiliser (float): added under the MMD's square root. Defaults to ``1e-6``.
+        mmd_stabilizer (float): added under the MMD's square root. Defaults to ``1e-6``.
         warm_start_updates (int): updates during which the actor minimises ``alpha * MMD`` only.
             Defaults to ``100000`` (the authors' 20 ``train()`` calls of 5000 updates).
         log_alpha_init (float, optional): initial ``log_alpha``; ``None`` draws it from ``N(0, 1)`` with torch's
@@ -179,6 +185,8 @@ class BEARLoss(TwinCriticVAELoss):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to, beside the shared ones (an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"kernel_sigma", "epsilon", "mmd_stabilizer", "log_alpha_min", "log_alpha_max"})
     out_keys = ["loss_vae", "loss_qvalue", "loss_actor", "loss_alpha", "recon_loss", "kl_loss", "q_mean",
                 "target_value_mean", "mmd", "actor_q_mean", "alpha", "warm_start"]
 
@@ -194,7 +202,7 @@ class BEARLoss(TwinCriticVAELoss):
         kernel_sigma: float = 10.0,
         epsilon: float = 0.05,
         noise_clip: float = 0.5,
-        mmd_stabiliser: float = 1e-6,
+        mmd_stabilizer: float = 1e-6,
         warm_start_updates: int = 100_000,
         log_alpha_init: float | None = None,
         log_alpha_min: float = -5.0,
@@ -233,7 +241,8 @@ class BEARLoss(TwinCriticVAELoss):
         self.register_buffer("action_scale", (high - low) / 2)
         self.register_coeff_buffer("kernel_sigma", kernel_sigma)
         self.register_coeff_buffer("epsilon", epsilon)
-        self.register_coeff_buffer("mmd_stabiliser", mmd_stabiliser)
+        self.register_coeff_buffer("mmd_stabilizer", mmd_stabilizer)
+        self._register_load_state_dict_pre_hook(_stabilizer_renamed)  # checkpoints and policy files written before
         self.register_coeff_buffer("log_alpha_min", log_alpha_min)
         self.register_coeff_buffer("log_alpha_max", log_alpha_max)
         self.register_buffer("warm_start_updates", torch.tensor(int(warm_start_updates), dtype=torch.long))
@@ -278,7 +287,7 @@ class BEARLoss(TwinCriticVAELoss):
         with torch.no_grad():
             _, vae_raw = self._vae_samples(observation, n)
         actions, raw = self._actor_samples(observation, n, self.actor_network_params, self.noise_clip)
-        mmd = laplacian_mmd(vae_raw, raw, self.kernel_sigma, self.mmd_stabiliser)
+        mmd = laplacian_mmd(vae_raw, raw, self.kernel_sigma, self.mmd_stabilizer)
         q = self._q_values(expand_samples(observation, n), actions, self._cached_detach_qvalue_network_params)
         return {"mmd": mmd, "policy_q": q.mean(-1).amin(0)}
 

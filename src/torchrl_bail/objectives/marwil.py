@@ -69,8 +69,11 @@ class MARWILLoss(LazyInKeysLoss):
 
     The output holds ``loss_actor`` and ``loss_value`` (the back-propagated terms) and detached diagnostics
     reduced over the last batch dimension (scalars for ``[B]`` batches, ``[S]`` for ``[S, B]``):
-    ``advantage_mean``, ``value_mean``, ``weight_mean``, ``weight_max``, ``clamped_fraction`` (share of points
-    whose exponent hit ``max_exponent``) and ``c2`` (the normaliser the weights used).
+    ``advantage_mean``, ``value_mean``, ``weight_mean``, ``weight_max``, ``weight_share_max`` (the largest
+    weight's share of the mini-batch's total weight: ``1/B`` for uniform weights, ``1`` when one point carries all
+    of it), ``clamped_fraction`` (share of points whose exponent hit ``max_exponent``), ``squared_error_mean``
+    (the unweighted ``mean_a (pi(s) - a)^2``: how well the actor imitates the batch, comparable with BC's
+    ``loss_bc``) and ``c2`` (the normaliser the weights used).
 
     Choices made where the paper (supp. C.2) is silent:
 
@@ -112,8 +115,9 @@ class MARWILLoss(LazyInKeysLoss):
         >>> out = loss(data)
         >>> sorted(key for key in out.keys() if key.startswith("loss_"))
         ['loss_actor', 'loss_value']
-        >>> sorted(key for key in out.keys() if not key.startswith("loss_"))
-        ['advantage_mean', 'c2', 'clamped_fraction', 'value_mean', 'weight_max', 'weight_mean']
+        >>> sorted(key for key in out.keys() if not key.startswith("loss_"))  # doctest: +NORMALIZE_WHITESPACE
+        ['advantage_mean', 'c2', 'clamped_fraction', 'squared_error_mean', 'value_mean', 'weight_max',
+         'weight_mean', 'weight_share_max']
         >>> out["loss_actor"].shape, out["loss_value"].shape
         (torch.Size([]), torch.Size([]))
         >>> (out["loss_actor"] + out["loss_value"]).backward()
@@ -154,8 +158,10 @@ class MARWILLoss(LazyInKeysLoss):
     default_keys = _AcceptedKeys
     default_value_estimator = None
     out_keys = ["loss_actor", "loss_value", "advantage_mean", "value_mean", "weight_mean", "weight_max",
-                "clamped_fraction", "c2"]
-    _schedulable_buffers = frozenset({"beta"})
+                "weight_share_max", "clamped_fraction", "squared_error_mean", "c2"]
+    #: coefficients a float may be assigned to (``loss.beta = 0.5``: an in-place update); not ``c2``, the running
+    #: estimate the loss updates itself
+    _schedulable_buffers = frozenset({"beta", "vf_coeff", "max_exponent", "eps", "c2_rate"})
 
     actor_network: TensorDictModule
     actor_network_params: TensorDictParams
@@ -295,15 +301,18 @@ class MARWILLoss(LazyInKeysLoss):
             action = action.to(predicted.dtype)
         return (predicted - action).square().mean(-1)
 
-    def _diagnostics(self, advantage, value, weight, clamped, mask) -> dict[str, torch.Tensor]:
+    def _diagnostics(self, advantage, value, weight, clamped, error, mask) -> dict[str, torch.Tensor]:
         dtype = advantage.dtype
         valid_weight = weight if mask is None else torch.where(mask, weight, torch.zeros_like(weight))
+        weight_max = valid_weight.amax(-1)
         return {
             "advantage_mean": self._mean_last(advantage.detach(), mask),
             "value_mean": self._mean_last(value.detach(), mask),
             "weight_mean": self._mean_last(weight, mask),
-            "weight_max": valid_weight.amax(-1),
+            "weight_max": weight_max,
+            "weight_share_max": weight_max / valid_weight.sum(-1).clamp_min(torch.finfo(dtype).tiny),
             "clamped_fraction": self._mean_last(clamped.to(dtype), mask),
+            "squared_error_mean": self._mean_last(error.detach(), mask),
             "c2": self.c2.to(dtype, copy=True),
         }
 
@@ -343,8 +352,9 @@ class MARWILLoss(LazyInKeysLoss):
             advantage, value = self._advantage(tensordict)
         mask = self._mask(tensordict, advantage)
         weight, clamped = self._weights(advantage, mask)
-        loss = self._reduce(weight * self._squared_error(tensordict), mask)
-        metadata = self._diagnostics(advantage, value, weight, clamped, mask)
+        error = self._squared_error(tensordict)
+        loss = self._reduce(weight * error, mask)
+        metadata = self._diagnostics(advantage, value, weight, clamped, error, mask)
         self._clear_weakrefs(tensordict, "actor_network_params", "value_network_params")
         return loss, metadata
 
@@ -363,8 +373,9 @@ class MARWILLoss(LazyInKeysLoss):
         mask = self._mask(tensordict, advantage)
         loss_value = self._reduce(self._value_terms(advantage), mask)
         weight, clamped = self._weights(advantage, mask)
-        loss_actor = self._reduce(weight * self._squared_error(tensordict), mask)
+        error = self._squared_error(tensordict)
+        loss_actor = self._reduce(weight * error, mask)
         out = TensorDict({"loss_actor": loss_actor, "loss_value": loss_value,
-                          **self._diagnostics(advantage, value, weight, clamped, mask)})
+                          **self._diagnostics(advantage, value, weight, clamped, error, mask)})
         self._clear_weakrefs(tensordict, out, "actor_network_params", "value_network_params")
         return out

@@ -106,6 +106,8 @@ class VAELoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to (an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"kl_weight"})
     default_value_estimator = None
     out_keys = ["loss_vae", "recon_loss", "kl_loss"]
 
@@ -146,7 +148,8 @@ class VAELoss(LossModule):
         return TensorDict({"loss_vae": loss, **metadata})
 
 
-def conditional_vae_loss(module: LossModule, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def conditional_vae_loss(module: LossModule,
+                         tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The VAE loss of any loss module holding ``vae_network`` (+ params), ``kl_weight`` and the two keys."""
     observation = required_entry(module, tensordict, module.tensor_keys.observation)
     action = required_entry(module, tensordict, module.tensor_keys.action)
