@@ -1,4 +1,4 @@
-"""Reruns the results study of the README ("Results"), or any row of it, from scratch.
+"""Reruns the results study of the docs ("Results"), or any row of it, from scratch.
 
     python results/run_study.py                              # everything: 11 batches, every algorithm, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
@@ -272,7 +272,7 @@ def curve_check(results: Path) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
-                        help="study: the 50k-transition study of the README; paper_hopper: Hopper at the paper's scale")
+                        help="study: the 50k-transition study (docs: Results); paper_hopper: Hopper at paper scale")
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
     parser.add_argument("--workdir", type=Path, help="where outputs/ and logs/ go (default: <study>_work)")

@@ -1,4 +1,4 @@
-"""The README's examples of "The losses in your own code" run as written (each block in a fresh namespace)."""
+"""The examples of the docs page "The losses in your own code" run as written (each block in a fresh namespace)."""
 
 from __future__ import annotations
 
@@ -7,16 +7,11 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-SECTION = "### The losses in your own code"
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "guides" / "losses-in-your-own-code.md"
 
 
 def _blocks() -> list[str]:
-    text = README.read_text()
-    start = text.index(SECTION) + len(SECTION)
-    end = re.search(r"^#{2,3} ", text[start:], flags=re.MULTILINE)
-    section = text[start:start + end.start()] if end else text[start:]
-    return re.findall(r"```python\n(.*?)```", section, flags=re.DOTALL)
+    return re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.DOTALL)
 
 
 def test_the_section_has_its_examples():
@@ -31,7 +26,7 @@ def test_example_runs(index, capsys):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        exec(compile(_blocks()[index], f"README.md example {index + 1}", "exec"), {"__name__": "__readme__"})
+        exec(compile(_blocks()[index], f"{PAGE.name} example {index + 1}", "exec"), {"__name__": "__readme__"})
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out

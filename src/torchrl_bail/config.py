@@ -47,7 +47,7 @@ __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "
            "DDPG_ENVS", "CommandLineError", "Config", "ConfigError", "describe_error", "exit_on_config_error",
            "is_compile_setting", "register_schemas", "run_cli", "validate_config"]
 
-#: the envs the paper made DDPG batches for (the README's catalogue table)
+#: the envs the paper made DDPG batches for (docs: The batch catalogue)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
 
 
@@ -476,7 +476,7 @@ class Config(_Checked):
     seeds: Any = _rule(_seed_list, "null, a count S >= 1 (seeds seed..seed+S-1) or a list of distinct seeds >= 0, "
                        "e.g. [1,2,3]")
     device: str = _rule(_device_name, "cpu | cuda | cuda:N | auto")
-    # not a run-only key: compiled kernels round differently, so compile=true is another run (README)
+    # not a run-only key: compiled kernels round differently, so compile=true is another run (docs: Compiled updates)
     compile: Any = _rule(is_compile_setting, "false | true | " + " | ".join(COMPILE_MODES[1:]))
     data_dir: Optional[str] = MISSING
     dataset: Optional[str] = MISSING

@@ -89,12 +89,12 @@ def save_policy(path: str | Path, algorithm, cfg, *, obs_dim: int, action_spec, 
 
     Args:
         path: the file to write (``<run_dir>/policy.pt``).
-        algorithm: the trained :class:`~torchrl_bail.algorithms.base.Algorithm`.
-        cfg: the run's config (DictConfig or dict with ``algo`` and ``env``), stored resolved.
+        algorithm (Algorithm): the trained :class:`~torchrl_bail.algorithms.base.Algorithm`.
+        cfg (DictConfig | dict): the run's config (DictConfig or dict with ``algo`` and ``env``), stored resolved.
 
     Keyword Args:
         obs_dim (int): observation size.
-        action_spec: the :class:`~torchrl.data.Bounded` action spec (its bounds are stored).
+        action_spec (Bounded): the :class:`~torchrl.data.Bounded` action spec (its bounds are stored).
         **info: where in training the policy was taken (``iteration``, ``epoch``, ``mean_return``...).
     """
     config = _container(cfg)
@@ -235,7 +235,7 @@ def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> 
     """Writes a standalone ``observation [B, obs_dim] -> action [B, act_dim]`` file (see the module's table).
 
     Args:
-        source: a run directory, a policy file or a policy from :func:`load_policy`.
+        source (str | Path | nn.Module): a run directory, a policy file or a policy from :func:`load_policy`.
         path: the file to write.
         fmt: ``"pt2"`` (``torch.export``), ``"onnx"`` (``torch.onnx.export``) or ``"torchscript"``.
 

@@ -14,6 +14,8 @@ A checkpoint whose config differs from the command's in anything but the run-onl
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
 directory is locked while a run uses it: a second process on the same directory stops with a clear error.
+What a checkpoint holds, when it is written and how Slurm requeues resume: the docs' "Interrupted runs and
+preemption" page (``docs/guides/interrupted-runs.md``).
 
 Damaged files: a ``checkpoint.pt`` that does not load (a truncated copy, a disk that failed) is set aside as
 ``checkpoint.pt.corrupt`` and the run starts over, said in one warning line (``resume=true`` or

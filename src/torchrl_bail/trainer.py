@@ -5,7 +5,7 @@ update step, evaluates the deterministic policy every ``eval_every_epochs`` (an 
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
 and writes an atomic checkpoint before the first update, after each evaluation and every few minutes. Given
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
-as a run that was never interrupted (see the README's "Interrupted runs and preemption").
+as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
 Examples:
     >>> import torch
@@ -124,7 +124,7 @@ def train(
             has ``state_dict``/``load_state_dict`` (its random stream), that state is checkpointed too.
         samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
         eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
-        logger: a TorchRL logger (``log_scalar``), optional.
+        logger (Logger, optional): a TorchRL logger (``log_scalar``).
         checkpoint_path: where to write the checkpoint: before the first update, after every evaluation and
             every ``checkpoint_every_s`` seconds of training. Optional.
         checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).

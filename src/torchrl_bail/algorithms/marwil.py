@@ -72,7 +72,7 @@ class MARWIL(DeterministicActorAlgorithm):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One joint update of the actor and the value net; during the first ``value_warmup_updates`` (``0``, the
         paper's and RLlib's joint training, by default) only the value net is stepped and the actor's optimizer
-        is left untouched, so the actor starts with a fresh Adam once V has been fitted (README, "MARWIL")."""
+        is left untouched, so the actor starts with a fresh Adam once V has been fitted (docs: Results, finding 4)."""
         self.updates_done += 1
         if self.updates_done <= self.config.value_warmup_updates:
             return self._value_update(batch)

@@ -111,7 +111,11 @@ class BEARLoss(TwinCriticVAELoss):
             global generator, as the authors do. Defaults to ``None``.
         log_alpha_min (float): lower clamp of ``log_alpha``. Defaults to ``-5.0``.
         log_alpha_max (float): upper clamp of ``log_alpha`` (``lagrange_thresh``). Defaults to ``10.0``.
-        lmbda, gamma, kl_weight, reduction, deactivate_vmap: as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        lmbda (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        gamma (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        kl_weight (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        reduction (str): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        deactivate_vmap (bool): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
 
     Choices where the paper is silent:
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
@@ -374,7 +374,7 @@ def select_best_actions(
     tensordict: TensorDictBase,
     value_network: TensorDictModuleBase | None = None,
     percentile: float = 0.30,
-    **kwargs,
+    **kwargs: Any,
 ) -> TensorDictBase:
     """The rows of ``tensordict`` that BAIL keeps (a new TensorDict; the input is not modified).
 
