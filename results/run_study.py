@@ -160,15 +160,39 @@ def run_dir_of(job: Job, workdir: Path) -> Path | None:
     return None
 
 
-def job_status(job: Job, workdir: Path) -> str:
-    """``done``, ``running`` or ``left``, with the checkpoint's progress (``updates done/scheduled``) if any."""
+def _is_running(log: Path) -> bool:
+    """Whether the job of ``log`` runs now: its ``.pid`` file (written by :func:`run_job`) names a live process, or,
+    for a runner that wrote none, its log was written in the last 10 minutes."""
+    pid_file = log.with_suffix(".pid")
+    if pid_file.is_file():
+        try:
+            os.kill(int(pid_file.read_text()), 0)
+            return True
+        except (ValueError, ProcessLookupError, PermissionError):
+            return False
+    return log.is_file() and time.time() - log.stat().st_mtime < 600
+
+
+def _collected_steps(job: Job, data_dir: Path | None) -> str:
+    """`` (N steps collected)`` from the newest segment of the batch's partial collection, if there is one."""
+    from torchrl_bail.data.cache import default_data_dir
+
+    batch = job.name.split("/", 1)[1] + "_b1"
+    ends = [int(seg.stem.rsplit("_", 1)[1])
+            for seg in (data_dir or default_data_dir()).glob(f".partial/{batch}-*/segments/batch_*_*.pt")]
+    return f" ({max(ends)} steps collected)" if ends else ""
+
+
+def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:
+    """``done``, ``running`` or ``left``, with the progress of its checkpoint (``updates done/scheduled``) or of its
+    partial collection (``steps collected``) where there is one."""
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
-    recent = log.is_file() and time.time() - log.stat().st_mtime < 600
+    running = _is_running(log)
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
             return "done"
-        return "running" if recent else ("left (partial)" if text else "left")
+        return ("running" if running else "left") + _collected_steps(job, data_dir)
     run = run_dir_of(job, workdir)
     if run is not None and (run / "summary.json").is_file():
         return "done"
@@ -178,7 +202,7 @@ def job_status(job: Job, workdir: Path) -> str:
 
         state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
         progress = f" ({state['iteration']}/{state['iterations']} updates)"
-    return ("running" if recent else "left") + progress
+    return ("running" if running else "left") + progress
 
 
 def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | None, float]:
@@ -193,9 +217,15 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | 
         return job, None, 0.0
     extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
     start = time.perf_counter()
+    pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
     with open(log, "a") as out:
-        rc = subprocess.call([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
-                             stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
+                                stdout=out, stderr=subprocess.STDOUT)
+        pid_file.write_text(f"{proc.pid}\n")
+        try:
+            rc = proc.wait()
+        finally:
+            pid_file.unlink(missing_ok=True)
     return job, rc, time.perf_counter() - start
 
 
@@ -292,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
         return 0
     if args.status:
-        states = [(j.name, job_status(j, args.workdir)) for j in jobs]
+        states = [(j.name, job_status(j, args.workdir, args.data_dir)) for j in jobs]
         print("\n".join(f"{state:<32} {name}" for name, state in states))
         counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -115,6 +116,17 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     torch.save({"iteration": 2500, "iterations": 10000}, half / "checkpoint.pt")
     (tmp_path / "logs").mkdir()
     collect_log = tmp_path / "logs" / "collect__hopper_ddpg05.log"
+    data_dir = tmp_path / "data"
+    segments = data_dir / ".partial" / "hopper_ddpg05_b1-1234" / "segments"
+    segments.mkdir(parents=True)
+    for name in ("batch_000000000000_000000014662.pt", "batch_000000014662_000000021195.pt"):
+        (segments / name).write_bytes(b"")
+    collect_log.write_text("collecting hopper_ddpg05_b1\n")
+    collect_log.with_suffix(".pid").write_text(f"{os.getpid()}\n")  # a live process: this one
+    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "running (21195 steps collected)"
+    collect_log.with_suffix(".pid").write_text("999999999\n")  # a pid no process has
+    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "left (21195 steps collected)"
+    collect_log.with_suffix(".pid").unlink()
     collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
     assert run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path) == "done"
     assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path) == "left"
