@@ -218,7 +218,7 @@ def main() -> None:
             for algo in args.algos.split(","):
                 for seed in seeds:
                     cfg = compose_run(batch.path, env, algo, seed, args.preset, args.overrides)
-                    ours = run(cfg, Path(tmp) / f"{label}_{algo}_{seed}")
+                    (ours,) = run(cfg, Path(tmp) / f"{label}_{algo}_{seed}")
                     peer = d3rlpy_final_return(args.python, cfg, arrays, args.threads)
                     if ours["iterations"] != peer["updates"] or peer["transitions"] != batch.num_transitions:
                         raise SystemExit(f"{label} {algo} seed {seed}: the two sides differ in updates "

@@ -78,7 +78,7 @@ def test_recipe_collects_and_bail_trains_on_it(env, kind, index, shared_data_dir
     assert int(data["episode"].unique().numel()) == batch.metadata["num_episodes"]
 
     start = time.perf_counter()
-    summary = run(_compose(*overrides, *TINY_BAIL, "seed=1"), tmp_path / "run")
+    (summary,) = run(_compose(*overrides, *TINY_BAIL, "seed=1"), tmp_path / "run")
     train_s = time.perf_counter() - start
     assert summary["num_transitions"] == steps
     assert 0 < summary["selected_fraction"] <= 0.5

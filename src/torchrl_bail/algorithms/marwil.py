@@ -98,6 +98,14 @@ class MARWIL(DeterministicActorAlgorithm):
             optimizer.step()
         return {key: value.detach() for key, value in out.items()}
 
+    # -- seed stacks: one update clock for every seed (stacking.SeedStack's hooks) -------------------------------
+    def stack_attributes(self, algorithms: list[MARWIL]) -> None:
+        self.updates_done = algorithms[0].updates_done
+
+    def unstack_attributes(self, algorithms: list[MARWIL]) -> None:
+        for algorithm in algorithms:
+            algorithm.updates_done = self.updates_done
+
     # -- checkpoints: the running normaliser c^2 lives in the loss ------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
