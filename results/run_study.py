@@ -249,10 +249,16 @@ def report(results: Path) -> None:
     ablation = re.compile(r"selection\.by=|envelope\.penalty=|oracle|augment")
     main_runs = [p for p in sorted(runs.glob("*/*/*")) if not ablation.search(p.name)]
     bail_ddpg05 = sorted(runs.glob("hopper_ddpg05_b1/bail/*")) + sorted(runs.glob("hopper_ddpg05_oracle*/bail/*"))
+    repo = HERE.parent  # the report records its run directories relative to the repository, on any machine
+
+    def shown(path: Path) -> str:
+        path = path.resolve()
+        return str(path.relative_to(repo)) if path.is_relative_to(repo) else str(path)
+
     for prefix, paths in (("study", main_runs), ("ablations", bail_ddpg05)):
         if paths:
-            subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(str, paths),
-                                   "--out", str(results / prefix), "--plot"], stdout=subprocess.DEVNULL)
+            subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(shown, paths),
+                                   "--out", shown(results / prefix), "--plot"], cwd=repo, stdout=subprocess.DEVNULL)
 
 
 def curve_check(results: Path) -> list[dict]:
