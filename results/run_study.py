@@ -1,4 +1,4 @@
-"""Reruns the results study of the README ("Results"), or any row of it, from scratch.
+"""Reruns the results study of the docs ("Results"), or any row of it, from scratch.
 
     python results/run_study.py                              # everything: 11 batches, every algorithm, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
@@ -65,6 +65,11 @@ ABLATIONS = {
     "D3_regression": ["algo.envelope.penalty=1"],
 }
 
+#: MARWIL with V fitted alone for its first 200 of 2000 updates (README "MARWIL"), on Hopper's batches where MARWIL
+#: is below BC
+MARWIL_WARMUP = ["algo.value_warmup_updates=200"]
+MARWIL_WARMUP_KINDS = ("sac", "med_stoch", "opt_det")
+
 
 #: what a finished training run logs last (torchrl_bail.train)
 FINISHED = re.compile(r"final_return [-0-9.]+ \(best")
@@ -97,6 +102,8 @@ def study_jobs() -> list[Job]:
         jobs += [j for kind in KINDS for algo in EVERY_BATCH for j in train(env, kind, algo)]
         if env == "hopper":
             jobs += [j for name, extra in ABLATIONS.items() for j in train(env, "ddpg05", "bail", extra, "/" + name)]
+            jobs += [j for kind in MARWIL_WARMUP_KINDS
+                     for j in train(env, kind, "marwil", MARWIL_WARMUP, "/value_warmup")]
         bcq_bear = [train(env, kind, algo) for kind in ("ddpg05", "ddpg01") for algo in DDPG_ONLY]
         jobs += [cell[i] for i in range(len(SEEDS)) for cell in bcq_bear]  # seed 1 of every cell first
     return jobs
@@ -153,15 +160,39 @@ def run_dir_of(job: Job, workdir: Path) -> Path | None:
     return None
 
 
-def job_status(job: Job, workdir: Path) -> str:
-    """``done``, ``running`` or ``left``, with the checkpoint's progress (``updates done/scheduled``) if any."""
+def _is_running(log: Path) -> bool:
+    """Whether the job of ``log`` runs now: its ``.pid`` file (written by :func:`run_job`) names a live process, or,
+    for a runner that wrote none, its log was written in the last 10 minutes."""
+    pid_file = log.with_suffix(".pid")
+    if pid_file.is_file():
+        try:
+            os.kill(int(pid_file.read_text()), 0)
+            return True
+        except (ValueError, ProcessLookupError, PermissionError):
+            return False
+    return log.is_file() and time.time() - log.stat().st_mtime < 600
+
+
+def _collected_steps(job: Job, data_dir: Path | None) -> str:
+    """`` (N steps collected)`` from the newest segment of the batch's partial collection, if there is one."""
+    from torchrl_bail.data.cache import default_data_dir
+
+    batch = job.name.split("/", 1)[1] + "_b1"
+    ends = [int(seg.stem.rsplit("_", 1)[1])
+            for seg in (data_dir or default_data_dir()).glob(f".partial/{batch}-*/segments/batch_*_*.pt")]
+    return f" ({max(ends)} steps collected)" if ends else ""
+
+
+def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:
+    """``done``, ``running`` or ``left``, with the progress of its checkpoint (``updates done/scheduled``) or of its
+    partial collection (``steps collected``) where there is one."""
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
-    recent = log.is_file() and time.time() - log.stat().st_mtime < 600
+    running = _is_running(log)
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
-        if re.search(r"saved batch|using cached batch", text):
+        if re.search(r": (collected|already cached) at ", text):
             return "done"
-        return "running" if recent else ("left (partial)" if text else "left")
+        return ("running" if running else "left") + _collected_steps(job, data_dir)
     run = run_dir_of(job, workdir)
     if run is not None and (run / "summary.json").is_file():
         return "done"
@@ -171,7 +202,7 @@ def job_status(job: Job, workdir: Path) -> str:
 
         state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
         progress = f" ({state['iteration']}/{state['iterations']} updates)"
-    return ("running" if recent else "left") + progress
+    return ("running" if running else "left") + progress
 
 
 def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | None, float]:
@@ -186,9 +217,15 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | 
         return job, None, 0.0
     extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
     start = time.perf_counter()
+    pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
     with open(log, "a") as out:
-        rc = subprocess.call([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
-                             stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
+                                stdout=out, stderr=subprocess.STDOUT)
+        pid_file.write_text(f"{proc.pid}\n")
+        try:
+            rc = proc.wait()
+        finally:
+            pid_file.unlink(missing_ok=True)
     return job, rc, time.perf_counter() - start
 
 
@@ -212,10 +249,16 @@ def report(results: Path) -> None:
     ablation = re.compile(r"selection\.by=|envelope\.penalty=|oracle|augment")
     main_runs = [p for p in sorted(runs.glob("*/*/*")) if not ablation.search(p.name)]
     bail_ddpg05 = sorted(runs.glob("hopper_ddpg05_b1/bail/*")) + sorted(runs.glob("hopper_ddpg05_oracle*/bail/*"))
+    repo = HERE.parent  # the report records its run directories relative to the repository, on any machine
+
+    def shown(path: Path) -> str:
+        path = path.resolve()
+        return str(path.relative_to(repo)) if path.is_relative_to(repo) else str(path)
+
     for prefix, paths in (("study", main_runs), ("ablations", bail_ddpg05)):
         if paths:
-            subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(str, paths),
-                                   "--out", str(results / prefix), "--plot"], stdout=subprocess.DEVNULL)
+            subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(shown, paths),
+                                   "--out", shown(results / prefix), "--plot"], cwd=repo, stdout=subprocess.DEVNULL)
 
 
 def curve_check(results: Path) -> list[dict]:
@@ -265,7 +308,7 @@ def curve_check(results: Path) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
-                        help="study: the 50k-transition study of the README; paper_hopper: Hopper at the paper's scale")
+                        help="study: the 50k-transition study (docs: Results); paper_hopper: Hopper at paper scale")
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
     parser.add_argument("--workdir", type=Path, help="where outputs/ and logs/ go (default: <study>_work)")
@@ -285,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
         return 0
     if args.status:
-        states = [(j.name, job_status(j, args.workdir)) for j in jobs]
+        states = [(j.name, job_status(j, args.workdir, args.data_dir)) for j in jobs]
         print("\n".join(f"{state:<32} {name}" for name, state in states))
         counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")

@@ -1,7 +1,9 @@
 """The one table every loss and every algorithm registers in to get the contract suite (tests/test_contract.py).
 
 A new loss: add a :class:`LossCase` to :data:`LOSS_CASES` (a builder taking ``reduction``, the loss terms and the
-parameter groups each must reach, the keys ``set_keys`` may rename). A new algorithm: add an :class:`AlgoCase` to
+parameter groups each must reach, the keys ``set_keys`` may rename); a new replay-buffer transform: a
+:class:`TransformCase` to :data:`TRANSFORM_CASES`. Both also get TorchRL's generic loss and transform checks
+(tests/test_torchrl_checks.py). A new algorithm: add an :class:`AlgoCase` to
 :data:`ALGO_CASES` under its registry name (its config overrides for tiny networks and the tiny CLI overrides). The
 suite then checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round
 trips, seeds and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
@@ -26,6 +28,7 @@ from torchrl_bail.algorithms.bc import make_bc_loss
 from torchrl_bail.config import algo_config
 from torchrl_bail.modules import make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
+from torchrl_bail.transforms import BestActionFilter
 
 
 def loss_batch(shape=(6,), seed: int = 0) -> TensorDict:
@@ -49,6 +52,8 @@ class LossCase:
         torchrl_own: TorchRL's own loss (BC): what TorchRL tests (keys, masks, keyword calls, argument checks) is
             not tested again here.
         build_ensemble: ``build_ensemble(seeds)`` -> the loss on seed-ensembled networks (``EnsembleModule``).
+        running: scalar float buffers the loss updates itself (running statistics), not coefficients: every other
+            one must take a float assignment (TorchRL's ``_schedulable_buffers``).
     """
 
     name: str
@@ -58,6 +63,7 @@ class LossCase:
     stochastic: bool = False
     torchrl_own: bool = False
     build_ensemble: Callable[[int], torch.nn.Module] | None = None
+    running: frozenset[str] = frozenset()
 
     def __repr__(self) -> str:  # the test id
         return self.name
@@ -92,7 +98,8 @@ LOSS_CASES = [
              {"loss_actor": _groups("actor_network_params"), "loss_value": _groups("value_network_params")},
              rename={"value_target": "mc_return"},
              build_ensemble=lambda seeds: MARWILLoss(_ensemble(_actor(), seeds), _ensemble(_value(), seeds),
-                                                     reduction="none")),
+                                                     reduction="none"),
+             running=frozenset({"c2"})),
     LossCase("vae", lambda reduction="mean": VAELoss(vae(), reduction=reduction),
              {"loss_vae": _groups("vae_network_params")},
              rename={"observation": "state", "action": "behaviour_action"}, stochastic=True),
@@ -105,6 +112,37 @@ LOSS_CASES = [
              {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
     LossCase("bear", lambda reduction="mean": bear_loss(reduction=reduction, warm_start_updates=0),
              {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
+]
+
+
+@dataclass(frozen=True)
+class TransformCase:
+    """How the transform checks (tests/test_torchrl_checks.py) build and feed one replay-buffer transform.
+
+    Attributes:
+        name: the test id.
+        build: ``build() -> Transform``.
+        data: ``data(n, seed) -> TensorDict [n]`` holding what the transform reads.
+        adds: the entries its ``forward`` writes (none inside an env).
+    """
+
+    name: str
+    build: Callable[[], torch.nn.Module]
+    data: Callable[[int, int], TensorDict]
+    adds: tuple = ()
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+def _filter_data(n: int, seed: int = 0) -> TensorDict:
+    td = loss_batch((n,), seed=seed)
+    td.set("state_value", 20 + 5 * torch.rand(n, 1, generator=torch.Generator().manual_seed(seed)))
+    return td
+
+
+TRANSFORM_CASES = [
+    TransformCase("best_action_filter", lambda: BestActionFilter(percentile=0.3), _filter_data, adds=("best_action",)),
 ]
 
 

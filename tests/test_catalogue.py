@@ -192,12 +192,13 @@ def _child_script(cfg_overrides: list[str], data_dir: Path) -> str:
         from torchrl_bail import config_dir
         from torchrl_bail.behaviour import ddpg
         from torchrl_bail.behaviour import ensure_batch
-        original = ddpg.DDPGAgent.train
-        def slow(self, replay, n):
+        def wait_for_the_signal(self, replay, n):
+            # the first update after the first episode: the collection waits here until the test's signal ends it,
+            # so it provably has not finished when the signal arrives, however loaded the machine
             print("TRAINING", flush=True)
-            time.sleep(0.5)
-            return original(self, replay, n)
-        ddpg.DDPGAgent.train = slow
+            while True:
+                time.sleep(60)
+        ddpg.DDPGAgent.train = wait_for_the_signal
         with initialize_config_dir(str(config_dir()), version_base="1.3"):
             cfg = compose("config", overrides={cfg_overrides!r})
         ensure_batch(cfg, progress=False, data_dir={str(data_dir)!r})
@@ -221,10 +222,11 @@ def test_interrupted_collection_leaves_nothing_loadable_and_recollects(tmp_path,
                 pytest.fail(f"child exited early: {proc.stderr.read()[-3000:]}")
         assert "TRAINING" in line
         proc.send_signal(sig)
-        proc.wait(timeout=60)
+        out, _ = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
+    assert proc.returncode != 0 and "FINISHED" not in out
     cfg = _compose(*overrides)
     path = batch_path(cfg, data_dir)
     assert not path.exists(), "an interrupted collection must not leave a batch under its final name"

@@ -113,7 +113,7 @@ def _summary(dataset_path, run_dir) -> dict:
                  "eval.every_epochs=0.001", "returns.horizon=25", "progress=false", "checkpoint.enabled=false"]
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
-    (summary,) = run(cfg, run_dir)  # one seed
+    (summary,) = run(cfg, run_dir)
     for key in ("run_dir", "batch", "batch_path", "wall_time_s"):  # where it ran, not what it learnt
         summary.pop(key)
     return summary

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -75,21 +77,25 @@ def test_best_policy_is_kept_and_named_in_the_summary(tmp_path, data_dir):
 
 
 def _plain_torch_actions(fmt: str, path, obs) -> torch.Tensor:
-    """Runs the exported file in a fresh interpreter where torchrl_bail, tensordict and torchrl cannot import."""
-    torch.save(obs, path.parent / "obs.pt")
-    load = {"pt2": f"torch.export.load({str(path)!r}).module()", "torchscript": f"torch.jit.load({str(path)!r})"}
+    """Runs a copy of the exported file, alone in a fresh directory, in an isolated interpreter (``-I``) where
+    torchrl_bail, tensordict and torchrl cannot import."""
+    alone = path.parent / f"alone_{path.name}"
+    alone.mkdir()
+    copy = alone / path.name
+    shutil.copy(path, copy)
+    torch.save(obs, alone / "obs.pt")
+    load = {"pt2": f"torch.export.load({str(copy)!r}).module()", "torchscript": f"torch.jit.load({str(copy)!r})"}
     if fmt == "onnx":
-        code = (f"import numpy, onnxruntime, torch; s = onnxruntime.InferenceSession({str(path)!r}); "
-                f"a = s.run(None, {{'observation': torch.load({str(path.parent / 'obs.pt')!r}).numpy()}})[0]; "
-                f"torch.save(torch.from_numpy(a), {str(path.parent / 'act.pt')!r})")
+        code = (f"import numpy, onnxruntime, torch; s = onnxruntime.InferenceSession({str(copy)!r}); "
+                f"a = s.run(None, {{'observation': torch.load('obs.pt').numpy()}})[0]; "
+                f"torch.save(torch.from_numpy(a), 'act.pt')")
     else:
-        code = (f"import torch; torch.manual_seed(0); m = {load[fmt]}; "
-                f"torch.save(m(torch.load({str(path.parent / 'obs.pt')!r})), {str(path.parent / 'act.pt')!r})")
+        code = f"import torch; torch.manual_seed(0); m = {load[fmt]}; torch.save(m(torch.load('obs.pt')), 'act.pt')"
     block = "import sys; sys.modules.update(torchrl_bail=None, tensordict=None, torchrl=None); "
-    proc = subprocess.run([sys.executable, "-c", block + code], capture_output=True, text=True, timeout=300,
-                          cwd=path.parent)
+    proc = subprocess.run([sys.executable, "-I", "-c", block + code], capture_output=True, text=True, timeout=300,
+                          cwd=alone)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return torch.load(path.parent / "act.pt")
+    return torch.load(alone / "act.pt")
 
 
 @pytest.mark.parametrize("fmt", ["pt2", "torchscript", "onnx"])
@@ -102,6 +108,61 @@ def test_export_runs_without_this_package(bc_run, tmp_path, fmt):
     obs = torch.randn(7, 11)
     expected = policy_actions(load_policy(bc_run), obs)
     assert torch.allclose(_plain_torch_actions(fmt, path, obs), expected, atol=1e-5)
+
+
+def _tiny_bc(tmp_path):
+    from torchrl_bail.algorithms.bc import BehaviourCloning
+    from torchrl_bail.config import algo_config
+    from torchrl_bail.modules import action_spec_from_bounds
+
+    spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)
+    torch.manual_seed(0)
+    algo = BehaviourCloning(11, spec, algo_config("bc", policy={"hidden": [16]}))
+    cfg = {"seed": 0, "env": {"id": "Hopper-v5"}, "algo": {"name": "bc", "policy": {"hidden": [16]}}}
+    return save_policy(tmp_path / "policy.pt", algo, cfg, obs_dim=11, action_spec=spec)
+
+
+def test_onnx_export_is_one_file_and_reexports_leave_nothing_behind(tmp_path, capsys):
+    pytest.importorskip("onnxscript")
+    pytest.importorskip("onnxruntime")
+    path = _tiny_bc(tmp_path)
+    for _ in range(2):
+        assert evaluate_main([str(path), "--export", "onnx"]) == 0
+    assert capsys.readouterr().out.splitlines() == [f"wrote {tmp_path / 'policy.onnx'} (standalone)"] * 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.onnx", "policy.pt"]
+
+
+def test_onnx_weights_too_large_to_embed_go_beside_the_file_under_its_name(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("onnxscript")
+    onnxruntime = pytest.importorskip("onnxruntime")
+    import torchrl_bail.policy as policy_module
+
+    path = _tiny_bc(tmp_path)
+    monkeypatch.setattr(policy_module, "ONNX_EMBED_LIMIT", 0)  # every model is "too large"
+    assert evaluate_main([str(path), "--export", "onnx", "--out", str(tmp_path / "out" / "bc.onnx")]) == 0
+    out, data = tmp_path / "out" / "bc.onnx", tmp_path / "out" / "bc.onnx.data"
+    assert capsys.readouterr().out.strip() == f"wrote {out} and its weights {data} (keep the two files together)"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["bc.onnx", "bc.onnx.data"]
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for file in (out, data):  # the pair travels together
+        shutil.copy(file, moved / file.name)
+    obs = torch.randn(5, 11)
+    session = onnxruntime.InferenceSession(str(moved / "bc.onnx"))
+    actions = torch.from_numpy(session.run(None, {"observation": obs.numpy()})[0])
+    assert torch.allclose(actions, policy_actions(load_policy(path), obs), atol=1e-5)
+    monkeypatch.undo()  # small again: the weights go back inside and the old weights file goes away
+    export_policy(path, out, "onnx")
+    assert sorted(p.name for p in out.parent.iterdir()) == ["bc.onnx"]
+
+
+def test_a_loaded_policy_acts_without_a_graph_and_takes_numpy_observations(tmp_path):
+    policy = load_policy(_tiny_bc(tmp_path))
+    obs = np.random.default_rng(0).standard_normal((4, 11))  # float64, as gymnasium returns it
+    action = policy(TensorDict({"observation": torch.as_tensor(obs, dtype=torch.float32)}, [4]))["action"]
+    assert action.grad_fn is None and not action.requires_grad
+    from_numpy = policy_actions(policy, obs)  # cast once, at the edge
+    assert from_numpy.dtype == torch.float32 and torch.equal(from_numpy, action)
 
 
 def _tiny_bcq(tmp_path):

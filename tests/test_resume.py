@@ -294,3 +294,25 @@ def test_run_dirs_are_derived_from_the_config_and_slurm_requeues():
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=hopper_ddpg05", "hydra/launcher=slurm"], return_hydra_config=True)
     assert cfg.hydra.launcher.max_num_timeout > 0  # a timed-out job is requeued, and resumes
+
+
+def test_a_dataset_run_records_and_groups_by_its_dataset_not_the_unread_batch(tmp_path):
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.resume import _comparable, comparable_config, diff_configs, record_config
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        generated = compose("config", overrides=["+exp=hopper_ddpg05"])
+        imported = compose("config", overrides=["dataset=/data/hopper_medium-v2.hdf5", "env=hopper", "algo=bc"])
+    assert (generated.logger.group, imported.logger.group) == ("hopper_ddpg05_b1", "hopper_medium-v2")
+    record_config(imported, tmp_path / "config.yaml")
+    recorded = OmegaConf.to_container(OmegaConf.load(tmp_path / "config.yaml"))
+    assert "batch" not in recorded and recorded["dataset"] == "/data/hopper_medium-v2.hdf5"
+    assert "batch" not in comparable_config(imported)
+    # a checkpoint of an older dataset run, which recorded the batch group, still resumes
+    older = {**OmegaConf.to_container(imported, resolve=True), "batch": {"kind": "ddpg05"}}
+    assert diff_configs(_comparable(older), comparable_config(imported)) == []
+    # a generated batch's run records exactly what it recorded before
+    record_config(generated, tmp_path / "generated.yaml")
+    OmegaConf.save(generated, tmp_path / "saved.yaml", resolve=True)
+    assert (tmp_path / "generated.yaml").read_text() == (tmp_path / "saved.yaml").read_text()

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tensordict import TensorDict
 
 from torchrl_bail.data import monte_carlo_returns
@@ -108,3 +110,54 @@ def test_oracle_returns_and_errors():
         monte_carlo_returns(td, gamma=0.0)
     with pytest.raises(ValueError, match="horizon"):
         monte_carlo_returns(td, horizon=0)
+
+
+# -- any episode layout ----------------------------------------------------------------------------------------
+def test_interleaved_episodes_get_their_own_returns():
+    td = _td([0.0] * 6, [1.0] * 6, [0, 1, 0, 1, 0, 1])  # two envs stepped side by side
+    assert monte_carlo_returns(td, gamma=1.0, horizon=100, augment="none").tolist() == [3, 3, 2, 2, 1, 1]
+
+
+@settings(max_examples=40, deadline=None)
+@given(lengths=st.lists(st.integers(1, 8), min_size=1, max_size=6), horizon=st.integers(2, 6),
+       seed=st.integers(0, 2**16))
+def test_any_interleaving_equals_a_plain_per_episode_loop(lengths, horizon, seed):
+    g = torch.Generator().manual_seed(seed)
+    # a random interleaving that keeps each episode's rows in time order; ids need not be sorted or dense
+    labels = torch.cat([torch.full((n,), i) for i, n in enumerate(lengths)])
+    labels = labels[torch.randperm(len(labels), generator=g)]
+    ids = torch.randperm(50, generator=g)[: len(lengths)][labels] * 3
+    n = len(ids)
+    td = _td(torch.randint(0, 3, (n, 2), generator=g).float(), torch.randn(n, generator=g), ids)
+    expected = torch.empty(n, dtype=torch.float64)
+    for episode in ids.unique():
+        rows = (ids == episode).nonzero().flatten()
+        expected[rows] = _brute_force(td[rows], 0.9, horizon)
+    for augment in ("gain", "none"):
+        got = monte_carlo_returns(td, gamma=0.9, horizon=horizon, augment=augment)
+        if augment == "gain":
+            assert torch.allclose(got.double(), expected, atol=1e-5)
+        # exactly the numbers of the same episodes laid out in blocks
+        order = torch.argsort(ids, stable=True)
+        blocks = monte_carlo_returns(td[order], gamma=0.9, horizon=horizon, augment=augment)
+        assert torch.equal(got[order], blocks)
+
+
+def test_collector_ids_column_ids_and_batched_rollouts():
+    td = _td([0.0] * 6, [1.0] * 6, [0, 1, 0, 1, 0, 1])
+    expected = monte_carlo_returns(td, gamma=0.5, horizon=2)
+    column = td.clone().set("episode", td["episode"].unsqueeze(-1))  # [N, 1] ids
+    assert torch.equal(monte_carlo_returns(column, gamma=0.5, horizon=2), expected)
+    collector = td.exclude("episode").set(("collector", "traj_ids"), td["episode"])
+    assert torch.equal(monte_carlo_returns(collector, gamma=0.5, horizon=2), expected)
+    # a [envs, time] rollout: read row by row, the returns come back in its shape
+    rollout = _td([0.0] * 6, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], [0, 0, 0, 1, 1, 1]).reshape(2, 3)
+    assert monte_carlo_returns(rollout, gamma=1.0, horizon=10).tolist() == [[6, 5, 3], [15, 11, 6]]
+
+
+def test_missing_or_misshapen_ids_are_named():
+    td = _td([0.0, 1.0], [1.0, 1.0], [0, 0])
+    with pytest.raises(ValueError, match=r"no episode ids: expected an 'episode' entry .*'traj_ids'"):
+        monte_carlo_returns(td.exclude("episode"))
+    with pytest.raises(ValueError, match=r"episode ids 'episode' have shape \(2, 2\)"):
+        monte_carlo_returns(td.set("episode", torch.zeros(2, 2, dtype=torch.int64)))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -28,8 +29,10 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
     jobs = run_study.study_jobs()
     names = [j.name for j in jobs]
     every_batch = [name for name in ALGO_SCHEMAS if name not in ("bcq", "bear")]
-    # 11 batches; 3 seeds of: 2 envs x 5 batches x every_batch, 4 ablations, 2 envs x 2 DDPG batches x BCQ/BEAR
-    assert len(names) == len(set(names)) == 11 + 3 * (2 * 5 * len(every_batch) + 4 + 2 * 2 * 2)
+    # 11 batches; 3 seeds of: 2 envs x 5 batches x every_batch, 4 ablations, MARWIL with V fitted first on 3 Hopper
+    # batches, 2 envs x 2 DDPG batches x BCQ/BEAR
+    assert len(names) == len(set(names)) == 11 + 3 * (2 * 5 * len(every_batch) + 4 + 3 + 2 * 2 * 2)
+    assert by_name_args(jobs, "hopper_opt_det/marwil/value_warmup/seed3")[-1] == "algo.value_warmup_updates=200"
     assert {"bail", "pbail", "bc", "marwil"} <= set(every_batch)
     collects = [j for j in jobs if j.module == "torchrl_bail.collect"]
     assert len(collects) == 11 and jobs[:11] == collects  # batches first
@@ -47,6 +50,10 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
         "+exp=hopper_ddpg05", "algo=bail", "seed=2", "preset=study", "batch.oracle.enabled=true",
         "returns.augment=oracle"]
     assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
+
+
+def by_name_args(jobs, name: str) -> list[str]:
+    return next(j.args for j in jobs if j.name == name)
 
 
 def _run(root: Path, name: str, returns: list[float], algo: str = "bail") -> None:
@@ -75,3 +82,57 @@ def test_curve_check_tells_a_flat_curve_from_a_rising_one(run_study, tmp_path):
     assert json.loads((tmp_path / "curves.json").read_text()) == list(rows.values())
     assert "| hopper_ddpg05_b1 | bail | algo.envelope.penalty=1 | 200.0 | +200.0 | 0.0 | **rising** |" in (
         tmp_path / "curves.md").read_text()
+
+
+def test_the_paper_hopper_study_lands_the_final_buffer_first(run_study):
+    jobs = run_study.paper_hopper_jobs()
+    names = [j.name for j in jobs]
+    assert len(names) == len(set(names))
+    assert names[0] == "collect/hopper_ddpg05" and jobs[0].args == ["+exp=hopper_ddpg05"]  # the paper's 10^6 batch
+    first_other_batch = names.index("collect/hopper_sac")
+    ddpg05 = {n for n in names[:first_other_batch]}
+    seeds = {algo: sum(n.startswith(f"hopper_ddpg05/{algo}/seed") for n in ddpg05)
+             for algo in ("bail", "bc", "pbail", "marwil", "bcq", "bear")}
+    assert seeds == {"bail": 5, "bc": 5, "pbail": 3, "marwil": 3, "bcq": 3, "bear": 1}
+    assert sum(n.startswith("hopper_ddpg05/marwil/value_warmup/") for n in ddpg05) == 3
+    by_name = {j.name: j for j in jobs}
+    assert "algo.epochs=10" in by_name["hopper_ddpg05/bcq/seed1"].args  # 10^5 updates of 100
+    assert "algo.envelope.epochs=200" in by_name["hopper_ddpg05/bail/seed5"].args  # early stopping ends the fit
+    assert all("preset=study" not in j.args for j in jobs)
+    assert {f"hopper_sac/{a}/seed5" for a in ("bail", "bc")} <= set(names)
+    assert "hopper_opt_det/bcq/seed3" in names and "collect/hopper_med_det" in names
+
+
+def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study, tmp_path, capsys):
+    import torch
+
+    jobs = {j.name: j for j in run_study.paper_hopper_jobs()}
+    outputs = tmp_path / "outputs" / "hopper_ddpg05_b1"
+    done = outputs / "bail" / "seed1,algo.envelope.epochs=200,algo.epochs=10,eval.every_epochs=0.5"
+    done.mkdir(parents=True)
+    (done / "summary.json").write_text("{}")
+    half = outputs / "bc" / "seed1,algo.epochs=10,eval.every_epochs=0.5"
+    half.mkdir(parents=True)
+    torch.save({"iteration": 2500, "iterations": 10000}, half / "checkpoint.pt")
+    (tmp_path / "logs").mkdir()
+    collect_log = tmp_path / "logs" / "collect__hopper_ddpg05.log"
+    data_dir = tmp_path / "data"
+    segments = data_dir / ".partial" / "hopper_ddpg05_b1-1234" / "segments"
+    segments.mkdir(parents=True)
+    for name in ("batch_000000000000_000000014662.pt", "batch_000000014662_000000021195.pt"):
+        (segments / name).write_bytes(b"")
+    collect_log.write_text("collecting hopper_ddpg05_b1\n")
+    collect_log.with_suffix(".pid").write_text(f"{os.getpid()}\n")  # a live process: this one
+    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "running (21195 steps collected)"
+    collect_log.with_suffix(".pid").write_text("999999999\n")  # a pid no process has
+    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "left (21195 steps collected)"
+    collect_log.with_suffix(".pid").unlink()
+    collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
+    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path) == "done"
+    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path) == "left"
+    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "left (2500/10000 updates)"
+    (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")  # written just now
+    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "running (2500/10000 updates)"
+    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path) == "done"
+    assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path)]) == 0
+    assert "2 done, 1 running, 115 left of 118 jobs" in capsys.readouterr().out

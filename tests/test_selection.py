@@ -153,3 +153,60 @@ def test_values_computed_by_the_envelope_in_chunks_equal_stored_values():
     original = data.clone()
     select_best_actions(data, percentile=0.3)
     assert (data == original).all()  # the input is not modified
+
+
+# -- the filter's state, chunks and environments ---------------------------------------------------------------
+def _filtered_buffer(data: TensorDict, transform: BestActionFilter) -> TensorDictReplayBuffer:
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(len(data)), transform=transform, batch_size=8)
+    buffer.extend(data)
+    return buffer
+
+
+def test_dumps_loads_round_trip_keeps_every_tag(tmp_path):
+    data = _data(60)
+    buffer = _filtered_buffer(data, BestActionFilter(percentile=0.3))
+    buffer.dumps(tmp_path / "rb")
+    loaded = TensorDictReplayBuffer(storage=LazyTensorStorage(60), transform=BestActionFilter(percentile=0.3),
+                                    batch_size=8)
+    loaded.loads(tmp_path / "rb")
+    stored = loaded.storage[: len(loaded)]
+    assert len(stored) == 18 and bool(loaded.transform[0](stored.clone())["best_action"].all())
+    # a filter rebuilt from the state tags what the original tags, on any data
+    rebuilt = BestActionFilter(percentile=0.3)
+    rebuilt.load_state_dict(buffer.transform[0].state_dict())
+    assert (rebuilt.border, rebuilt.num_seen, rebuilt.num_selected, rebuilt.selected_fraction) == \
+        (buffer.transform[0].border, 60, 18, 0.3)
+    other = _data(40, seed=3)
+    assert torch.equal(rebuilt(other.clone())["best_action"], buffer.transform[0](other.clone())["best_action"])
+
+
+def test_a_second_extend_warns_once_and_every_stored_row_stays_tagged():
+    data = _data(90)
+    transform = BestActionFilter(percentile=0.3)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(90), transform=transform, batch_size=8)
+    buffer.extend(data[:30])
+    with pytest.warns(UserWarning, match="selects the top 0.3 of its own 30 rows") as caught:
+        buffer.extend(data[30:60])
+        buffer.extend(data[60:])
+    assert len(caught) == 1
+    chunks = [best_action_mask(data["return"][i:i + 30], data["state_value"][i:i + 30], 0.3, return_border=True)
+              for i in (0, 30, 60)]
+    assert (transform.num_seen, transform.num_selected) == (90, 27)
+    assert transform.border == min(float(border) for _, border in chunks)
+    assert bool(transform(buffer.storage[: len(buffer)].clone())["best_action"].all())
+
+
+def test_inside_an_env_the_filter_is_a_no_op():
+    from torchrl.envs import GymEnv, TransformedEnv
+    from torchrl.envs.utils import check_env_specs
+
+    base = GymEnv("Pendulum-v1")
+    env = TransformedEnv(GymEnv("Pendulum-v1"), BestActionFilter(percentile=0.3))
+    check_env_specs(env, seed=0)
+    assert env.observation_spec == base.observation_spec and env.full_action_spec == base.full_action_spec
+    base.set_seed(1)
+    env.set_seed(1)
+    torch.manual_seed(0)
+    expected = base.rollout(5)
+    torch.manual_seed(0)
+    assert (env.rollout(5) == expected).all()

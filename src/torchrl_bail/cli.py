@@ -20,6 +20,7 @@ from typing import Any
 
 from torchrl_bail.config import config_dir, group_options, validate_config
 from torchrl_bail.errors import USER_ERRORS, CommandLineError
+from torchrl_bail.io import describe_file_error
 
 __all__ = ["describe_error", "exit_on_config_error", "run_cli"]
 
@@ -93,7 +94,8 @@ def _precompose(argv: list[str]) -> None:
 
 @contextlib.contextmanager
 def exit_on_config_error() -> Iterator[None]:
-    """A configuration or dataset error inside the body ends the process: ONE line on stderr, exit code 2.
+    """A configuration or dataset error, or a file-system fault (:func:`~torchrl_bail.io.describe_file_error`),
+    inside the body ends the process: ONE line on stderr, exit code 2.
 
     Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
     the first bad job without Hydra's multi-line report. Other errors keep their traceback.
@@ -102,6 +104,12 @@ def exit_on_config_error() -> Iterator[None]:
         yield
     except _config_errors() as err:
         print(f"torchrl_bail: {describe_error(err)}", file=sys.stderr)
+        sys.exit(2)
+    except Exception as err:  # a full disk, no permission, a read-only file system: the file and the remedy
+        message = describe_file_error(err)
+        if message is None:
+            raise
+        print(f"torchrl_bail: {message}", file=sys.stderr)
         sys.exit(2)
 
 

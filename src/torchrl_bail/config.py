@@ -44,10 +44,10 @@ from torchrl_bail.errors import CommandLineError, ConfigError
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
            "CollectionConfig", "collection_config", "DDPG_ENVS", "RUN_DIR_KEYS", "RUN_ONLY_KEYS", "CommandLineError",
-           "Config", "ConfigError", "group_options", "is_compile_setting", "register_schemas", "run_dir_excluded_keys",
-           "run_dir_suffix", "run_only", "validate_config"]
+           "Config", "ConfigError", "batch_label", "group_options", "is_compile_setting", "register_schemas",
+           "run_dir_excluded_keys", "run_dir_suffix", "run_only", "validate_config"]
 
-#: the envs the paper made DDPG batches for (the README's catalogue table)
+#: the envs the paper made DDPG batches for (docs: The batch catalogue)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
 
 
@@ -469,7 +469,7 @@ class Config(_Checked):
                        "e.g. [1,2,3]")
     # run-only: numbers change only across devices
     device: str = run_only(_rule(_device_name, "cpu | cuda | cuda:N | auto"))
-    # not a run-only key: compiled kernels round differently, so compile=true is another run (README)
+    # not a run-only key: compiled kernels round differently, so compile=true is another run (docs: Compiled updates)
     compile: Any = _rule(is_compile_setting, "false | true | " + " | ".join(COMPILE_MODES[1:]))
     data_dir: Optional[str] = run_only()
     dataset: Optional[str] = MISSING
@@ -563,6 +563,24 @@ def run_dir_suffix(override_dirname: str) -> str:
         digest = hashlib.sha1(text.encode()).hexdigest()[:10]
         text = f"{text[:_MAX_SUFFIX - 11]}~{digest}"
     return "," + text
+
+
+def batch_label(env: str, kind: str, index: int, dataset: str | None) -> str:
+    """What a run trained on, for its logger group (``conf/config.yaml``'s ``batch_label`` resolver):
+    ``<env>_<kind>_b<index>`` for a generated batch; for a ``dataset=`` run, whose ``batch`` group is not read, the
+    dataset's name (a file's stem, a Minari folder's name), prefixed with the env unless it starts with it.
+
+    Examples:
+        >>> batch_label("hopper", "ddpg05", 1, None), batch_label("hopper", "ddpg05", 1, "/data/hopper_medium-v2.hdf5")
+        ('hopper_ddpg05_b1', 'hopper_medium-v2')
+        >>> batch_label("hopper", "ddpg05", 1, "~/.minari/datasets/mujoco/hopper/expert-v0/data")
+        'hopper_expert-v0'
+    """
+    if not dataset:
+        return f"{env}_{kind}_b{index}"
+    path = Path(str(dataset))
+    name = path.parent.name if path.name == "data" else (path.stem if path.suffix in (".hdf5", ".h5") else path.name)
+    return name if name.startswith(str(env)) else f"{env}_{name}"
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
@@ -736,10 +754,12 @@ def config_dir() -> Path:
     An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
     them at the repository's top-level ``conf/``. The typed schemas the yaml files name
     (:mod:`torchrl_bail.config`) are registered with Hydra's ConfigStore on the way, and the resolvers
-    ``conf/config.yaml`` uses (:func:`run_dir_suffix`; ``config_groups``, :func:`group_options` for ``--help``).
+    ``conf/config.yaml`` uses (:func:`run_dir_suffix`, :func:`batch_label`; ``config_groups``, :func:`group_options`
+    for ``--help``).
     """
     register_schemas()
-    for name, resolver in (("run_dir_suffix", run_dir_suffix), ("config_groups", _groups_help)):
+    for name, resolver in (("run_dir_suffix", run_dir_suffix), ("batch_label", batch_label),
+                           ("config_groups", _groups_help)):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     packaged = Path(__file__).resolve().parent / "conf"

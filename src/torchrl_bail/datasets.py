@@ -82,8 +82,12 @@ class BailExperienceReplay(BaseDatasetExperienceReplay):
     Keyword Args:
         overrides: the ``collect`` overrides the batch was made with beyond ``+exp`` and ``batch.index``.
         data_dir: the batch cache (default ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``).
-        sampler, writer, collate_fn, pin_memory, prefetch, transform: as for
-            :class:`~torchrl.data.TensorDictReplayBuffer`.
+        sampler (Sampler, optional): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
+        writer (Writer, optional): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
+        collate_fn (callable, optional): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
+        pin_memory (bool): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
+        prefetch (int, optional): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
+        transform (Transform, optional): as for :class:`~torchrl.data.TensorDictReplayBuffer`.
 
     Attributes:
         batch: the :class:`~torchrl_bail.data.batch.OfflineBatch` (its ``metadata``: recipe, hash, statistics).

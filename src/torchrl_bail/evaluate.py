@@ -97,13 +97,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="the exported file (default: beside the policy file)")
     args = parser.parse_args(argv)
 
-    from torchrl_bail.policy import EXPORT_FORMATS, PolicyFileError, export_policy, load_policy
+    from torchrl_bail.policy import EXPORT_FORMATS, PolicyFileError, export_policy, load_policy, onnx_external_data
 
     try:
         policy = load_policy(args.source, best=args.best)
         if args.export:
             out = args.out or Path(policy.record["path"]).with_suffix(EXPORT_FORMATS[args.export])
-            print(f"wrote {export_policy(policy, out, args.export)}")
+            written = export_policy(policy, out, args.export)
+            data = onnx_external_data(written)
+            print(f"wrote {written}" + (f" and its weights {data} (keep the two files together)"
+                                        if args.export == "onnx" and data.exists() else " (standalone)"))
             return 0
         settings = _run_settings(policy)
         if args.episodes is not None:

@@ -100,7 +100,8 @@ class Evaluator:
         max_steps (int): step budget of one episode (the env's time limit ends episodes first when shorter).
             Defaults to ``1000``.
         max_episode_steps (int, optional): overrides the env's time limit.
-        device: the policy's device; observations are sent there once per step. Defaults to ``"cpu"``.
+        device (str | torch.device): the policy's device; observations are sent there once per step. Defaults to
+            ``"cpu"``.
         env_kwargs (dict, optional): extra keyword arguments of ``gymnasium.make`` (e.g.
             ``{"terminate_when_unhealthy": False}``). Defaults to ``None``.
     """

@@ -122,7 +122,9 @@ def make_value_network(
     """State-value net ``obs -> 128 -> 128 -> 1`` (supp. B.2, Table 1).
 
     Hidden layers keep PyTorch's default init; the output layer's weight is the default init times
-    ``head_scale`` and its bias is zero, as in the authors' upper envelope.
+    ``head_scale`` and its bias is zero, as in the authors' upper envelope. That scaling is made here, once: a
+    loss' ``reset_parameters_recursive()`` redraws every layer from PyTorch's default init, as it does for
+    TorchRL's own networks (build a new network for the authors' initial head).
     """
     net = mlp(obs_dim, 1, hidden)
     last = net[-1]
@@ -218,6 +220,13 @@ class ConditionalVAE(nn.Module):
         loc, scale = _bounds_affine(action_low, action_high)
         self.register_buffer("action_loc", loc.expand(act_dim).clone())
         self.register_buffer("action_scale", scale.expand(act_dim).clone())
+
+    def reset_parameters_recursive(self) -> None:
+        """Draws every layer afresh from its initial distribution (PyTorch's default, the one the VAE is built
+        with): what a TorchRL loss' ``reset_parameters_recursive`` calls on each of its networks."""
+        for module in self.modules():
+            if module is not self and hasattr(module, "reset_parameters"):
+                module.reset_parameters()
 
     def encode(self, observation: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(mu, log sigma)`` of ``q(z | s, a)``, ``log sigma`` clamped."""

@@ -22,6 +22,8 @@ format         BAIL, Progressive BAIL, BC,      BCQ, BEAR (samples candidates)
 =============  ===============================  ===========================================================
 
 ``onnx`` needs the ``export`` extra (``pip install "torchrl_bail[export]"``: onnx, onnxscript, onnxruntime).
+An ONNX file holds its weights (one file to copy); only a model with more than :data:`ONNX_EMBED_LIMIT` bytes of
+weights has them beside it in ``<file>.data`` (:func:`onnx_external_data`). A re-export leaves nothing else.
 
 Examples:
     >>> import torch, tempfile
@@ -42,6 +44,8 @@ Examples:
 from __future__ import annotations
 
 import copy
+import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -49,14 +53,17 @@ import torch
 from torch import nn
 
 from torchrl_bail.algorithms import ALGORITHMS
-from torchrl_bail.io import atomic_path
+from torchrl_bail.io import atomic_path, write_atomic
 from torchrl_bail.modules import action_spec_from_bounds
 
 __all__ = ["POLICY_FORMAT", "EXPORT_FORMATS", "PolicyFileError", "save_policy", "read_policy_file", "load_policy",
-           "policy_actions", "export_policy"]
+           "policy_actions", "export_policy", "onnx_external_data"]
 
 POLICY_FORMAT = 1
 EXPORT_FORMATS = {"pt2": ".pt2", "onnx": ".onnx", "torchscript": ".ts"}
+#: weight bytes up to which an ONNX export embeds its weights (torch's own switch to external data, 1.5 GiB:
+#: protobuf files cannot exceed 2 GiB)
+ONNX_EMBED_LIMIT = 3 * 2**29
 
 
 class PolicyFileError(ValueError):
@@ -82,12 +89,12 @@ def save_policy(path: str | Path, algorithm, cfg, *, obs_dim: int, action_spec, 
 
     Args:
         path: the file to write (``<run_dir>/policy.pt``).
-        algorithm: the trained :class:`~torchrl_bail.algorithms.base.Algorithm`.
-        cfg: the run's config (DictConfig or dict with ``algo`` and ``env``), stored resolved.
+        algorithm (Algorithm): the trained :class:`~torchrl_bail.algorithms.base.Algorithm`.
+        cfg (DictConfig | dict): the run's config (DictConfig or dict with ``algo`` and ``env``), stored resolved.
 
     Keyword Args:
         obs_dim (int): observation size.
-        action_spec: the :class:`~torchrl.data.Bounded` action spec (its bounds are stored).
+        action_spec (Bounded): the :class:`~torchrl.data.Bounded` action spec (its bounds are stored).
         **info: where in training the policy was taken (``iteration``, ``epoch``, ``mean_return``...).
     """
     config = _container(cfg)
@@ -106,9 +113,7 @@ def save_policy(path: str | Path, algorithm, cfg, *, obs_dim: int, action_spec, 
         "info": {k: (float(v) if isinstance(v, float) else v) for k, v in info.items()},
         "state_dict": {k: v.detach().cpu() for k, v in algorithm.policy.state_dict().items()},
     }
-    with atomic_path(path) as tmp:
-        torch.save(record, tmp)
-    return Path(path)
+    return write_atomic(path, lambda f: torch.save(record, f))
 
 
 def _policy_path(source: str | Path, best: bool = False) -> Path:
@@ -153,7 +158,9 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         device: where the policy runs. Defaults to ``"cpu"``.
         best (bool): the best-evaluated policy instead of the final one (run directories only).
 
-    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights).
+    The record (algorithm, env id, config, info) is kept as ``policy.record`` (without the weights). The policy is
+    for acting: in eval mode, its parameters without ``requires_grad`` (actions carry no graph); call
+    ``policy.requires_grad_(True)`` to fine-tune it.
     """
     record = read_policy_file(source, best=best)
     policy = _rebuild(record, device).to(device)
@@ -161,7 +168,7 @@ def load_policy(source: str | Path, *, device: str | torch.device = "cpu", best:
         policy.load_state_dict(record.pop("state_dict"))
     except RuntimeError as err:
         raise PolicyFileError(f"{record['path']}: weights do not fit the recorded networks ({err})") from None
-    policy.eval()
+    policy.eval().requires_grad_(False)
     policy.record = record
     return policy
 
@@ -180,19 +187,61 @@ class _ObservationToAction(nn.Module):
         return self.policy(td).get("action")
 
 
-def policy_actions(policy, observation: torch.Tensor) -> torch.Tensor:
-    """Actions of a TensorDict ``policy`` for a ``[B, obs_dim]`` observation tensor (no gradient)."""
+def policy_actions(policy, observation) -> torch.Tensor:
+    """Actions of a TensorDict ``policy`` for ``[B, obs_dim]`` observations (no gradient).
+
+    ``observation`` may be a tensor or an array (e.g. gymnasium's float64 NumPy observations): it is cast once,
+    here, to the dtype and device of the policy's parameters.
+    """
+    reference = next(iter(policy.parameters()), None)
+    dtype = reference.dtype if reference is not None else torch.get_default_dtype()
+    device = reference.device if reference is not None else None
+    observation = torch.as_tensor(observation, dtype=dtype, device=device)
     with torch.no_grad():
         return _ObservationToAction(policy)(observation)
+
+
+def onnx_external_data(path: str | Path) -> Path:
+    """Where the weights of an ONNX file too large to hold them go: ``<file>.data`` beside it (the name the file
+    itself records, so the pair can be moved together)."""
+    path = Path(path)
+    return path.with_name(path.name + ".data")
+
+
+def _onnx_weight_bytes(program) -> int:
+    return sum(value.const_value.nbytes for value in program.model.graph.initializers.values()
+               if value.const_value is not None)
+
+
+def _save_onnx(program, path: Path) -> None:
+    """Writes ``program`` to ``path`` with its weights inside; above :data:`ONNX_EMBED_LIMIT` bytes of weights
+    (protobuf cannot hold 2 GiB) they go to :func:`onnx_external_data` instead. Either way the files are written
+    under their final names in a scratch directory beside ``path`` and renamed into place (the weights first),
+    and a weights file an earlier export left under that name is removed when this one embeds them."""
+    data = onnx_external_data(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as scratch:
+        staged = Path(scratch) / path.name
+        program.save(staged, external_data=_onnx_weight_bytes(program) > ONNX_EMBED_LIMIT)
+        staged_data = onnx_external_data(staged)
+        if staged_data.exists():
+            os.replace(staged_data, data)
+        else:
+            data.unlink(missing_ok=True)
+        os.replace(staged, path)
 
 
 def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> Path:
     """Writes a standalone ``observation [B, obs_dim] -> action [B, act_dim]`` file (see the module's table).
 
     Args:
-        source: a run directory, a policy file or a policy from :func:`load_policy`.
+        source (str | Path | nn.Module): a run directory, a policy file or a policy from :func:`load_policy`.
         path: the file to write.
         fmt: ``"pt2"`` (``torch.export``), ``"onnx"`` (``torch.onnx.export``) or ``"torchscript"``.
+
+    Returns:
+        ``path``. An ONNX file holds its weights; only above :data:`ONNX_EMBED_LIMIT` bytes of weights are they
+        written beside it as :func:`onnx_external_data` (``<path>.data``), which must travel with it.
     """
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"--export {fmt!r}: expected one of {', '.join(EXPORT_FORMATS)}")
@@ -221,7 +270,7 @@ def export_policy(source, path: str | Path, fmt: str, *, best: bool = False) -> 
                 except ImportError:
                     raise ImportError(f"--export onnx needs the {package!r} package: "
                                       f"pip install \"torchrl_bail[export]\"") from None
-            with atomic_path(path, suffix=".onnx") as tmp:
-                torch.onnx.export(module, (example,), str(tmp), input_names=["observation"], output_names=["action"],
-                                  dynamic_shapes=({0: "batch"},), dynamo=True, verbose=False)
+            program = torch.onnx.export(module, (example,), input_names=["observation"], output_names=["action"],
+                                        dynamic_shapes=({0: "batch"},), dynamo=True, verbose=False)
+            _save_onnx(program, path)
     return path

@@ -15,6 +15,15 @@ A checkpoint whose config differs from the command's in anything but the run-onl
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
 directory is locked while a run uses it: a second process on the same directory stops with a clear error.
+What a checkpoint holds, when it is written and how Slurm requeues resume: the docs' "Interrupted runs and
+preemption" page (``docs/guides/interrupted-runs.md``).
+
+Damaged files: a ``checkpoint.pt`` that does not load (a truncated copy, a disk that failed) is set aside as
+``checkpoint.pt.corrupt`` and the run starts over, said in one warning line (``resume=true`` or
+``resume=<run_dir>`` stop with one line instead). A ``summary.json`` that does not parse is set aside as
+``summary.json.corrupt`` when a whole finished checkpoint can write it again; without one, one line says to train
+the run again (``resume=false``). A file-system fault while the run writes (full disk, permissions, read-only) ends
+in one :class:`~torchrl_bail.io.FileSystemError` line naming the file, or the run directory.
 
 Examples:
     >>> diff_configs({"a": 1, "b": {"c": 2}}, {"a": 1, "b": {"c": 3}})
@@ -34,8 +43,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail.config import RUN_ONLY_KEYS
 from torchrl_bail.errors import ResumeError
+from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
 
-__all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs"]
+__all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs",
+           "record_config"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -47,6 +58,8 @@ ADDED_KEYS = {"compile": False, "seeds": None}
 RENAMED_KEYS = {"algo.mmd_stabiliser": "algo.mmd_stabilizer"}
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
+#: the suffix a damaged checkpoint or summary is set aside with
+CORRUPT = ".corrupt"
 LOGS = "logs"
 
 
@@ -58,8 +71,9 @@ def comparable_config(cfg: DictConfig) -> dict[str, Any]:
 
 def _comparable(container: dict[str, Any]) -> dict[str, Any]:
     """A config's top level without what a checkpoint's numbers do not depend on: :data:`RUN_ONLY_KEYS`, Hydra's
-    node and :data:`ADDED_KEYS` at their old behaviour; :data:`RENAMED_KEYS` under their new names."""
-    container = dict(container)
+    node, :data:`ADDED_KEYS` at their old behaviour, in a ``dataset=`` run the unread ``batch`` group;
+    :data:`RENAMED_KEYS` under their new names."""
+    container = _recorded(container)
     for old, new in RENAMED_KEYS.items():
         (group, leaf), new_leaf = old.split("."), new.split(".")[1]
         node = container.get(group)
@@ -67,6 +81,17 @@ def _comparable(container: dict[str, Any]) -> dict[str, Any]:
             container[group] = {new_leaf if k == leaf else k: v for k, v in node.items()}
     return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
             and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
+
+
+def _recorded(container: dict[str, Any]) -> dict[str, Any]:
+    """The config a run records: without the ``batch`` group when ``dataset=`` replaced it."""
+    return {k: v for k, v in container.items() if not (k == "batch" and container.get("dataset"))}
+
+
+def record_config(cfg: DictConfig, path: Path) -> Path:
+    """Writes the run's resolved config (``config.yaml``, the record of what ran; no ``batch`` group in a
+    ``dataset=`` run, which never reads it) atomically."""
+    return write_text_atomic(path, OmegaConf.to_yaml(_recorded(OmegaConf.to_container(cfg, resolve=True))))
 
 
 def diff_configs(old: Any, new: Any, prefix: str = "") -> list[str]:
@@ -83,6 +108,10 @@ def diff_configs(old: Any, new: Any, prefix: str = "") -> list[str]:
                 out.extend(diff_configs(old[key], new[key], name))
         return out
     return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(line.strip() for line in str(text).splitlines() if line.strip())
 
 
 def data_fingerprint(data) -> str:
@@ -126,17 +155,30 @@ class Resumption:
 
     # -- context manager: lock, decide, release --------------------------------------------------------------
     def __enter__(self) -> Resumption:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            self._raise_file_system_error(err)
+            raise
         self._acquire_lock()
         try:
             self._decide()
-        except BaseException:
+        except BaseException as err:
             self._release_lock()
+            self._raise_file_system_error(err)
             raise
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
         self._release_lock()
+        self._raise_file_system_error(exc)
+
+    def _raise_file_system_error(self, err: BaseException | None) -> None:
+        """A file-system fault without a file of its own (e.g. a full disk under a logger's write) is raised as one
+        :class:`~torchrl_bail.io.FileSystemError` line naming the run directory."""
+        fault = None if isinstance(err, FileSystemError) else file_fault(err)
+        if fault is not None:
+            raise FileSystemError(describe_file_error(fault, fault.filename or self.run_dir)) from err
 
     def _acquire_lock(self) -> None:
         if fcntl is None:
@@ -189,9 +231,12 @@ class Resumption:
                 return
             self._start_over(None)
             return
-        import torch
-
-        checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        checkpoint = self._load_checkpoint(ckpt_path, source, mode)
+        if checkpoint is None:  # damaged, and set aside: as if there were none
+            if self._report_if_complete(None):
+                return
+            self._start_over(None)
+            return
         if checkpoint.get("config") is None:
             raise ResumeError(f"{ckpt_path} carries no config (written by an older torchrl_bail): it cannot be "
                               "resumed safely; start over with resume=false or choose another hydra.run.dir")
@@ -214,6 +259,31 @@ class Resumption:
                  checkpoint["iteration"], checkpoint["iterations"], len(evaluations),
                  f", last return {evaluations[-1]['mean_return']:.1f}" if evaluations else "")
 
+    def _load_checkpoint(self, path: Path, source: Path, mode) -> dict | None:
+        """The checkpoint at ``path``; ``None`` when it is damaged and was set aside (only this run directory's own
+        checkpoint under ``resume=auto``: another directory's, or ``resume=true``, stop with one line)."""
+        import torch
+
+        try:
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+            if not isinstance(checkpoint, dict) or not {"iteration", "iterations"} <= checkpoint.keys():
+                raise ValueError("not a training checkpoint of torchrl_bail")
+        except Exception as err:  # noqa: BLE001 - whatever a damaged file raises, it is reported by name
+            if describe_file_error(err) is not None:  # unreadable (permissions...), not damaged
+                raise
+            reason = _one_line(f"{type(err).__name__}: {err}")
+            if source != self.run_dir or mode is True or str(mode).lower() == "true":
+                raise ResumeError(f"{path} is damaged and cannot be continued ({reason}); start over with "
+                                  "resume=false or choose another hydra.run.dir") from None
+            self._set_aside(path, f"{path} is damaged ({reason})", "the run starts over")
+            return None
+        return checkpoint
+
+    def _set_aside(self, path: Path, what: str, then: str) -> None:
+        aside = path.with_name(path.name + CORRUPT)
+        os.replace(path, aside)
+        log.warning("%s: set aside as %s; %s", what, aside.name, then)
+
     def _report_if_complete(self, checkpoint: dict | None) -> bool:
         import json
 
@@ -229,7 +299,18 @@ class Resumption:
             if diffs:
                 raise ResumeError(f"{self.run_dir} holds a finished run of another config ({'; '.join(diffs[:4])}); "
                                   "start over with resume=false or choose another hydra.run.dir")
-        self.complete = json.loads(summary_path.read_text())
+        try:
+            summary = json.loads(summary_path.read_text())
+            float(summary["final_return"])
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError) as err:
+            reason = _one_line(f"{type(err).__name__}: {err}")
+            if checkpoint is None:
+                raise ResumeError(f"{summary_path} is damaged ({reason}) and no finished checkpoint can write it "
+                                  "again; train the run again with resume=false") from None
+            self._set_aside(summary_path, f"{summary_path} is damaged ({reason})",
+                            "the finished checkpoint writes it again")
+            return False
+        self.complete = summary
         log.info("run %s is already complete: final_return %.1f -> %s (resume=false trains it again)",
                  self.run_dir, self.complete["final_return"], summary_path)
         return True

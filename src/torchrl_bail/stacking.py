@@ -8,15 +8,25 @@ serves every seed:
 * every ``nn.Linear`` of the host becomes a :class:`SeedStackedLinear`: a weight ``[S, out, in]`` applied to inputs
   ``[S, *B, in]`` by one batched matrix product (:func:`linear`), row ``s`` with seed ``s``'s weights;
 * the host sees mini-batches ``[S, B]`` (row ``s`` sampled from seed ``s``'s data by seed ``s``'s own random stream,
-  :class:`SeedBatchSampler`); its losses reduce ``[S, B]`` batches per seed (the mean over ``B``) and then average
-  over the seeds, so a gradient hook multiplies every stacked parameter's gradient by ``S``: each seed's slice
-  receives exactly its own loss' gradient, and Adam (elementwise) over the stacked tensors is per-seed Adam;
+  :class:`SeedBatchSampler`, with the ``torch.randint`` call of a single-seed run's sampler; the stream is a copy of
+  the global one right after seed ``s``'s algorithm was built, on CUDA a CUDA generator seeded with ``s``, so row
+  ``s`` is the mini-batch the single-seed run draws); its losses reduce ``[S, B]`` batches per seed (the mean over
+  ``B``) and then average over the seeds, so a gradient hook multiplies every stacked parameter's gradient by
+  ``S``: each seed's slice receives exactly its own loss' gradient, and Adam (elementwise) over the stacked tensors
+  is per-seed Adam; BEAR's Lagrange multiplier and MARWIL's ``c2`` are one per seed;
+* BAIL fits the ``S`` upper envelopes as one stacked network (:func:`~torchrl_bail.envelope.fit_upper_envelope`
+  with a list of generators): each seed has its own split, epoch shuffles, validation loss, patience counter,
+  reverts and best weights, and selects its best actions under its own envelope; Progressive BAIL keeps per-seed
+  validation sets and early-stopping trackers on slices of the stacked envelopes and selects inside each seed's
+  row of the mini-batch;
 * the evaluation policy sees observations ``[S, N, obs_dim]`` (:class:`~torchrl_bail.evaluation.Evaluator` with
-  ``seeds=``) and plays each seed's policy on its own row.
+  ``seeds=``, the ``S x episodes`` test episodes in one step loop) and plays each seed's policy on its own row;
+  each seed gets the reset seeds its single-seed run uses.
 
 :meth:`SeedStack.unstack` writes the trained slices (parameters, target networks, per-seed buffers, optimizer
 states) back into the ``S`` original algorithms, which then save their policies, checkpoints and summaries exactly
-as a single-seed run does.
+as a single-seed run does. Using ``seeds=`` from the command line, its outputs, resuming and what matches a
+single-seed run: the docs' "Many seeds in one process" page (``docs/guides/many-seeds.md``).
 
 Examples:
     >>> import torch

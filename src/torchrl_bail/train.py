@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error, run_cli
 from torchrl_bail.config import ConfigError, validate_config
-from torchrl_bail.resume import Resumption
+from torchrl_bail.resume import Resumption, record_config
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.cli.run_cli) in about a second, before they load.
@@ -305,7 +305,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     start = time.perf_counter()
     cfg = configs[0]
     for seed_cfg, seed_dir in zip(configs, dirs):
-        OmegaConf.save(seed_cfg, seed_dir / "config.yaml", resolve=True)
+        record_config(seed_cfg, seed_dir / "config.yaml")
     device = _device(cfg.device)
     batch = load_training_batch(cfg)
     seeds = [int(c.seed) for c in configs]

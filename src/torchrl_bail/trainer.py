@@ -5,7 +5,7 @@ update step, evaluates the deterministic policy every ``eval_every_epochs`` (an 
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
 and writes an atomic checkpoint before the first update, after each evaluation and every few minutes. Given
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
-as a run that was never interrupted (see the README's "Interrupted runs and preemption").
+as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
 The loop itself is :func:`train_seeds`: it trains a :class:`Trainee` of ``S >= 1`` seeds and keeps every per-seed
 value (loggers, callbacks, histories, checkpoint paths) in lists. ``train`` is its one-seed edge, with an
@@ -42,7 +42,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from tqdm.auto import tqdm
 
 from torchrl_bail.algorithms.base import Algorithm
-from torchrl_bail.io import atomic_path
+from torchrl_bail.io import write_atomic
 
 __all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "rng_state",
            "save_checkpoint", "set_rng_state", "train", "train_seeds"]
@@ -76,9 +76,8 @@ class TrainHistory:
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """``torch.save`` to a temp file in the same directory, then an atomic rename."""
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    """``torch.save`` to a temp file in the same directory, then an atomic rename (a full disk: one line naming it)."""
+    write_atomic(path, lambda f: torch.save(state, f))
 
 
 def rng_state() -> dict[str, Any]:
@@ -216,7 +215,7 @@ def train(
             that state is checkpointed too.
         samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
         eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
-        logger: a TorchRL logger (``log_scalar``), optional.
+        logger (Logger, optional): a TorchRL logger (``log_scalar``).
         checkpoint_path: where to write the checkpoint: before the first update, after every evaluation and
             every ``checkpoint_every_s`` seconds of training. Optional.
         checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).

@@ -58,8 +58,13 @@ class BAIL(BehaviourCloning):
         self.modules["envelope"] = self.value_network
         selection = self.config.selection
         self.selection_by = selection.by
-        self.filter = BestActionFilter(percentile=selection.percentile, nonpositive_value=selection.nonpositive_value)
+        #: the filter of the last selection (each selection takes a new one: a filter selects once)
+        self.filter = self._new_filter()
         self._summary: dict[str, Any] = {}
+
+    def _new_filter(self) -> BestActionFilter:
+        selection = self.config.selection
+        return BestActionFilter(percentile=selection.percentile, nonpositive_value=selection.nonpositive_value)
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
         fit = None
@@ -125,6 +130,7 @@ class BAIL(BehaviourCloning):
         returns = data["return"]
         keyed = data.select("observation", "action", "return").clone(False)
         keyed.set("state_value", values.to(returns.dtype))
+        self.filter = self._new_filter()
         selected_buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(len(data)), transform=self.filter)
         selected_buffer.extend(keyed)
         selected = selected_buffer.storage[: len(selected_buffer)]

@@ -67,8 +67,8 @@ class Algorithm(ABC):
     Args:
         obs_dim (int): observation size.
         action_spec (TensorSpec): the bounded action spec.
-        config: the algorithm's config group (see the module docstring); checked against its schema
-            (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
+        config (DictConfig | Mapping): the algorithm's config group (see the module docstring); checked against its
+            schema (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
         device: training device. Defaults to ``"cpu"``.
     """
 

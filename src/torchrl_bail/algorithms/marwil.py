@@ -72,19 +72,11 @@ class MARWIL(DeterministicActorAlgorithm):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One joint update of the actor and the value net; during the first ``value_warmup_updates`` (``0``, the
         paper's and RLlib's joint training, by default) only the value net is stepped and the actor's optimizer
-        is left untouched, so the actor starts with a fresh Adam once V has been fitted (README, "MARWIL")."""
+        is left untouched, so the actor starts with a fresh Adam once V has been fitted (docs: Results, finding 4)."""
         self.updates_done += 1
         if self.updates_done <= self.config.value_warmup_updates:
             return self._value_update(batch)
         return self._joint_update(batch)
-
-    # -- several seeds in one process (torchrl_bail.stacking.SeedStack): the seeds share the update clock ---------
-    def stack_attributes(self, algorithms: list[MARWIL]) -> None:
-        self.updates_done = algorithms[0].updates_done
-
-    def unstack_attributes(self, algorithms: list[MARWIL]) -> None:
-        for algorithm in algorithms:
-            algorithm.updates_done = self.updates_done
 
     def _value_update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         out = self.loss(batch)  # the same diagnostics (and the same c^2 schedule) as a joint update
@@ -105,6 +97,14 @@ class MARWIL(DeterministicActorAlgorithm):
         for optimizer in self._optimizers:
             optimizer.step()
         return {key: value.detach() for key, value in out.items()}
+
+    # -- seed stacks: one update clock for every seed (stacking.SeedStack's hooks) -------------------------------
+    def stack_attributes(self, algorithms: list[MARWIL]) -> None:
+        self.updates_done = algorithms[0].updates_done
+
+    def unstack_attributes(self, algorithms: list[MARWIL]) -> None:
+        for algorithm in algorithms:
+            algorithm.updates_done = self.updates_done
 
     # -- checkpoints: the running normaliser c^2 lives in the loss ------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -13,6 +13,12 @@ The decision uses the episode length only; episodes shorter than ``horizon`` —
 episode at the end of the batch — keep their plain returns. ``augment="oracle"`` returns the batch's stored
 ``oracle_return`` (collected from the real continuation, supp. D.1).
 
+Episodes are told apart by their ids (``episode``, or TorchRL collectors' ``("collector", "traj_ids")``), not by
+where they sit: the rows of one episode must be in time order, but episodes may be interleaved (several envs
+stepped side by side, rows gathered from a buffer in write order). Ids must therefore name one episode each
+(what both keys do). A contiguous layout (each episode one block, as :func:`~torchrl_bail.data.validate_batch`
+guarantees) is computed as it is; any other is brought into episode order and the returns put back in place.
+
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
@@ -33,7 +39,10 @@ from typing import Literal
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["monte_carlo_returns", "discounted_returns", "episode_segments"]
+__all__ = ["EPISODE_KEYS", "discounted_returns", "episode_order", "episode_segments", "monte_carlo_returns"]
+
+#: where the episode ids are read, first found first: this package's batches, then TorchRL collectors' output
+EPISODE_KEYS = ("episode", ("collector", "traj_ids"))
 
 _CHUNK_ELEMENTS = 2**25  # observations processed at once when augmenting (float64): ~256 MB
 
@@ -47,8 +56,18 @@ def episode_segments(episode: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return starts, ends - starts
 
 
+def episode_order(episode: torch.Tensor) -> torch.Tensor | None:
+    """``None`` when every episode id of ``episode`` ``[N]`` fills one contiguous block; otherwise the permutation
+    (a stable sort by id) that makes them so, keeping each episode's rows in their order."""
+    starts, _ = episode_segments(episode)
+    if len(starts) == episode.unique().numel():
+        return None
+    return torch.argsort(episode, stable=True)
+
+
 def discounted_returns(rewards: torch.Tensor, episode: torch.Tensor, gamma: float) -> torch.Tensor:
-    """Plain discounted reward-to-go within each episode block, float64 ``[N]``.
+    """Plain discounted reward-to-go within each episode, float64 ``[N]`` (episodes may be interleaved: see the
+    module doc).
 
     Vectorised over episodes: the backward recursion ``g_t = r_t + gamma * g_(t+1)`` runs once per distance
     to the episode's end, each step updating every episode at once (``max episode length`` small tensor ops,
@@ -56,6 +75,11 @@ def discounted_returns(rewards: torch.Tensor, episode: torch.Tensor, gamma: floa
     is summed to its last stored reward.
     """
     rewards = rewards.reshape(-1).double()
+    order = episode_order(episode)
+    if order is not None:
+        out = torch.empty_like(rewards)
+        out[order] = discounted_returns(rewards[order], episode[order], gamma)
+        return out
     starts, lengths = episode_segments(episode)
     last_row = torch.repeat_interleave(starts + lengths - 1, lengths)
     to_end = last_row - torch.arange(rewards.numel())
@@ -91,6 +115,26 @@ def _gain(obs: torch.Tensor, g: torch.Tensor, gamma: float, horizon: int) -> tor
     return out
 
 
+def _episode_ids(td: TensorDictBase) -> torch.Tensor:
+    """The episode ids ``[N]`` of a flat batch, from the first of :data:`EPISODE_KEYS` it holds."""
+    for key in EPISODE_KEYS:
+        ids = td.get(key, None)
+        if ids is not None:
+            break
+    else:
+        raise ValueError(
+            "monte_carlo_returns: the batch has no episode ids: expected an 'episode' entry (one id per episode) or "
+            "TorchRL collectors' ('collector', 'traj_ids'); keys present: "
+            f"{sorted(map(str, td.keys(True, True)))}"
+        )
+    if ids.shape == td.batch_size + (1,):
+        ids = ids.squeeze(-1)
+    if ids.shape != td.batch_size:
+        raise ValueError(f"monte_carlo_returns: episode ids {key!r} have shape {tuple(ids.shape)}; expected the "
+                         f"batch shape {tuple(td.batch_size)} (or with a trailing 1)")
+    return ids
+
+
 def monte_carlo_returns(
     td: TensorDictBase,
     *,
@@ -98,11 +142,12 @@ def monte_carlo_returns(
     horizon: int = 1000,
     augment: Literal["gain", "none", "oracle"] = "gain",
 ) -> torch.Tensor:
-    """Monte-Carlo returns ``G`` ``[N]`` (float32) of a TED batch, as the module doc describes.
+    """Monte-Carlo returns ``G`` (float32, the batch shape) of a TED batch, as the module doc describes.
 
     Args:
-        td: a TED TensorDict ``[N]`` with ``observation``, ``("next", "reward")`` and ``episode`` ids
-            (contiguous blocks, as :func:`~torchrl_bail.data.validate_batch` guarantees).
+        td: a TED TensorDict with ``observation``, ``("next", "reward")`` and episode ids (``episode`` or
+            ``("collector", "traj_ids")``, shaped like the batch or with a trailing 1). A batch of more than
+            one dimension (e.g. ``[envs, time]``) is read row by row (``td.reshape(-1)``).
 
     Keyword Args:
         gamma (float): discount in ``(0, 1]``. Defaults to ``0.99``.
@@ -120,13 +165,27 @@ def monte_carlo_returns(
         if "oracle_return" not in td.keys():
             raise KeyError("augment='oracle' needs the batch's 'oracle_return' key; collect an oracle batch "
                            "(batch.oracle.enabled=true) or use returns.augment=gain")
-        return td.get("oracle_return").reshape(-1).to(torch.float32)
-    episode = td.get("episode")
+        return td.get("oracle_return").reshape(td.batch_size).to(torch.float32)
+    if td.batch_dims != 1:
+        return monte_carlo_returns(td.reshape(-1), gamma=gamma, horizon=horizon,
+                                   augment=augment).reshape(td.batch_size)
+    episode = _episode_ids(td)
+    order = episode_order(episode)
+    if order is not None:
+        out = torch.empty(td.batch_size, dtype=torch.float32)
+        needed = td.select("observation", ("next", "reward"), strict=False)
+        out[order] = _block_returns(needed[order], episode[order], gamma, int(horizon), augment)
+        return out
+    return _block_returns(td, episode, gamma, int(horizon), augment)
+
+
+def _block_returns(td: TensorDictBase, episode: torch.Tensor, gamma: float, horizon: int, augment: str) -> torch.Tensor:
+    """:func:`monte_carlo_returns` of a batch whose episodes are contiguous blocks."""
     g = discounted_returns(td.get(("next", "reward")), episode, gamma)
     if augment == "none":
         return g.to(torch.float32)
     starts, lengths = episode_segments(episode)
-    long_eps = (lengths >= int(horizon)).nonzero().flatten()
+    long_eps = (lengths >= horizon).nonzero().flatten()
     obs = td.get("observation")
     out = g.clone()
     for length in lengths[long_eps].unique().tolist():
@@ -135,5 +194,5 @@ def monte_carlo_returns(
         for chunk in same.split(per_chunk):
             rows = (starts[chunk].unsqueeze(1) + torch.arange(length)).reshape(-1)
             ep_obs = obs[rows].double().reshape(len(chunk), length, -1)
-            out[rows] = _gain(ep_obs, g[rows].reshape(len(chunk), length), gamma, int(horizon)).reshape(-1)
+            out[rows] = _gain(ep_obs, g[rows].reshape(len(chunk), length), gamma, horizon).reshape(-1)
     return out.to(torch.float32)

@@ -111,7 +111,11 @@ class BEARLoss(TwinCriticVAELoss):
             global generator, as the authors do. Defaults to ``None``.
         log_alpha_min (float): lower clamp of ``log_alpha``. Defaults to ``-5.0``.
         log_alpha_max (float): upper clamp of ``log_alpha`` (``lagrange_thresh``). Defaults to ``10.0``.
-        lmbda, gamma, kl_weight, reduction, deactivate_vmap: as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        lmbda (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        gamma (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        kl_weight (float): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        reduction (str): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
+        deactivate_vmap (bool): as in :class:`~torchrl_bail.objectives.bcq.BCQLoss`.
 
     Choices where the paper is silent:
 
@@ -181,6 +185,8 @@ class BEARLoss(TwinCriticVAELoss):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to, beside the shared ones (an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"kernel_sigma", "epsilon", "mmd_stabilizer", "log_alpha_min", "log_alpha_max"})
     out_keys = ["loss_vae", "loss_qvalue", "loss_actor", "loss_alpha", "recon_loss", "kl_loss", "q_mean",
                 "target_value_mean", "mmd", "actor_q_mean", "alpha", "warm_start"]
 

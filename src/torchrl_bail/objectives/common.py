@@ -13,6 +13,7 @@ target actor's own samples) and in the actor's objective.
 
 from __future__ import annotations
 
+import copy
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -123,6 +124,8 @@ class TwinCriticVAELoss(LossModule):
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
     default_value_estimator = None
+    #: coefficients a float may be assigned to (``loss.gamma = 0.98``: an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"lmbda", "gamma", "kl_weight"})
 
     actor_network: TensorDictModule
     actor_network_params: TensorDictParams
@@ -180,6 +183,18 @@ class TwinCriticVAELoss(LossModule):
         network = self.qvalue_network
         self._plain_critic = (PlainMLP.build(network.module, ("module",))
                               if type(network) in (TensorDictModule, ValueOperator) else None)
+
+    def __deepcopy__(self, memo: dict) -> TwinCriticVAELoss:
+        """A copy that computes from its own tensors only: the cached detached critic parameters (views of this
+        loss' critics, kept between calls) stay behind and are rebuilt from the copy's critics on first use, and
+        the vmapped critic is rebuilt on the copy's network. (TorchRL's own ``TD3Loss`` carries its cache over.)"""
+        cls = type(self)
+        new = cls.__new__(cls)
+        memo[id(self)] = new
+        new.__dict__.update({key: {} if key == "_cache" else copy.deepcopy(value, memo)
+                             for key, value in self.__dict__.items()})
+        new._make_vmap()
+        return new
 
     def _plain_critic_members(self, params: TensorDictBase) -> list[dict] | None:
         """The critics' weights as plain tensors when they are MLPs reading ``(observation, action)``, else None."""

@@ -159,7 +159,9 @@ class MARWILLoss(LazyInKeysLoss):
     default_value_estimator = None
     out_keys = ["loss_actor", "loss_value", "advantage_mean", "value_mean", "weight_mean", "weight_max",
                 "weight_share_max", "clamped_fraction", "squared_error_mean", "c2"]
-    _schedulable_buffers = frozenset({"beta"})
+    #: coefficients a float may be assigned to (``loss.beta = 0.5``: an in-place update); not ``c2``, the running
+    #: estimate the loss updates itself
+    _schedulable_buffers = frozenset({"beta", "vf_coeff", "max_exponent", "eps", "c2_rate"})
 
     actor_network: TensorDictModule
     actor_network_params: TensorDictParams

@@ -129,6 +129,8 @@ class UpperEnvelopeLoss(LazyInKeysLoss):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to (``loss.penalty = 10.0``: an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"penalty"})
     default_value_estimator = None
     out_keys = ["loss_envelope", "fraction_below", "value_mean"]
 

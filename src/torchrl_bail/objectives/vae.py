@@ -106,6 +106,8 @@ class VAELoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
+    #: coefficients a float may be assigned to (an in-place update of the buffer)
+    _schedulable_buffers = frozenset({"kl_weight"})
     default_value_estimator = None
     out_keys = ["loss_vae", "recon_loss", "kl_loss"]
 

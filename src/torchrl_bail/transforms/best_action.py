@@ -14,12 +14,15 @@ border are all kept, so slightly more than ``p N`` pairs may survive).
 from __future__ import annotations
 
 import math
-from typing import Literal
+import warnings
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
+from torchrl.data import Composite
+from torchrl.envs import EnvBase
 from torchrl.envs.transforms import Transform
 
 __all__ = ["NonPositiveValue", "project_values", "best_action_mask", "BestActionFilter", "select_best_actions"]
@@ -153,13 +156,20 @@ class BestActionFilter(Transform):
 
     On ``rb.extend(data)`` (the inverse transform) it keeps only the rows selected by :func:`best_action_mask`
     over the *whole* extended batch, so the buffer stores exactly the best pairs and samples fixed-size,
-    uniform mini-batches from them. Extend the buffer with the whole batch in one call: the border is
-    computed per ``extend``.
+    uniform mini-batches from them. Extend the buffer with the whole batch in one call: a write-time transform
+    cannot take back rows it stored, so a second ``extend`` selects the top ``percentile`` of its own rows only
+    (it warns once per filter; a new selection takes a new filter).
 
     At sample time (``forward``) the batch size is never changed: rows are only tagged with a boolean
-    ``selected_key`` entry, ``G / V >= border`` with the border of the last write-time selection (so every row
-    stored through the filter is tagged ``True``). Called directly on a batch before any write-time selection,
-    it tags the top ``percentile`` of that batch, which pairs with a masked loss (``loss.loss_mask_key``).
+    ``selected_key`` entry, ``G / V >= border`` with the lowest border of the write-time selections (so every
+    row stored through the filter is tagged ``True``). Called directly on a batch before any write-time
+    selection, it tags the top ``percentile`` of that batch, which pairs with a masked loss
+    (``loss.loss_mask_key``).
+
+    The border and the counts are buffers of the transform's ``state_dict``: a buffer saved with
+    ``rb.dumps(path)`` and read back with ``rb.loads(path)`` (or a filter loaded with ``load_state_dict``) tags
+    exactly as the original. Inside a :class:`~torchrl.envs.TransformedEnv` the filter does nothing (it adds no
+    entry and declares no spec), so an env may carry it.
 
     Args:
         value_network (TensorDictModuleBase, optional): the upper envelope. If given, ``V`` is computed (in
@@ -178,9 +188,11 @@ class BestActionFilter(Transform):
         chunk_size (int): rows per forward pass of ``value_network``. Defaults to ``65536``.
 
     Attributes:
-        selected_fraction (float): share of rows kept by the last write-time selection (``nan`` before any).
-        border (float): its border ``x`` (``nan`` before any).
-        num_selected (int): rows kept by the last selection.
+        border (float): the border ``x`` of the write-time selection (the lowest, after several ``extend``
+            calls; ``nan`` before any).
+        num_seen (int): rows offered to the write-time selections.
+        num_selected (int): rows they kept.
+        selected_fraction (float): ``num_selected / num_seen`` (``nan`` before any).
 
     Examples:
         >>> import torch
@@ -227,9 +239,37 @@ class BestActionFilter(Transform):
         self.chunk_size = int(chunk_size)
         # referenced, not a sub-module: the envelope belongs to (and is checkpointed by) its owner
         self.__dict__["value_network"] = value_network
-        self.selected_fraction: float = math.nan
-        self.border: float = math.nan
-        self.num_selected: int = 0
+        # the write-time selection, in the state_dict (rb.dumps / rb.loads carry it)
+        self.register_buffer("_border", torch.tensor(math.nan, dtype=torch.float64))
+        self.register_buffer("_num_seen", torch.zeros((), dtype=torch.long))
+        self.register_buffer("_num_selected", torch.zeros((), dtype=torch.long))
+        self._warned_chunks = False
+
+    @property
+    def border(self) -> float:
+        return float(self._border)
+
+    @property
+    def num_seen(self) -> int:
+        return int(self._num_seen)
+
+    @property
+    def num_selected(self) -> int:
+        return int(self._num_selected)
+
+    @property
+    def selected_fraction(self) -> float:
+        return self.num_selected / self.num_seen if self.num_seen else math.nan
+
+    def _in_env(self) -> bool:
+        """Whether the filter sits in an environment's transforms (where it has nothing to do)."""
+        holder = self
+        while holder is not None:
+            ref = holder.__dict__.get("_container")
+            holder = ref() if ref is not None else None
+            if isinstance(holder, EnvBase):
+                return True
+        return False
 
     # -- helpers -----------------------------------------------------------------------------------
     @torch.no_grad()
@@ -270,6 +310,8 @@ class BestActionFilter(Transform):
 
     # -- write time: keep the best rows ------------------------------------------------------------
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self._in_env():  # an action on its way to the env: nothing to select
+            return tensordict
         if tensordict.batch_dims != 1:
             raise ValueError(
                 f"BestActionFilter selects over a flat batch [N]; got batch size {tuple(tensordict.batch_size)}. "
@@ -280,9 +322,20 @@ class BestActionFilter(Transform):
         mask, border = best_action_mask(
             returns, values, self.percentile, nonpositive_value=self.nonpositive_value, return_border=True
         )
-        self.num_selected = int(mask.sum())
-        self.selected_fraction = self.num_selected / max(len(mask), 1)
-        self.border = float(border)
+        if self.num_seen and not self._warned_chunks:
+            self._warned_chunks = True
+            warnings.warn(
+                f"BestActionFilter: this extend selects the top {self.percentile} of its own {len(mask)} rows; the "
+                f"{self.num_selected} rows stored before were selected among theirs (a stored row cannot be taken "
+                "back). Extend once with the whole batch to select over all of it, and use a new filter for a new "
+                "selection (warned once per filter)",
+                UserWarning,
+                stacklevel=2,
+            )
+        # new tensors, not in-place updates: a clone (Transform.clone shares the buffers' tensors) keeps its own
+        self._num_seen = self._num_seen + len(mask)
+        self._num_selected = self._num_selected + int(mask.sum())
+        self._border = torch.fmin(self._border, border.to(self._border))  # fmin: nan before the first selection
         return tensordict[mask.to(tensordict.device or mask.device)]
 
     # -- sample time: never change the batch size --------------------------------------------------
@@ -302,9 +355,12 @@ class BestActionFilter(Transform):
         tensordict.set(self.selected_key, selected)
         return tensordict
 
+    # -- inside an environment: nothing to do, nothing added -------------------------------------------
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        # inside an environment this transform has nothing to do
         return next_tensordict
+
+    def transform_output_spec(self, output_spec: Composite) -> Composite:
+        return output_spec
 
     def __repr__(self) -> str:
         return (
@@ -318,7 +374,7 @@ def select_best_actions(
     tensordict: TensorDictBase,
     value_network: TensorDictModuleBase | None = None,
     percentile: float = 0.30,
-    **kwargs,
+    **kwargs: Any,
 ) -> TensorDictBase:
     """The rows of ``tensordict`` that BAIL keeps (a new TensorDict; the input is not modified).
 

@@ -1,0 +1,200 @@
+"""The documentation cannot rot: the configuration reference is generated from the schemas and fails on an
+undocumented field, and every tutorial script runs here at tiny scale (the site itself is built by ``.ci/run``)."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _contract import _SMALL_POLICY, TINY_RUN
+from test_importers import minari_episode, write_minari
+
+ROOT = Path(__file__).resolve().parents[1]
+TUTORIALS = ROOT / "docs" / "tutorials"
+
+
+def _generator():
+    spec = importlib.util.spec_from_file_location("gen_config_reference", ROOT / "docs" / "gen_config_reference.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+gen = _generator()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the configuration reference
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sections():
+    return gen.collect()
+
+
+def _row(sections, group, key):
+    return next(r for s in sections if s.group == group for r in s.rows if r.key == key)
+
+
+def test_every_schema_field_has_a_one_line_doc(sections):
+    assert gen.missing_docs(sections) == []
+    documented = {(s.group, r.key) for s in sections for r in s.rows}
+    # every schema of both registries appears, with all of its fields
+    from torchrl_bail.config import ALGO_SCHEMAS, BATCH_SCHEMAS, Config
+    schemas = {s.schema for s in sections}
+    assert set(ALGO_SCHEMAS.values()) | set(BATCH_SCHEMAS.values()) | {Config} <= schemas
+    assert ("algo", "envelope.early_stopping") in documented and ("batch", "sac.log_prob_on") in documented
+
+
+def test_a_row_joins_the_schema_and_the_yaml(sections):
+    row = _row(sections, "algo", "selection.percentile")  # BAIL's section comes first among the algo rows
+    assert (row.type, row.allowed, row.defaults) == ("float", "a fraction in (0, 1]", {"bail": 0.3})
+    assert row.doc.startswith("p (the paper's 30%")
+    steps = _row(sections, "batch", "steps")
+    assert steps.defaults == {"ddpg01": 1000000, "ddpg05": 1000000}
+    assert steps.presets == {"ddpg01": {"quick": 50000, "study": 50000}, "ddpg05": {"quick": 50000, "study": 50000}}
+    assert _row(sections, None, "checkpoint.every_minutes").type == "float or null"
+    # a top-level key that only some algorithms' preset files set says which
+    every = _row(sections, None, "eval.every_epochs").presets["default"]
+    assert every["quick with bcq, bear"] == 0.1 and "quick" not in every
+    # a comment continued on the next line is one meaning
+    assert _row(sections, None, "seeds").doc.endswith("(docs: Many seeds in one process)")
+    # bear.yaml borrows bcq.yaml's comments of the block both inherit (vae), never those of a block of its own
+    bcq, bear = ({r.key: r.doc for r in s.rows} for name in ("bcq", "bear") for s in sections if s.options == [name])
+    assert "vae.hidden" not in gen.yaml_comments(ROOT / "conf" / "algo" / "bear.yaml")
+    assert bear["vae.hidden"] == bcq["vae.hidden"] == "VAE encoder and decoder MLPs"
+    assert bear["actor.hidden"] != bcq["actor.hidden"]
+
+
+def test_an_undocumented_field_fails_with_its_name(tmp_path):
+    conf = shutil.copytree(ROOT / "conf", tmp_path / "conf")
+    bail = conf / "algo" / "bail.yaml"
+    bail.write_text(re.sub(r"(?m)^(  penalty: 1000.0) +#.*$", r"\1  #", bail.read_text()))  # an empty comment
+    with pytest.raises(gen.MissingDocs, match=r"yaml: algo\.envelope\.penalty \(BAILConfig\); add '# <meaning>'"):
+        gen.generate(conf)
+
+
+def test_yaml_comments_continue_below_and_block_comments_belong_to_no_key(tmp_path):
+    path = tmp_path / "x.yaml"
+    path.write_text("# a block comment\na: 1   # first line\n        # second line\n# about b\nb:\n"
+                    "  c: 'x # not a comment'   # the c\n  d: [1, 2]\n")
+    assert gen.yaml_comments(path) == {"a": "first line second line", "b.c": "the c"}
+
+
+def test_the_page_renders_pipes_and_tags_inside_tables(sections):
+    text = gen.render(sections)
+    line = next(row for row in text.splitlines() if row.startswith("| `device` |"))
+    assert "cpu \\| cuda \\| cuda:N \\| auto" in line
+    line = next(row for row in text.splitlines() if row.startswith("| `logger.name` |"))
+    assert "&lt;algo&gt;_seed&lt;seed&gt;" in line
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the tutorials, at tiny scale
+# ---------------------------------------------------------------------------------------------------------------
+
+#: the tiny run's overrides (a 600-transition batch of a tiny DDPG, 100-step episodes), for every tutorial's runs
+TINY = [o for o in TINY_RUN if not o.startswith(("+exp=", "preset="))] + ["algo.epochs=0.004", _SMALL_POLICY]
+
+
+def _tutorial(name: str, *args: str, cwd: Path, data_dir: Path) -> str:
+    env = {**os.environ, "TORCHRL_BAIL_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, str(TUTORIALS / name), *args], check=False, cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout
+
+
+def test_every_tutorial_script_has_a_page_and_a_test():
+    pages = "".join(p.read_text() for p in TUTORIALS.glob("*.md"))
+    tested = Path(__file__).read_text()
+    for script in TUTORIALS.glob("*.py"):
+        assert f'--8<-- "docs/tutorials/{script.name}"' in pages, script.name
+        assert f'_tutorial("{script.name}"' in tested, script.name
+
+
+def test_tutorial_pages_use_the_options_their_scripts_define():
+    for page in [*TUTORIALS.glob("*.md"), *TUTORIALS.glob("*.py")]:  # the pages and the scripts' usage lines
+        for script, args in re.findall(r"python docs/tutorials/(\w+\.py)([^\n#]*)", page.read_text()):
+            source = (TUTORIALS / script).read_text()
+            for flag in re.findall(r"(?<!\S)--[a-z][\w-]*", args):
+                assert f'"{flag}"' in source, f"{page.name}: {script} has no option {flag}"
+
+
+def test_tutorial_reproduce_a_row(tmp_path, tiny_run_data_dir):
+    out = _tutorial("reproduce_a_row.py", "--seeds", "1,2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
+    table = (tmp_path / "tutorial_row" / "row.md").read_text()
+    assert table.splitlines()[0].startswith("| batch | data | bail | bc |")
+    scores = [line for line in out.splitlines() if re.match(r" *(bail|bc) seed [12]: final_return ", line)]
+    assert "hopper_ddpg05_b1" in table and len(scores) == 4
+
+
+def test_tutorial_bring_your_own_data(tmp_path, tiny_run_data_dir):
+    minari = write_minari(tmp_path / "minari", [minari_episode(40, "terminal", 10 * i) for i in range(8)])
+    out = _tutorial("bring_your_own_data.py", "--steps", "600", "--minari", str(minari), *TINY, cwd=tmp_path,
+                    data_dir=tmp_path / "data")
+    assert "d4rl: 600 transitions" in out and "minari: 320 transitions, 8 episodes" in out
+    assert out.count("normalised") == 2  # Hopper has D4RL reference scores
+    assert (tmp_path / "tutorial_data" / "run_minari" / "summary.json").is_file()
+
+
+def test_tutorial_losses_in_a_torchrl_loop(tmp_path):
+    out = _tutorial("losses_in_a_torchrl_loop.py", "--steps", "600", "--envelope-epochs", "2", "--updates", "10",
+                    "--eval-steps", "50", cwd=tmp_path, data_dir=tmp_path / "data")
+    assert "selected 180 of 600 pairs" in out and "evaluation: return" in out
+
+
+def test_tutorial_sweep_seeds(tmp_path, tiny_run_data_dir):
+    out = _tutorial("sweep_seeds.py", "--seeds", "1,2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
+    assert "hydra/launcher=slurm" in out and "hydra/launcher=joblib" in out
+    for seed in (1, 2):  # the stacked run gives each seed its single-seed score
+        line = next(row for row in out.splitlines() if row.startswith(f"seed {seed}: final_return"))
+        alone, stacked = (float(w) for w in line.replace(",", "").split() if w.replace(".", "").lstrip("-").isdigit())
+        assert stacked == pytest.approx(alone, rel=1e-4, abs=1e-3)
+
+
+def test_tutorial_resume_a_killed_run(tmp_path, tiny_run_data_dir):
+    out = _tutorial("resume_a_killed_run.py", *TINY, "algo.epochs=0.03", cwd=tmp_path, data_dir=tiny_run_data_dir)
+    assert "killed" in out.splitlines() and "the summaries agree in every score" in out
+
+
+def test_tutorial_load_evaluate_export(tmp_path, tiny_run_data_dir):
+    out = _tutorial("load_evaluate_export.py", "--episodes", "2", *TINY, cwd=tmp_path, data_dir=tiny_run_data_dir)
+    assert "bail policy for Hopper-v5: observation 11 -> action 3" in out
+    for fmt in ("pt2", "onnx"):
+        line = next(row for row in out.splitlines() if row.startswith(f"{fmt} export"))
+        assert float(line.split()[-1]) < 1e-5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the README: short, its two commands those of Getting started, its links alive (mkdocs checks the site's own)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _first_bash_block(text: str) -> str:
+    return re.search(r"```bash\n(.*?)```", text[text.index("## Two commands"):], re.DOTALL).group(1)
+
+
+def test_readme_is_short_and_shares_its_two_commands_with_getting_started():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 200, "the README is the front door; long sections belong on a docs page"
+    commands = _first_bash_block(readme)
+    assert "python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick seed=1" in commands
+    assert commands == _first_bash_block((ROOT / "docs" / "getting-started.md").read_text())
+
+
+def test_readme_links_point_to_files_that_exist():
+    readme = (ROOT / "README.md").read_text()
+    targets = [t for t in re.findall(r"\]\(([^)\s]+)\)", readme) if not t.startswith(("http://", "https://"))]
+    assert len(targets) > 10
+    missing = [t for t in targets if not (ROOT / t.split("#")[0]).exists()]
+    assert missing == []
