@@ -209,6 +209,6 @@ def test_a_full_disk_under_a_write_without_a_file_names_the_run_directory(tiny_r
     def full(*args, **kwargs):  # e.g. a logger's own write, which reports no file
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(trainer_module, "train", full)
+    monkeypatch.setattr(trainer_module, "train_seeds", full)  # the loop train.run drives
     line = _one_line_exit(capsys, lambda: run(_cfg(tiny_run_data_dir), tmp_path / "run"))
     assert f"cannot write {tmp_path / 'run'}: No space left on device" in line
