@@ -32,7 +32,6 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
     # 11 batches; 3 seeds of: 2 envs x 5 batches x every_batch, 4 ablations, MARWIL with V fitted first on 3 Hopper
     # batches, 2 envs x 2 DDPG batches x BCQ/BEAR
     assert len(names) == len(set(names)) == 11 + 3 * (2 * 5 * len(every_batch) + 4 + 3 + 2 * 2 * 2)
-    assert by_name_args(jobs, "hopper_opt_det/marwil/value_warmup/seed3")[-1] == "algo.value_warmup_updates=200"
     assert {"bail", "pbail", "bc", "marwil"} <= set(every_batch)
     collects = [j for j in jobs if j.module == "torchrl_bail.collect"]
     assert len(collects) == 11 and jobs[:11] == collects  # batches first
@@ -46,14 +45,11 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
                 assert {f"{env}_{kind}/{algo}/seed{s}" for s in (1, 2, 3)} <= set(names)
             assert f"{env}_sac/bcq/seed1" not in names
     by_name = {j.name: j for j in jobs}
+    assert by_name["hopper_opt_det/marwil/value_warmup/seed3"].args[-1] == "algo.value_warmup_updates=200"
     assert by_name["hopper_ddpg05/bail/D1_oracle/seed2"].args == [
         "+exp=hopper_ddpg05", "algo=bail", "seed=2", "preset=study", "batch.oracle.enabled=true",
         "returns.augment=oracle"]
     assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
-
-
-def by_name_args(jobs, name: str) -> list[str]:
-    return next(j.args for j in jobs if j.name == name)
 
 
 def _run(root: Path, name: str, returns: list[float], algo: str = "bail") -> None:
