@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import random
+import threading
+import time
 
 import pytest
 import torch
@@ -21,12 +24,14 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 import torchrl_bail.algorithms as algorithms_module
+import torchrl_bail.resume as resume_module
 import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import BehaviourCloning, PrepareContext
 from torchrl_bail.config import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.resume import ResumeError, Resumption
+from torchrl_bail.data.locks import host_name
+from torchrl_bail.resume import RUN_LOCK, ResumeError, Resumption
 from torchrl_bail.trainer import train
 
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
@@ -269,9 +274,72 @@ def test_resume_from_another_run_dir_and_the_lock(tmp_path, data_dir):
     assert (tmp_path / "new_run" / "logs" / "scalars" / "eval" / "return.csv").read_text() == \
         (source / "logs" / "scalars" / "eval" / "return.csv").read_text()
     with Resumption(cfg, tmp_path / "busy"):
-        with pytest.raises(ResumeError, match="in use by another process"):
+        with pytest.raises(ResumeError, match=rf"in use by another process \({host_name()}:{os.getpid()}\)"):
             with Resumption(cfg, tmp_path / "busy"):
                 pass
+    assert not (tmp_path / "busy" / RUN_LOCK).exists(), "the lock is released with the run"
+
+
+def _foreign_lock(run_dir, **extra):
+    run_dir.mkdir(parents=True, exist_ok=True)
+    owner = {"host": "otherhost-that-is-not-us", "pid": 4242, "start_time": 1, "token": "theirs", **extra}
+    (run_dir / RUN_LOCK).write_text(json.dumps(owner))
+    return run_dir / RUN_LOCK
+
+
+def test_the_run_directory_lock_is_the_batches_owner_file_lock(tmp_path, data_dir, monkeypatch, caplog):
+    """Another host's live run (its heartbeat moves) is refused; a killed one's lock (no heartbeat for
+    RUN_LOCK_STALE_AFTER_S, a Slurm job requeued on another node) is taken over; a dead local pid's at once."""
+    cfg = _cfg(data_dir, "algo=bc")
+    monkeypatch.setattr(resume_module, "RUN_LOCK_STALE_AFTER_S", 3.0)
+    lock = _foreign_lock(tmp_path / "live")
+    beating = threading.Event()
+
+    def heartbeat():
+        while not beating.wait(0.1):
+            os.utime(lock, None)
+
+    beater = threading.Thread(target=heartbeat, daemon=True)
+    beater.start()
+    try:
+        with pytest.raises(ResumeError, match=r"in use by another process \(otherhost-that-is-not-us:4242\)"):
+            with Resumption(cfg, tmp_path / "live"):
+                pass
+    finally:
+        beating.set()
+        beater.join()
+    assert json.loads(lock.read_text())["token"] == "theirs", "a live owner's lock is left alone"
+
+    caplog.set_level("INFO", logger="torchrl_bail")
+    old = time.time() - 2.0
+    os.utime(lock, (old, old))  # killed two seconds ago: no heartbeat comes
+    start = time.monotonic()
+    with Resumption(cfg, tmp_path / "live"):
+        assert json.loads(lock.read_text())["host"] == host_name()
+    assert 0.5 < time.monotonic() - start < 10, "taken over once its heartbeat is RUN_LOCK_STALE_AFTER_S old"
+    assert "taking it over if none comes" in caplog.text and "taking over the lock .lock" in caplog.text
+
+    monkeypatch.setattr(resume_module, "RUN_LOCK_STALE_AFTER_S", 600.0)
+    _foreign_lock(tmp_path / "killed_here", host=host_name(), pid=999_999_999)
+    start = time.monotonic()
+    with Resumption(cfg, tmp_path / "killed_here"):
+        pass
+    assert time.monotonic() - start < 5, "a dead pid of this host: taken over at once, whatever the heartbeat"
+
+    (tmp_path / "flock_era").mkdir()
+    (tmp_path / "flock_era" / RUN_LOCK).write_text("12345")  # what the flock-based versions left behind
+    with Resumption(cfg, tmp_path / "flock_era"):
+        assert json.loads((tmp_path / "flock_era" / RUN_LOCK).read_text())["pid"] == os.getpid()
+
+
+def test_a_run_whose_directory_was_taken_over_stops_before_its_next_checkpoint(tmp_path, data_dir):
+    cfg = _cfg(data_dir, "algo=bc")
+    with Resumption(cfg, tmp_path / "run") as resumption:
+        resumption.checkpoint_extra()  # ours: fine
+        _foreign_lock(tmp_path / "run")  # a job elsewhere took it over while this one was suspended
+        with pytest.raises(ResumeError, match="was taken over by another job .* stopping without writing"):
+            resumption.checkpoint_extra()
+    assert json.loads((tmp_path / "run" / RUN_LOCK).read_text())["token"] == "theirs", "the new owner's is kept"
 
 
 def test_run_dirs_are_derived_from_the_config_and_slurm_requeues():

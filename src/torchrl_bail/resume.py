@@ -14,7 +14,9 @@ A checkpoint whose config differs from the command's in anything but the run-onl
 (:data:`~torchrl_bail.config.RUN_ONLY_KEYS`, marked in the schema)
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
-directory is locked while a run uses it: a second process on the same directory stops with a clear error.
+directory is locked while a run uses it, with the batches' owner-file lock (:data:`RUN_LOCK`): a second process on
+the same directory stops with a clear error, a killed run's lock is taken over (at once on one host, after
+:data:`RUN_LOCK_STALE_AFTER_S` without a heartbeat from another host's job).
 What a checkpoint holds, when it is written and how Slurm requeues resume: the docs' "Interrupted runs and
 preemption" page (``docs/guides/interrupted-runs.md``).
 
@@ -32,6 +34,7 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -42,6 +45,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail.config import RUN_ONLY_KEYS
+from torchrl_bail.data.locks import HEARTBEAT, LockHeld, LockLost, file_lock
 from torchrl_bail.errors import ResumeError
 from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
 
@@ -122,10 +126,13 @@ def data_fingerprint(data) -> str:
 
 
 # -- the run directory ------------------------------------------------------------------------------------------
-try:
-    import fcntl
-except ImportError:  # pragma: no cover - Windows: no advisory locks, document and go on
-    fcntl = None
+#: the run directory's lock: an owner file (:func:`~torchrl_bail.data.locks.file_lock`, the batches' mechanism)
+RUN_LOCK = ".lock"
+#: how often a run touches its directory's lock, and how old that heartbeat must be before another host's job may
+#: take the directory over (seconds): short, so that a job requeued on another node after its predecessor was
+#: killed waits at most a minute; on one host a killed run's lock is taken over at once (its pid is gone)
+RUN_LOCK_HEARTBEAT_S = 10.0
+RUN_LOCK_STALE_AFTER_S = 60.0
 
 
 def _scalar_files(run_dir: Path) -> list[Path]:
@@ -160,8 +167,8 @@ class Resumption:
         except OSError as err:
             self._raise_file_system_error(err)
             raise
-        self._acquire_lock()
         try:
+            self._acquire_lock()
             self._decide()
         except BaseException as err:
             self._release_lock()
@@ -181,27 +188,33 @@ class Resumption:
             raise FileSystemError(describe_file_error(fault, fault.filename or self.run_dir)) from err
 
     def _acquire_lock(self) -> None:
-        if fcntl is None:
-            return
-        handle = open(self.run_dir / ".lock", "a+")  # noqa: SIM115 - held until __exit__
+        path = self.run_dir / RUN_LOCK
+        with contextlib.suppress(OSError):
+            if path.read_text().strip().isdigit():  # a bare pid: the lock file of an flock-era version, never held
+                path.unlink()
+        lock = file_lock(path, stale_after_s=RUN_LOCK_STALE_AFTER_S, heartbeat_every_s=RUN_LOCK_HEARTBEAT_S,
+                         what=f"the run directory {self.run_dir}", wait=False)
         try:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            owner = handle.read().strip() or "?"
-            handle.close()
-            raise ResumeError(f"run directory {self.run_dir} is in use by another process (pid {owner}); wait for "
+            lock.__enter__()
+        except LockHeld as held:
+            raise ResumeError(f"run directory {self.run_dir} is in use by another process ({held.holder}); wait for "
                               "it to finish or choose another hydra.run.dir") from None
-        handle.seek(0)
-        handle.truncate()
-        handle.write(str(os.getpid()))
-        handle.flush()
-        self._lock = handle
+        self._lock = lock
 
     def _release_lock(self) -> None:
         if self._lock is not None:
-            self._lock.close()  # closing the descriptor releases the flock
-            self._lock = None
+            lock, self._lock = self._lock, None
+            lock.__exit__(None, None, None)
+
+    def _check_lock(self) -> None:
+        """Refuses to write on once another job took the run directory over (this one was suspended, its
+        heartbeat stopped for longer than :data:`RUN_LOCK_STALE_AFTER_S`)."""
+        try:
+            HEARTBEAT.check(self.run_dir / RUN_LOCK)
+        except LockLost:
+            raise ResumeError(f"run directory {self.run_dir} was taken over by another job while this one was "
+                              f"stopped for over {RUN_LOCK_STALE_AFTER_S:.0f} s; stopping without writing to it"
+                              ) from None
 
     # -- the decision ------------------------------------------------------------------------------------------
     def _decide(self) -> None:
@@ -357,7 +370,11 @@ class Resumption:
         self._fingerprint = fingerprint
 
     def checkpoint_extra(self) -> dict[str, Any]:
-        """Run-level entries of every checkpoint: config, CSV log sizes, resume history, batch fingerprint."""
+        """Run-level entries of every checkpoint: config, CSV log sizes, resume history, batch fingerprint.
+
+        Raises :class:`~torchrl_bail.errors.ResumeError` instead when another job took the run directory over."""
+        if self._lock is not None:
+            self._check_lock()
         extra = {"config": self.config, "resumed_from": self.resumed_from, "data_fingerprint": self._fingerprint}
         if self.csv_logs:
             extra["log_sizes"] = {p.relative_to(self.run_dir).as_posix(): p.stat().st_size

@@ -1,5 +1,6 @@
 """Collecting a batch safely when several jobs -- on several hosts -- share one ``data_dir``: owner records,
-heartbeats, locks, scratch and partial directories.
+heartbeats, locks, scratch and partial directories. Training runs lock their run directories with the same
+:func:`file_lock` (``wait=False``: :mod:`torchrl_bail.resume`).
 
 Interruption: nothing is ever written under a batch's final name until it is complete (``save_batch`` writes to a
 temporary directory and renames it). Work in progress lives in a scratch directory
@@ -39,6 +40,7 @@ __all__ = [
     "LOCKS",
     "PARTIAL",
     "HEARTBEAT",
+    "LockHeld",
     "LockLost",
     "host_name",
     "process_start_time",
@@ -151,6 +153,24 @@ class LockLost(RuntimeError):
     """Another job took over a lock this process held (its heartbeat stopped for too long)."""
 
 
+class LockHeld(RuntimeError):
+    """A lock taken with ``file_lock(..., wait=False)`` is held by an owner that is alive.
+
+    Attributes:
+        path: the lock file.
+        owner: its owner record (``host``, ``pid``, ``what``; empty where the file could not be read).
+    """
+
+    def __init__(self, path: Path, owner: Mapping[str, Any]):
+        self.path, self.owner = Path(path), dict(owner)
+        super().__init__(f"{self.path} is held by {self.holder}")
+
+    @property
+    def holder(self) -> str:
+        """``host:pid`` of the owner (``?`` for what is unknown)."""
+        return f"{self.owner.get('host', '?')}:{self.owner.get('pid', '?')}"
+
+
 class Heartbeat:
     """A daemon thread that touches the owner files of this process's locks and scratch directories.
 
@@ -197,17 +217,18 @@ class Heartbeat:
             except OSError:
                 pass
 
-    def check(self) -> None:
-        """Raises :class:`LockLost` if a lock of this process was taken over (e.g. the job was suspended for
-        longer than the staleness timeout): it must not write what the new owner now writes."""
+    def check(self, path: Path | None = None) -> None:
+        """Raises :class:`LockLost` if a lock of this process (or the lock ``path``) was taken over (e.g. the job
+        was suspended for longer than the staleness timeout): it must not write what the new owner now writes."""
         with self._lock:
-            items = list(self._paths.items())
-        for path, (token, _) in items:
-            if token is not None and _read_owner(path).get("token") != token:
-                self.unregister(path)
-                self.lost.add(path)
-        if self.lost:
-            raise LockLost(f"lock {sorted(map(str, self.lost))[0]} was taken over by another job; stopping here "
+            items = [(p, v) for p, v in self._paths.items() if path is None or p == Path(path)]
+        for lock, (token, _) in items:
+            if token is not None and _read_owner(lock).get("token") != token:
+                self.unregister(lock)
+                self.lost.add(lock)
+        lost = sorted(str(p) for p in self.lost if path is None or p == Path(path))
+        if lost:
+            raise LockLost(f"lock {lost[0]} was taken over by another job; stopping here "
                            "(its heartbeat was older than the staleness timeout)")
 
     def _run(self) -> None:
@@ -335,7 +356,7 @@ def _take_over(path: Path, stale_token: str | None) -> None:
 
 @contextlib.contextmanager
 def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every_s: float | None = None,
-              what: str | None = None, poll_s: float = 0.2) -> Iterator[None]:
+              what: str | None = None, poll_s: float = 0.2, wait: bool = True) -> Iterator[None]:
     """An exclusive lock across processes *and hosts* sharing ``data_dir``: concurrent jobs wanting the same
     batch collect it once; the others wait (logging ``waiting for <host>:<pid>``) and then reuse it.
 
@@ -344,6 +365,12 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
     (:func:`owner_alive`: a dead pid on this host at once; on another host once the heartbeat is older than
     ``stale_after_s``, default :func:`liveness_settings`). A killed owner leaves the file behind; nothing else
     needs cleaning.
+
+    ``wait=False`` (a run directory's lock) does not wait for a live owner to finish: it raises
+    :class:`LockHeld` as soon as the owner is known to be alive -- at once for a live process of this host, when
+    its heartbeat moves for another host's -- while a gone owner's lock is still taken over (another host's once
+    its heartbeat is ``stale_after_s`` old: a job requeued on another node after its predecessor was killed waits
+    at most that long).
     """
     stale, beat = liveness_settings()
     stale_after_s = stale if stale_after_s is None else float(stale_after_s)
@@ -353,23 +380,33 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
     token = secrets.token_hex(8)
     record = json.dumps({**owner_record(), "token": token, "what": what or path.stem})
     waited_since = None
+    first_beat = None
     last_log = 0.0
     delay = poll_s
     while not _create_exclusively(path, record):
         owner = _read_owner(path)
         try:
-            age = _fs_now(path.parent) - path.stat().st_mtime
+            beat = path.stat().st_mtime
         except FileNotFoundError:
             continue
+        age = _fs_now(path.parent) - beat
         if not owner_alive(owner, age, stale_after_s) and (owner or age >= stale_after_s):
             log.warning("taking over the lock %s of %s:%s (%s)", path.name, owner.get("host", "?"),
                         owner.get("pid", "?"), "process gone" if owner.get("host") == host_name()
                         else f"no heartbeat for {age:.0f} s")
             _take_over(path, owner.get("token"))
             continue
+        first_beat = beat if first_beat is None else first_beat
+        if not wait and (owner.get("host") == host_name() or beat > first_beat):
+            raise LockHeld(path, owner)
         now = time.monotonic()
         waited_since = now if waited_since is None else waited_since
-        if now - last_log >= 60 or last_log == 0.0:
+        if (now - last_log >= 60 or last_log == 0.0) and not wait:
+            log.info("%s is locked by %s:%s, whose last heartbeat was %.0f s ago: taking it over if none comes "
+                     "within %.0f s (a killed job's lock), stopping if one does", owner.get("what", path.stem),
+                     owner.get("host", "?"), owner.get("pid", "?"), age, stale_after_s - age)
+            last_log = now
+        elif now - last_log >= 60 or last_log == 0.0:
             log.info("waiting for %s:%s, which is making %s (waited %.0f s, its heartbeat %.0f s ago)",
                      owner.get("host", "?"), owner.get("pid", "?"), owner.get("what", path.stem), now - waited_since,
                      age)
