@@ -266,20 +266,34 @@ def curve_check(results: Path) -> list[dict]:
     and over its second half (evaluations ``n // 2`` to ``n``, the ones ``final_return`` averages) its mean, the
     change a least-squares line fits across it and the spread of the points around that line. ``still_moving``
     marks a change larger than twice the spread and than 5 % of the mean. Groups whose second half holds fewer than
-    3 evaluations are left out. Written to ``results/curves.{md,json}``."""
+    3 evaluations are left out.
+
+    For the algorithms that fit an upper envelope (their ``summary.json`` has ``envelope_best_epoch``) each group
+    also lists every seed's best validation epoch against the fit's cap ``algo.envelope.epochs``, and whether early
+    stopping ended every fit: ``envelope_settled`` when each best epoch is at least ``algo.envelope.patience``
+    epochs before the cap (the validation loss then stopped improving for that long), not when a fit was still
+    improving as the cap stopped it. Written to ``results/curves.{md,json}``."""
     import numpy as np
+    from omegaconf import OmegaConf
 
     from torchrl_bail.io import write_json_atomic, write_text_atomic
     from torchrl_bail.plots import read_eval_curve
 
     groups: dict[tuple[str, str, str], list] = {}
+    envelopes: dict[tuple[str, str, str], list] = {}
     for run in sorted((results / "runs").glob("*/*/*")):
         curve = read_eval_curve(run)
         if curve is not None:
-            overrides = ",".join(o for o in run.name.split(",")[1:] if o != "preset=study")
-            groups.setdefault((run.parent.parent.name, run.parent.name, overrides), []).append(np.asarray(curve[1]))
+            key = (run.parent.parent.name, run.parent.name,
+                   ",".join(o for o in run.name.split(",")[1:] if o != "preset=study"))
+            groups.setdefault(key, []).append(np.asarray(curve[1]))
+            summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+            if summary.get("envelope_best_epoch") is not None:
+                fit = OmegaConf.load(run / "config.yaml").algo.envelope
+                envelopes.setdefault(key, []).append((int(summary["envelope_best_epoch"]), int(fit.epochs),
+                                                      int(fit.patience)))
     rows = []
-    for (batch, algo, overrides), curves in groups.items():
+    for key, curves in groups.items():
         n = min(len(c) for c in curves)
         if n - n // 2 < 3:  # a line through a second half of fewer than 3 evaluations says nothing
             continue
@@ -288,18 +302,38 @@ def curve_check(results: Path) -> list[dict]:
         slope, intercept = np.polyfit(x, mean[n // 2:], 1)
         spread = float(np.std(mean[n // 2:] - (slope * x + intercept), ddof=2))
         change, level = float(slope * (x[-1] - x[0])), float(mean[n // 2:].mean())
-        rows.append({"batch": batch, "algo": algo, "overrides": overrides, "seeds": len(curves), "evaluations": n,
-                     "second_half_mean": level, "second_half_change": change, "residual_spread": spread,
-                     "still_moving": bool(abs(change) > max(2 * spread, 0.05 * abs(level)))})
-    lines = ["| batch | algo | overrides | 2nd-half mean | change over it | spread | still moving |",
-             "|---|---|---|---|---|---|---|"]
+        row = {"batch": key[0], "algo": key[1], "overrides": key[2], "seeds": len(curves), "evaluations": n,
+               "second_half_mean": level, "second_half_change": change, "residual_spread": spread,
+               "still_moving": bool(abs(change) > max(2 * spread, 0.05 * abs(level)))}
+        if key in envelopes:
+            at_cap = sum(best > cap - patience for best, cap, patience in envelopes[key])
+            row.update(envelope_best_epochs=[best for best, _, _ in envelopes[key]],
+                       envelope_epochs=max(cap for _, cap, _ in envelopes[key]),
+                       envelope_fits_at_cap=at_cap, envelope_settled=at_cap == 0)
+        rows.append(row)
+
+    def envelope_cell(row: dict) -> str:
+        if "envelope_best_epochs" not in row:
+            return ""
+        verdict = "stopped early" if row["envelope_settled"] else "**at the cap**"
+        return f"{', '.join(map(str, row['envelope_best_epochs']))} of {row['envelope_epochs']}: {verdict}"
+
+    lines = ["| batch | algo | overrides | 2nd-half mean | change over it | spread | still moving "
+             "| envelope best epoch |", "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['batch']} | {r['algo']} | {r['overrides']} | {r['second_half_mean']:.1f} | "
               f"{r['second_half_change']:+.1f} | {r['residual_spread']:.1f} | "
-              f"{('**rising**' if r['second_half_change'] > 0 else '**falling**') if r['still_moving'] else 'no'} |"
-              for r in rows]
+              f"{('**rising**' if r['second_half_change'] > 0 else '**falling**') if r['still_moving'] else 'no'} | "
+              f"{envelope_cell(r)} |" for r in rows]
+    fits = [r for r in rows if "envelope_best_epochs" in r]
+    at_cap = sum(r["envelope_fits_at_cap"] for r in fits)
     lines += ["", "2nd-half mean: the seed-mean curve over the evaluations final_return averages; change: what a "
               "least-squares line through them rises or falls across that half; spread: the points' standard "
-              "deviation around the line; still moving: |change| > 2 x spread and > 5 % of the mean."]
+              "deviation around the line; still moving: |change| > 2 x spread and > 5 % of the mean. Envelope "
+              "best epoch: each seed's best validation epoch of the upper-envelope fit, of the fit's epoch cap; "
+              "stopped early: every best epoch is at least the patience (algo.envelope.patience) epochs before the "
+              "cap; at the cap: a "
+              "fit was still improving when the cap stopped it"
+              + (f" ({at_cap} of {sum(len(r['envelope_best_epochs']) for r in fits)} fits here)." if fits else ".")]
     write_text_atomic(results / "curves.md", "\n".join(lines) + "\n")
     write_json_atomic(results / "curves.json", rows)
     return rows

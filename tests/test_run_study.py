@@ -52,9 +52,14 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
     assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
 
 
-def _run(root: Path, name: str, returns: list[float], algo: str = "bail") -> None:
-    scalars = root / "runs" / "hopper_ddpg05_b1" / algo / name / "logs" / "scalars" / "eval"
+def _run(root: Path, name: str, returns: list[float], algo: str = "bail", envelope_best_epoch: int | None = None,
+         envelope_epochs: int = 50) -> None:
+    run = root / "runs" / "hopper_ddpg05_b1" / algo / name
+    scalars = run / "logs" / "scalars" / "eval"
     scalars.mkdir(parents=True)
+    if envelope_best_epoch is not None:
+        (run / "summary.json").write_text(json.dumps({"envelope_best_epoch": envelope_best_epoch}))
+        (run / "config.yaml").write_text(f"algo:\n  envelope:\n    epochs: {envelope_epochs}\n    patience: 4\n")
     steps = [100 * (i + 1) for i in range(len(returns))]
     (scalars / "return.csv").write_text("".join(f"{s},{r}\n" for s, r in zip(steps, returns)))
     (scalars / "epoch.csv").write_text("".join(f"{s},{0.2 * (i + 1)}\n" for i, s in enumerate(steps)))
@@ -62,10 +67,13 @@ def _run(root: Path, name: str, returns: list[float], algo: str = "bail") -> Non
 
 def test_curve_check_tells_a_flat_curve_from_a_rising_one(run_study, tmp_path):
     # flat: the second half (evaluations 5..9) alternates around 500 -> no fitted change
-    _run(tmp_path, "seed1,preset=study", [100, 200, 300, 400, 500, 490, 510, 490, 510, 500])
-    _run(tmp_path, "seed2,preset=study", [100, 200, 300, 400, 500, 510, 490, 510, 490, 500])
-    # rising by 50 per evaluation over the second half: +200 across it, exactly on the line (spread 0)
-    _run(tmp_path, "seed1,algo.envelope.penalty=1,preset=study", [0, 0, 0, 0, 0, 100, 150, 200, 250, 300])
+    # their envelope fits: best epochs 12 and 46 of 50 (patience 4: both settled before the cap)
+    _run(tmp_path, "seed1,preset=study", [100, 200, 300, 400, 500, 490, 510, 490, 510, 500], envelope_best_epoch=12)
+    _run(tmp_path, "seed2,preset=study", [100, 200, 300, 400, 500, 510, 490, 510, 490, 500], envelope_best_epoch=46)
+    # rising by 50 per evaluation over the second half: +200 across it, exactly on the line (spread 0); its envelope
+    # had its best epoch 47 of 50: fewer than the patience's 4 epochs before the cap, still improving
+    _run(tmp_path, "seed1,algo.envelope.penalty=1,preset=study", [0, 0, 0, 0, 0, 100, 150, 200, 250, 300],
+         envelope_best_epoch=47)
     _run(tmp_path, "seed1,preset=study", [0, 100, 200, 300], algo="bc")  # a second half of 2 points: left out
     rows = {r["overrides"]: r for r in run_study.curve_check(tmp_path)}
     assert len(rows) == 2 and {r["algo"] for r in rows.values()} == {"bail"}
@@ -75,9 +83,13 @@ def test_curve_check_tells_a_flat_curve_from_a_rising_one(run_study, tmp_path):
     assert rising["second_half_change"] == pytest.approx(200)
     assert rising["residual_spread"] == pytest.approx(0, abs=1e-9)
     assert rising["still_moving"] and rising["second_half_mean"] == pytest.approx(200)
+    assert flat["envelope_best_epochs"] == [12, 46] and flat["envelope_settled"] and flat["envelope_fits_at_cap"] == 0
+    assert rising["envelope_fits_at_cap"] == 1 and not rising["envelope_settled"]
     assert json.loads((tmp_path / "curves.json").read_text()) == list(rows.values())
-    assert "| hopper_ddpg05_b1 | bail | algo.envelope.penalty=1 | 200.0 | +200.0 | 0.0 | **rising** |" in (
-        tmp_path / "curves.md").read_text()
+    table = (tmp_path / "curves.md").read_text()
+    assert "| hopper_ddpg05_b1 | bail | algo.envelope.penalty=1 | 200.0 | +200.0 | 0.0 | **rising** | " \
+           "47 of 50: **at the cap** |" in table
+    assert "| 12, 46 of 50: stopped early |" in table and "(1 of 3 fits here)" in table
 
 
 def test_the_paper_hopper_study_lands_the_final_buffer_first(run_study):
