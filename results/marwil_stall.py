@@ -79,14 +79,9 @@ def probe(algo, held_out, trainee: str) -> dict[str, float]:
     predicted = algo.actor(held_out.select("observation").clone())["action"]
     row = {"imitation_error": float((predicted - held_out["action"]).square().mean())}
     if trainee != "bc":
-        loss = algo.loss
-        value = algo.value_network(held_out.select("observation").clone())["state_value"].reshape(-1)
-        advantage = held_out["return"] - value
-        scale = math.sqrt(float(loss.c2)) + float(loss.eps)
-        exponent = float(loss.beta) * advantage / scale
-        weight = exponent.clamp_max(float(loss.max_exponent)).exp()
-        row.update(c2=float(loss.c2), advantage_rms=float(advantage.square().mean().sqrt()),
-                   clamped_fraction=float((exponent >= float(loss.max_exponent)).float().mean()),
+        weight, advantage, clamped = algo.loss.advantage_weights(held_out.select("observation", "return").clone())
+        row.update(c2=float(algo.loss.c2), advantage_rms=float(advantage.square().mean().sqrt()),
+                   clamped_fraction=float(clamped.float().mean()),
                    weight_share_max_per_1000=float(weight.max() / weight.sum() * held_out.batch_size[0] / 1000),
                    ess_per_1000=float(weight.sum() ** 2 / weight.square().sum() / held_out.batch_size[0] * 1000))
     row["adam_denominator_rms"], row["adam_step_rms"] = adam_statistics(algo.optimizers["actor"])

@@ -86,6 +86,20 @@ def test_weights_and_losses_by_hand():
     assert loss.c2.item() == pytest.approx(c2 + 0.5 * (200.0 / 3.0 - c2))
 
 
+def test_advantage_weights_are_the_next_updates_weights_and_move_nothing():
+    # c2 stays at its initial 100 (rate 0.5 would move it in any training-mode loss call)
+    beta, c2 = 1.0, 100.0
+    loss = MARWILLoss(*_nets(), beta=beta, c2_init=c2, c2_rate=0.5, max_exponent=0.5, reduction="none")
+    weight, advantage, clamped = loss.advantage_weights(_batch())
+    adv = [g - v for g, v in zip(RETURNS, VALUES)]
+    exponents = [beta * a / (math.sqrt(c2) + 1e-8) for a in adv]  # [1, 0, -1]: the first above max_exponent 0.5
+    torch.testing.assert_close(advantage, torch.tensor(adv))
+    torch.testing.assert_close(weight, torch.tensor([math.exp(min(e, 0.5)) for e in exponents]))
+    assert clamped.tolist() == [True, False, False]
+    assert loss.training and loss.c2.item() == c2, "looking at the weights never moves c^2"
+    assert not weight.requires_grad and not advantage.requires_grad
+
+
 def test_c2_moves_only_in_training_and_keeps_tiny_updates():
     loss = MARWILLoss(*_nets(), c2_init=100.0, c2_rate=1e-8)
     loss(_batch())

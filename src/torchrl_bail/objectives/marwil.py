@@ -269,10 +269,12 @@ class MARWILLoss(LazyInKeysLoss):
         self.c2.add_(self.c2_rate * (squared_mean - self.c2))
 
     @torch.no_grad()
-    def _weights(self, advantage: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(w, clamped)``: the detached weights ``exp(min(beta A / (c + eps), max_exponent))``."""
+    def _weights(self, advantage: torch.Tensor, mask: torch.Tensor | None, *,
+                 update_c2: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(w, clamped)``: the detached weights ``exp(min(beta A / (c + eps), max_exponent))``; ``c^2`` moves
+        first when ``update_c2`` (default: in training mode)."""
         advantage = advantage.detach()
-        if self.training:
+        if self.training if update_c2 is None else update_c2:
             self._update_c2(advantage, mask)
         c2 = self.c2
         if c2.ndim:
@@ -317,6 +319,20 @@ class MARWILLoss(LazyInKeysLoss):
         }
 
     # -- public sub-losses -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def advantage_weights(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(w, A, clamped)`` per point: the weights the actor loss gives these points now, their advantages
+        ``G - V(s)`` and where the exponent hit ``max_exponent``, each of batch shape ``[B]`` or ``[S, B]``.
+
+        Under the current value network and ``c^2``, which this never moves (in training mode too): for looking at
+        the weights' distribution on held-out data without changing what the next update does.
+        """
+        advantage, _ = self._advantage(tensordict)
+        mask = self._mask(tensordict, advantage)
+        weight, clamped = self._weights(advantage, mask, update_c2=False)
+        self._clear_weakrefs(tensordict, "value_network_params")
+        return weight, advantage, clamped
+
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``vf_coeff * 0.5 * (G - V(s))^2``, reduced; it never updates ``c^2``.
 
