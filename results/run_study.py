@@ -181,13 +181,15 @@ def _is_running(log: Path) -> bool:
 
 
 def _collected_steps(job: Job, data_dir: Path | None) -> str:
-    """`` (N steps collected)`` from the newest segment of the batch's partial collection, if there is one."""
+    """`` (N steps collected)``: the env steps of the last checkpoint of the batch's partial collection, if any."""
+    from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
     from torchrl_bail.data.cache import default_data_dir
+    from torchrl_bail.data.locks import partial_directory
 
     batch = job.name.split("/", 1)[1] + "_b1"
-    ends = [int(seg.stem.rsplit("_", 1)[1])
-            for seg in (data_dir or default_data_dir()).glob(f".partial/{batch}-*/segments/batch_*_*.pt")]
-    return f" ({max(ends)} steps collected)" if ends else ""
+    partials = partial_directory(data_dir or default_data_dir(), "").glob(f"{batch}-*")
+    steps = [s for s in (CollectionCheckpoint(p, every_s=None).steps for p in partials) if s is not None]
+    return f" ({max(steps)} steps collected)" if steps else ""
 
 
 def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:

@@ -118,6 +118,8 @@ def test_the_paper_hopper_study_lands_the_final_buffer_first(run_study):
 def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study, tmp_path, capsys):
     import torch
 
+    from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
+
     jobs = {j.name: j for j in run_study.paper_hopper_jobs()}
     outputs = tmp_path / "outputs" / "hopper_ddpg05_b1"
     done = outputs / "bail" / "seed1,algo.envelope.epochs=200,algo.epochs=10,eval.every_epochs=0.5"
@@ -129,10 +131,9 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     (tmp_path / "logs").mkdir()
     collect_log = tmp_path / "logs" / "collect__hopper_ddpg05.log"
     data_dir = tmp_path / "data"
-    segments = data_dir / ".partial" / "hopper_ddpg05_b1-1234" / "segments"
-    segments.mkdir(parents=True)
-    for name in ("batch_000000000000_000000014662.pt", "batch_000000014662_000000021195.pt"):
-        (segments / name).write_bytes(b"")
+    partial = data_dir / ".partial" / "hopper_ddpg05_b1-1234"
+    checkpoint = CollectionCheckpoint(partial, every_s=None)
+    checkpoint.save({"loop": {"t": 21195}}, {})  # what a collection's checkpoint at env step 21195 records
     collect_log.write_text("collecting hopper_ddpg05_b1\n")
     collect_log.with_suffix(".pid").write_text(f"{os.getpid()}\n")  # a live process: this one
     assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "running (21195 steps collected)"
