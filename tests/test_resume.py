@@ -358,6 +358,11 @@ def test_run_dirs_are_derived_from_the_config_and_slurm_requeues():
     assert dirs("+exp=hopper_ddpg05", "algo.epochs=3", "preset=quick") == \
         dirs("+exp=hopper_ddpg05", "preset=quick", "algo.epochs=3")  # order does not matter
     assert dirs("+exp=hopper_ddpg05", "algo.epochs=3")[0] != dirs("+exp=hopper_ddpg05", "algo.epochs=4")[0]
+    # a dataset= run is filed under its dataset's name, not under the batch group it never reads
+    run, sweep = dirs("dataset=/data/hopper_medium-v2.hdf5", "env=hopper", "algo=bc")
+    assert run == sweep == "outputs/hopper_medium-v2/bc/seed1"
+    other = dirs("dataset=/data/hopper_expert-v2.hdf5", "env=hopper", "algo=bc")[0]
+    assert other == "outputs/hopper_expert-v2/bc/seed1", "two datasets, two directories"
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=hopper_ddpg05", "hydra/launcher=slurm"], return_hydra_config=True)
