@@ -192,10 +192,11 @@ class Resumption:
         with contextlib.suppress(OSError):
             if path.read_text().strip().isdigit():  # a bare pid: the lock file of an flock-era version, never held
                 path.unlink()
-        lock = file_lock(path, stale_after_s=RUN_LOCK_STALE_AFTER_S, heartbeat_every_s=RUN_LOCK_HEARTBEAT_S,
-                         what=f"the run directory {self.run_dir}", wait=False)
+        lock = contextlib.ExitStack()
         try:
-            lock.__enter__()
+            lock.enter_context(file_lock(path, stale_after_s=RUN_LOCK_STALE_AFTER_S, wait=False,
+                                         heartbeat_every_s=RUN_LOCK_HEARTBEAT_S,
+                                         what=f"the run directory {self.run_dir}"))
         except LockHeld as held:
             raise ResumeError(f"run directory {self.run_dir} is in use by another process ({held.holder}); wait for "
                               "it to finish or choose another hydra.run.dir") from None
@@ -204,7 +205,7 @@ class Resumption:
     def _release_lock(self) -> None:
         if self._lock is not None:
             lock, self._lock = self._lock, None
-            lock.__exit__(None, None, None)
+            lock.close()
 
     def _check_lock(self) -> None:
         """Refuses to write on once another job took the run directory over (this one was suspended, its
