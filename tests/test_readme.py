@@ -32,3 +32,13 @@ def test_example_runs(index, capsys):
     out = capsys.readouterr().out
     if "test return" in _blocks()[index]:
         assert re.search(r"kept \d+ of \d+ pairs; test return -?\d+\.\d", out), out
+
+
+def test_the_readmes_results_table_is_the_studys_report():
+    """The README's results table is a copy of rows of ``results/study/study.md`` (the report the runs make): a row
+    changed by hand, or a report made again without updating the README, fails here."""
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text().split("## Results", 1)[1]
+    rows = re.findall(r"^\| (?:hopper|walker)_\w+ \|.*\|$", readme, flags=re.MULTILINE)
+    report = (root / "results" / "study" / "study.md").read_text().splitlines()
+    assert len(rows) == 10 and all(row in report for row in rows), [r for r in rows if r not in report]
