@@ -401,15 +401,15 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
             raise LockHeld(path, owner)
         now = time.monotonic()
         waited_since = now if waited_since is None else waited_since
-        if (now - last_log >= 60 or last_log == 0.0) and not wait:
-            log.info("%s is locked by %s:%s, whose last heartbeat was %.0f s ago: taking it over if none comes "
-                     "within %.0f s (a killed job's lock), stopping if one does", owner.get("what", path.stem),
-                     owner.get("host", "?"), owner.get("pid", "?"), age, stale_after_s - age)
-            last_log = now
-        elif now - last_log >= 60 or last_log == 0.0:
-            log.info("waiting for %s:%s, which is making %s (waited %.0f s, its heartbeat %.0f s ago)",
-                     owner.get("host", "?"), owner.get("pid", "?"), owner.get("what", path.stem), now - waited_since,
-                     age)
+        if now - last_log >= 60 or last_log == 0.0:
+            if wait:
+                log.info("waiting for %s:%s, which is making %s (waited %.0f s, its heartbeat %.0f s ago)",
+                         owner.get("host", "?"), owner.get("pid", "?"), owner.get("what", path.stem),
+                         now - waited_since, age)
+            else:
+                log.info("%s is locked by %s:%s, whose last heartbeat was %.0f s ago: taking it over if none comes "
+                         "within %.0f s (a killed job's lock), stopping if one does", owner.get("what", path.stem),
+                         owner.get("host", "?"), owner.get("pid", "?"), age, stale_after_s - age)
             last_log = now
         time.sleep(delay)
         delay = min(delay * 1.5, 5.0)
