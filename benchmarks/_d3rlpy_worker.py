@@ -10,7 +10,11 @@ Two modes, chosen by the JSON config in ``argv[1]`` (``"mode"``):
 * ``train``: builds one algorithm (``"algo"``) with the matched constants ``bench_d3rlpy_returns.py`` passes, on
   the arrays of ``"dataset"`` (an ``.npz`` written by that script), seeded with ``d3rlpy.seed(seed)``, and
   answers ``update <n>`` (``n`` more updates; prints the CPU seconds they took) and ``act`` followed by one line
-  of JSON observations ``[[...], ...]`` (prints ``algo.predict``'s greedy actions as JSON).
+  of JSON observations ``[[...], ...]`` (prints ``algo.predict``'s greedy actions as JSON). For BC in lockstep
+  (``bench_d3rlpy_lockstep.py``): ``set_policy <npz>`` loads the policy's parameters (``p0``, ``p1``, ... in
+  ``parameters()`` order: the encoder's layers, then the output layer) and ``update_on <npz>`` runs one update per
+  row of its ``index`` array on the mini-batch of its ``observations``/``actions`` rows that the row names,
+  printing the losses as JSON.
 
 ``quit`` ends either mode.
 """
@@ -123,6 +127,25 @@ def train_main(cfg: dict) -> None:
             for _ in range(int(parts[1])):
                 algo.update(data.sample_transition_batch(batch_size))
             print(time.process_time() - cpu, file=REPLY, flush=True)
+        elif parts[0] == "set_policy":
+            with np.load(parts[1]) as saved, torch.no_grad():
+                for i, param in enumerate(algo.impl.policy.parameters()):
+                    value = torch.from_numpy(saved[f"p{i}"])
+                    if value.shape != param.shape:
+                        raise SystemExit(f"parameter {i}: shape {tuple(value.shape)} for {tuple(param.shape)}")
+                    param.copy_(value)
+            print("ok", file=REPLY, flush=True)
+        elif parts[0] == "update_on":
+            with np.load(parts[1]) as given:
+                obs, act, index = given["observations"], given["actions"], given["index"]
+            losses = []
+            for rows in index:
+                n = len(rows)
+                losses.append(algo.update(d3rlpy.dataset.TransitionMiniBatch(
+                    observations=obs[rows], actions=act[rows], rewards=np.zeros((n, 1), np.float32),
+                    next_observations=obs[rows], next_actions=act[rows], terminals=np.zeros((n, 1), np.float32),
+                    intervals=np.ones((n, 1), np.float32), transitions=[]))["loss"])
+            print(json.dumps(losses), file=REPLY, flush=True)
         elif parts[0] == "act":
             obs = np.asarray(json.loads(sys.stdin.readline()), dtype=np.float32)
             print(json.dumps(algo.predict(obs).tolist()), file=REPLY, flush=True)
