@@ -229,6 +229,7 @@ def main() -> None:
                            "d3rlpy_evaluations": peer["evaluations"], "d3rlpy_versions": peer["versions"],
                            "torchrl_bail_wall_s": ours["wall_time_s"], "d3rlpy_train_cpu_s": peer["train_cpu_s"]}
                     rows.append(row)
+                    write_json(rows, args.json)  # after every row: a long comparison stopped midway keeps its rows
                     print(f"{label:<24} {algo:<5} seed {seed}: torchrl_bail {row['torchrl_bail']:8.1f}   "
                           f"d3rlpy {row['d3rlpy']:8.1f}   ({row['updates']} updates)", flush=True)
     print(f"\nfinal return, mean +- sample std over seeds {args.seeds} ({machine()}; d3rlpy "
