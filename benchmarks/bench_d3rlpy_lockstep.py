@@ -30,7 +30,15 @@ import tempfile
 from pathlib import Path
 
 from _bench import machine, write_json
-from bench_d3rlpy_returns import D3rlpyRun, compose_run, d3rlpy_arrays, env_name, matched_constants, schedule
+from bench_d3rlpy_returns import (
+    D3rlpyRun,
+    add_run_arguments,
+    compose_run,
+    d3rlpy_arrays,
+    env_name,
+    matched_constants,
+    schedule,
+)
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -98,12 +106,7 @@ def main() -> int:
     parser.add_argument("--batch", required=True, help="a catalogue batch name (hopper_ddpg05_b1) or a batch path")
     parser.add_argument("--batch-overrides", nargs="*", default=[],
                         help="the collect overrides that name the cached batch (e.g. preset=quick)")
-    parser.add_argument("--env", default=None, help="conf/env name (default: from the batch's env id)")
-    parser.add_argument("--seeds", default="1,2,3")
-    parser.add_argument("--preset", default="study", help="the training preset (BC's schedule, eval)")
-    parser.add_argument("--overrides", nargs="*", default=[], help="more training overrides")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_run_arguments(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     try:

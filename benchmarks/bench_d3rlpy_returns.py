@@ -187,6 +187,16 @@ def d3rlpy_final_return(python: str, cfg, arrays: Path, threads: int) -> dict:
             "transitions": peer.info["transitions"]}
 
 
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options both sides' runs share (env, seeds, preset, overrides, threads, JSON record)."""
+    parser.add_argument("--env", default=None, help="conf/env name (default: from the batch's env id)")
+    parser.add_argument("--seeds", default="1,2,3")
+    parser.add_argument("--preset", default="study", help="the training preset of both sides (schedules, eval)")
+    parser.add_argument("--overrides", nargs="*", default=[], help="more training overrides, applied to both sides")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides")
+    parser.add_argument("--json", default=None, help="also write the numbers here")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--python", required=True, help="the interpreter of d3rlpy's virtual environment")
@@ -194,13 +204,8 @@ def main() -> None:
                         help="a catalogue batch name (hopper_ddpg05_b1) or a batch/Minari/D4RL path; repeatable")
     parser.add_argument("--batch-overrides", nargs="*", default=[],
                         help="the collect overrides that name the cached batch (e.g. preset=quick)")
-    parser.add_argument("--env", default=None, help="conf/env name (default: from the batch's env id)")
     parser.add_argument("--algos", default=",".join(ALGOS), help="comma-separated subset of bc,bcq,bear")
-    parser.add_argument("--seeds", default="1,2,3")
-    parser.add_argument("--preset", default="study", help="the training preset of both sides (schedules, eval)")
-    parser.add_argument("--overrides", nargs="*", default=[], help="more training overrides, applied to both sides")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_run_arguments(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     seeds = [int(s) for s in args.seeds.split(",")]
