@@ -45,6 +45,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_bail.config import RUN_ONLY_KEYS
+from torchrl_bail.data.locks import HEARTBEAT, LockHeld, LockLost, file_lock
 from torchrl_bail.errors import ResumeError
 from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
 
@@ -187,8 +188,6 @@ class Resumption:
             raise FileSystemError(describe_file_error(fault, fault.filename or self.run_dir)) from err
 
     def _acquire_lock(self) -> None:
-        from torchrl_bail.data.locks import LockHeld, file_lock  # here: torchrl_bail.data loads torch
-
         path = self.run_dir / RUN_LOCK
         with contextlib.suppress(OSError):
             if path.read_text().strip().isdigit():  # a bare pid: the lock file of an flock-era version, never held
@@ -211,8 +210,6 @@ class Resumption:
     def _check_lock(self) -> None:
         """Refuses to write on once another job took the run directory over (this one was suspended, its
         heartbeat stopped for longer than :data:`RUN_LOCK_STALE_AFTER_S`)."""
-        from torchrl_bail.data.locks import HEARTBEAT, LockLost
-
         try:
             HEARTBEAT.check(self.run_dir / RUN_LOCK)
         except LockLost:

@@ -14,7 +14,7 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -22,7 +22,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error, run_cli
 from torchrl_bail.config import ConfigError, validate_config
-from torchrl_bail.resume import Resumption, record_config
+if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported where a run starts
+    from torchrl_bail.resume import Resumption
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.cli.run_cli) in about a second, before they load.
@@ -265,6 +266,8 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
                 seed_cfg.seed, seed_cfg.seeds = seed, None
             configs.append(seed_cfg)
             dirs.append(seed_run_dir(run_dir, int(cfg.seed), seed))
+    from torchrl_bail.resume import Resumption
+
     summaries: dict[int, dict[str, Any]] = {}
     with contextlib.ExitStack() as stack:
         todo = []
@@ -300,6 +303,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.policy import save_policy
     from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
+    from torchrl_bail.resume import record_config
     from torchrl_bail.trainer import AlgorithmTrainee, train_seeds
 
     start = time.perf_counter()
