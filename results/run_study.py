@@ -184,10 +184,10 @@ def _collected_steps(job: Job, data_dir: Path | None) -> str:
     """`` (N steps collected)``: the env steps of the last checkpoint of the batch's partial collection, if any."""
     from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
     from torchrl_bail.data.cache import default_data_dir
-    from torchrl_bail.data.locks import partial_directory
+    from torchrl_bail.data.locks import PARTIAL
 
     batch = job.name.split("/", 1)[1] + "_b1"
-    partials = partial_directory(data_dir or default_data_dir(), "").glob(f"{batch}-*")
+    partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch}-*")
     steps = [s for s in (CollectionCheckpoint(p, every_s=None).steps for p in partials) if s is not None]
     return f" ({max(steps)} steps collected)" if steps else ""
 
