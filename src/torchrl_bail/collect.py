@@ -15,6 +15,12 @@ Convert and cache a dataset you already have (D4RL-layout ``.hdf5``, local Minar
 
     python -m torchrl_bail.collect --import PATH [--env hopper] [--data-dir DIR]
 
+Install a batch someone else made (a hosted copy of a cache entry with its ``SHA256SUMS``), refused with one clear
+error unless its checksums, recipe hash, episode count and mean return all match (see
+:mod:`torchrl_bail.data.install`)::
+
+    python -m torchrl_bail.collect --install PATH [--data-dir DIR]
+
 Write a batch as a Minari dataset (made or found as by the plain command; ``dataset=PATH`` exports an imported or
 native batch; see :mod:`torchrl_bail.data.minari_export`) into Minari's data path (``$MINARI_DATASETS_PATH``)::
 
@@ -36,7 +42,7 @@ from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error, run_cli
 from torchrl_bail.config import CommandLineError, collection_config, validate_config
 
-__all__ = ["collect", "export_main", "format_listing", "import_main", "main"]
+__all__ = ["collect", "export_main", "format_listing", "import_main", "install_main", "main"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -147,6 +153,37 @@ def _list_main(argv: list[str]) -> int:
         row["recipe"] = description
     print(f"cached batches in {root}:")
     print(format_listing(rows))
+    return 0
+
+
+def install_main(argv: list[str]) -> int:
+    """``--install PATH [--data-dir DIR]``: check a hosted batch and copy it into the cache, print where."""
+    from torchrl_bail.data import BatchValidationError
+    from torchrl_bail.data.install import install_batch
+
+    source, data_dir, it = None, None, iter(argv)
+    for arg in it:
+        if arg == "--install":
+            source = next(it, None)
+        elif arg.startswith("--install="):
+            source = arg.split("=", 1)[1]
+        elif arg == "--data-dir":
+            data_dir = next(it, None)
+        elif arg.startswith(("--data-dir=", "data_dir=")):
+            data_dir = arg.split("=", 1)[1]
+        else:
+            source = None
+            break
+    if source is None:
+        print("usage: python -m torchrl_bail.collect --install PATH [--data-dir DIR]", file=sys.stderr)
+        return 2
+    print(f"checking {source} (checksums, recipe hash, episodes, mean return) ...", flush=True)
+    try:
+        path, copied = install_batch(source, data_dir)
+    except (BatchValidationError, OSError) as err:
+        print(f"error: {err}; nothing was installed", file=sys.stderr)
+        return 2
+    print(f"{'installed' if copied else 'already installed and intact'}: {path}")
     return 0
 
 
@@ -269,6 +306,8 @@ def main() -> None:
     argv = sys.argv[1:]
     if "--list" in argv:
         raise SystemExit(_list_main(argv))
+    if any(a == "--install" or a.startswith("--install=") for a in argv):
+        raise SystemExit(install_main(argv))
     if any(a == "--import" or a.startswith("--import=") for a in argv):
         raise SystemExit(import_main(argv))
     if any(a == "--export-minari" or a.startswith("--export-minari=") for a in argv):
