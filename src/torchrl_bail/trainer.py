@@ -244,7 +244,7 @@ def train_seeds(
     trainee: Trainee,
     *,
     evaluate: Callable[[Callable], Sequence] | None = None,
-    evaluation_state=None,
+    evaluation_state: Any | None = None,
     samples_per_epoch: int = 1_000_000,
     eval_every_epochs: float = 0.5,
     loggers: Sequence | None = None,
@@ -267,9 +267,11 @@ def train_seeds(
         loggers: per seed, a TorchRL logger. Its training scalars are what the trainee's ``seed_metrics`` names:
             a stack logs each seed's own ``[S]`` values under their names and a loss averaged over the seeds as
             ``train/<name>_mean_over_seeds``.
-        checkpoint_paths / checkpoint_extras / resume_from / on_new_best: per seed, what :func:`train` takes one
-            of: one single-seed checkpoint per seed is written and resumed from (a stack's seeds must have
-            stopped at the same iteration).
+        checkpoint_paths: per seed, the path of its single-seed checkpoint (a stack's seeds must have stopped at
+            the same iteration to resume).
+        checkpoint_extras: per seed, what :func:`train`'s ``checkpoint_extra`` is for one seed.
+        resume_from: per seed, the checkpoint state to continue from, as :func:`train` takes one.
+        on_new_best: per seed, what :func:`train`'s ``on_new_best`` is for one seed.
 
     The other arguments are :func:`train`'s.
     """
