@@ -186,7 +186,9 @@ def test_oracle_batches_cut_episodes_and_keep_the_real_continuation(tmp_path):
 
 def _child_script(cfg_overrides: list[str], data_dir: Path) -> str:
     return textwrap.dedent(f"""
-        import time, sys
+        import signal, time, sys
+        # a suite started as a background job hands its children SIGINT ignored: Ctrl-C's handler is put back
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.path.insert(0, {SRC!r})
         from hydra import compose, initialize_config_dir
         from torchrl_bail import config_dir
