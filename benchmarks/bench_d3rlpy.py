@@ -25,7 +25,9 @@ deterministic tanh actor, MSE, batch 1000.
 
 How d3rlpy's per-update work differs from ours (read from d3rlpy 2.8.1's ``algos/qlearning/torch``):
 
-* **BCQ** (``bcq_impl.py``) runs the same networks on the same inputs in the same order (VAE step, critic step
+* **BCQ** (``bcq_impl.py``) runs the same network shapes on the same inputs in the same order, but not the same
+  decoder head (d3rlpy 2.8.1's ``VAEDecoder`` applies no ``tanh`` under its default ``with_squash=True``; ours
+  does, as the authors') (VAE step, critic step
   with a 10-sample target through the target actor, actor step, Polyak of critics and actor). Its actor loss
   evaluates *both* critics and keeps ``Q_1`` (``compute_expected_q(..., "none")[0]``): one wasted 400-300
   forward on the batch. Its critic loss is the same sum of two MSEs; its Polyak update is a Python loop of

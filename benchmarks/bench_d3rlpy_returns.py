@@ -34,8 +34,12 @@ Constants that cannot be matched exactly (d3rlpy 2.8.1 source, ``algos/qlearning
   ``min_j mean_m Q_j`` over the 5 MMD samples), the Lagrange multiplier starting at alpha = 1 (ours:
   ``log alpha ~ N(0, 1)``), and its warm start skips only the actor's Q term (ours too, the critics learn
   throughout).
-* **BCQ**: d3rlpy's VAE clamps the encoder's log sigma to [-20, 2] (ours and the authors': [-4, 15]); latent size
-  2|A| and latent clip 0.5 are the same.
+* **BCQ**: d3rlpy's BCQ builds its VAE with the encoder's log sigma clamped to [-4, 15], as ours and the authors'
+  (``algos/qlearning/bcq.py``: ``min_logstd=-4.0, max_logstd=15.0``; the [-20, 2] default of its builders is not
+  used here); latent size 2|A| and latent clip 0.5 are the same. Its decoder head differs: ``VAEDecoder.forward``
+  returns the *linear* output when ``with_squash`` is true, its default, and ``tanh`` only when it is false (the
+  branches were swapped in d3rlpy's commit 4abdbd3f, 2023-08, in every release from 2.1.0), so its candidates
+  are bounded only by the later clamp to the action bounds; ours and the authors' apply ``tanh``.
 * **BC**: same network, loss (MSE), optimizer; nothing differs.
 * **Sampling and seeds**: each library draws its own mini-batches and initial weights from its own generators, so
   the two are compared by their spread over seeds, never run by run.
