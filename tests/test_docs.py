@@ -190,6 +190,7 @@ def test_readme_is_short_and_shares_its_two_commands_with_getting_started():
     commands = _first_bash_block(readme)
     assert "python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick seed=1" in commands
     assert commands == _first_bash_block((ROOT / "docs" / "getting-started.md").read_text())
+    assert commands == _first_bash_block((ROOT / "docs" / "index.md").read_text()), "the home page leads with them"
 
 
 def test_readme_links_point_to_files_that_exist():
