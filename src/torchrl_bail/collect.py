@@ -156,27 +156,34 @@ def _list_main(argv: list[str]) -> int:
     return 0
 
 
+def _flag_values(argv: list[str], flags: tuple[str, ...], accepts: str) -> dict[str, str | None] | None:
+    """The values of ``flags`` in ``argv`` (``--flag VALUE``, ``--flag=VALUE``, or ``env=`` / ``data_dir=`` for
+    ``--env`` / ``--data-dir``); ``None``, with one line on stderr (``accepts``, then the offending argument), for
+    any other argument or a flag without a value."""
+    opts: dict[str, str | None] = dict.fromkeys(flags)
+    it = iter(argv)
+    for arg in it:
+        key, eq, value = arg.partition("=")
+        key = {"env": "--env", "data_dir": "--data-dir"}.get(key, key) if eq else key
+        if key not in opts:
+            print(f"{accepts}, got {arg!r}", file=sys.stderr)
+            return None
+        opts[key] = value if eq else next(it, None)
+        if opts[key] is None:
+            print(f"{key} needs a value", file=sys.stderr)
+            return None
+    return opts
+
+
 def install_main(argv: list[str]) -> int:
     """``--install PATH [--data-dir DIR]``: check a hosted batch and copy it into the cache, print where."""
     from torchrl_bail.data import BatchValidationError
     from torchrl_bail.data.install import install_batch
 
-    source, data_dir, it = None, None, iter(argv)
-    for arg in it:
-        if arg == "--install":
-            source = next(it, None)
-        elif arg.startswith("--install="):
-            source = arg.split("=", 1)[1]
-        elif arg == "--data-dir":
-            data_dir = next(it, None)
-        elif arg.startswith(("--data-dir=", "data_dir=")):
-            data_dir = arg.split("=", 1)[1]
-        else:
-            source = None
-            break
-    if source is None:
-        print("usage: python -m torchrl_bail.collect --install PATH [--data-dir DIR]", file=sys.stderr)
+    opts = _flag_values(argv, ("--install", "--data-dir"), "--install accepts only PATH and --data-dir DIR")
+    if opts is None:
         return 2
+    source, data_dir = opts["--install"], opts["--data-dir"]
     print(f"checking {source} (checksums, recipe hash, episodes, mean return) ...", flush=True)
     try:
         path, copied = install_batch(source, data_dir)
@@ -200,18 +207,10 @@ def import_main(argv: list[str]) -> int:
     from torchrl_bail.data import BatchValidationError
     from torchrl_bail.data.importers import import_cache_path, import_dataset
 
-    opts: dict[str, str | None] = {"--import": None, "--env": None, "--data-dir": None}
-    it = iter(argv)
-    for arg in it:
-        key, eq, value = arg.partition("=")
-        key = {"env": "--env", "data_dir": "--data-dir"}.get(key, key) if eq else key
-        if key not in opts:
-            print(f"--import accepts only PATH, --env NAME and --data-dir DIR, got {arg!r}", file=sys.stderr)
-            return 2
-        opts[key] = value if eq else next(it, None)
-        if opts[key] is None:
-            print(f"{key} needs a value", file=sys.stderr)
-            return 2
+    opts = _flag_values(argv, ("--import", "--env", "--data-dir"), "--import accepts only PATH, --env NAME and "
+                        "--data-dir DIR")
+    if opts is None:
+        return 2
     path, env, data_dir = opts["--import"], opts["--env"], opts["--data-dir"]
     env_id = _env_id_of(env) if env else None
     try:

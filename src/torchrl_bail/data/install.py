@@ -18,8 +18,8 @@ when any of these fails, so a partial or altered copy never trains:
    transition count, episode count and mean episode return, recomputed from the rewards, equal the metadata's.
 
 The checked entry is copied into a hidden scratch folder of the data directory and renamed into place in one step:
-an interrupted install leaves nothing that loads as a batch. An entry already in the cache is checked the same way
-and reported, not copied again.
+an interrupted install leaves nothing that loads as a batch. An entry of that name already in the cache is checked
+against the source's ``SHA256SUMS`` (every file, none missing or unlisted) and reported, not copied again.
 """
 
 from __future__ import annotations
@@ -42,11 +42,8 @@ CHECKSUMS = "SHA256SUMS"
 
 
 def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _entry_of(source: Path) -> Path:
@@ -90,13 +87,12 @@ def _check_checksums(sums: Path, entry: Path) -> None:
                                        f"({listed[name][:12]}...): the file was altered or is incomplete")
 
 
-def _check_recipe_hash(entry: Path, meta: dict) -> str:
+def _check_recipe_hash(entry: Path, meta: dict) -> None:
     suffix = entry.name.rpartition("-")[2]
     of_identity = stable_hash(meta["identity"]) if "identity" in meta else None
     if not (suffix == meta.get("recipe_hash") == of_identity):
         raise BatchValidationError(f"{entry}: recipe hash disagrees: folder suffix {suffix!r}, metadata "
                                    f"recipe_hash {meta.get('recipe_hash')!r}, hash of its identity {of_identity!r}")
-    return suffix
 
 
 def _check_statistics(entry: Path, meta: dict) -> None:
