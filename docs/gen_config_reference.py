@@ -53,6 +53,7 @@ class Row:
     doc: str = ""
     home: tuple = ()            # (group, block's schema, field's schema, key): who may lend a comment (_rows)
     value: Any = None           # the value in the option being read (collect's scratch)
+    option_of: str | None = None  # the group whose option this key names (config.option_name): env.name, batch.kind
 
 
 @dataclass
@@ -151,6 +152,29 @@ def type_name(annotation: Any) -> str:
     return getattr(annotation, "__name__", str(annotation))
 
 
+def _field_type(f: dataclasses.Field, annotation: Any) -> str:
+    """A field's type; a closed set of values (``config.one_of``, ``resume``'s words) is an enum of strings."""
+    choices = f.metadata.get("choices")
+    if not choices or not all(isinstance(c, str) for c in choices):
+        return type_name(annotation)
+    return "enum" + (" or path" if f.metadata.get("or") else "")
+
+
+def _allowed(f: dataclasses.Field, schema: type) -> str:
+    """The allowed cell's text (markdown, code spans for values): a field's choices each in code, the name of
+    ``schema`` in the registry a key names (``algo.name``), else its rule's ``expected`` text; a key naming its group
+    option is filled in by :func:`collect`, which knows the options."""
+    from torchrl_bail import config
+
+    if f.metadata.get("registry"):
+        names = [n for n, s in getattr(config, f.metadata["registry"]).items() if s is schema]
+        return " · ".join(f"`{n}`" for n in names) + f" (this schema's name in `config.{f.metadata['registry']}`)"
+    choices = f.metadata.get("choices")
+    if choices:
+        return " · ".join(f"`{c}`" for c in choices) + (f" · {f.metadata['or']}" if f.metadata.get("or") else "")
+    return f.metadata.get("expected", "")
+
+
 def _home(schema: type, name: str) -> type:
     """The class of ``schema``'s MRO that declares field ``name``."""
     return next(c for c in schema.__mro__ if name in inspect.get_annotations(c))
@@ -177,8 +201,8 @@ def _rows(node: DictConfig, raw: dict, group: str | None, prefix: str = "", bloc
             continue
         key = prefix + f.name
         home = (group, (block or declared).__name__, declared.__name__, key)
-        rows.append(Row(key=key, type=type_name(hints[f.name]), allowed=f.metadata.get("expected", ""),
-                        defaults={}, home=home, value=raw.get(f.name)))
+        rows.append(Row(key=key, type=_field_type(f, hints[f.name]), allowed=_allowed(f, schema), defaults={},
+                        home=home, value=raw.get(f.name), option_of=f.metadata.get("option_of")))
     return rows
 
 
@@ -233,6 +257,12 @@ def collect(conf: Path | None = None) -> list[Section]:
                     for label, value in _preset_labels(preset, by_algo, algos, group == "algo"):
                         for option in section.options:
                             row.presets.setdefault(option, {})[label] = value
+    # a key that names its option (env.name, batch.kind): the options shipped are its values
+    for section in sections.values():
+        for row in section.rows:
+            if row.option_of:
+                names = sorted({str(v) for v in row.defaults.values()})
+                row.allowed = " · ".join(f"`{n}`" for n in names) + f" (or a conf/{row.option_of}/ file of your own)"
     # a field documented in one option's yaml is documented for every option sharing that schema field
     docs = {}
     for section in sections.values():
@@ -291,12 +321,18 @@ def _value(v: Any) -> str:
 
 
 def _cell(text: str) -> str:
-    """Plain text in a table cell: HTML-escaped outside `code` spans (``<run_dir>`` is no tag), pipes escaped."""
+    """Plain text in a table cell: HTML-escaped outside `code` spans (``<run_dir>`` is no tag), pipes escaped, and
+    the characters Markdown reads as emphasis escaped (``<algo>_seed<seed>_<name>`` is no italics)."""
     parts = text.split("`")
     if len(parts) % 2 == 0:  # an unpaired backtick: no code spans
         parts = [text]
-    return "".join(html.escape(part, quote=False).replace("|", "\\|") if i % 2 == 0 else _value(part)
-                   for i, part in enumerate(parts))
+    return "".join(_plain(part) if i % 2 == 0 else _value(part) for i, part in enumerate(parts))
+
+
+def _plain(text: str) -> str:
+    """Text outside code spans, as Markdown shows it literally: ``\\``, ``|``, ``*``, ``_`` escaped, HTML escaped."""
+    text = re.sub(r"([\\|*_])", r"\\\1", text)
+    return html.escape(text, quote=False)
 
 
 def _default_cell(row: Row, options: list[str]) -> str:

@@ -94,7 +94,41 @@ def test_the_page_renders_pipes_and_tags_inside_tables(sections):
     line = next(row for row in text.splitlines() if row.startswith("| `device` |"))
     assert "cpu \\| cuda \\| cuda:N \\| auto" in line
     line = next(row for row in text.splitlines() if row.startswith("| `logger.name` |"))
-    assert "&lt;algo&gt;_seed&lt;seed&gt;" in line
+    assert "&lt;algo&gt;\\_seed&lt;seed&gt;" in line
+
+
+def _html(table_row: str) -> str:
+    """One row of the page's tables as the site renders it."""
+    import markdown
+
+    return markdown.markdown("| a | b | c | d | e |\n|---|---|---|---|---|\n" + table_row, extensions=["tables"])
+
+
+def test_the_page_shows_underscores_and_asterisks_as_written(sections):
+    text = gen.render(sections)
+    cell = _html(next(row for row in text.splitlines() if row.startswith("| `logger.name` |")))
+    assert "<em>" not in cell and "&lt;algo&gt;_seed&lt;seed&gt;_&lt;run dir name&gt;" in cell
+    assert gen._cell("a*b*c and x_y_z") == "a\\*b\\*c and x\\_y\\_z"
+    assert "<em>" not in _html(f"| k | str | 1 | x | {gen._cell('a*b*c and _y_ z')} |")
+
+
+def test_enumerated_strings_show_their_values(sections):
+    from torchrl_bail.config import ALGO_SCHEMAS, RESUME_MODES
+
+    resume = _row(sections, None, "resume")
+    assert resume.type == "enum or path"
+    assert resume.allowed == " · ".join(f"`{m}`" for m in RESUME_MODES) + " · an existing run directory"
+    backend = _row(sections, None, "logger.backend")
+    assert backend.type == "enum" and "`tensorboard`" in backend.allowed
+    envs = sorted(p.stem for p in (ROOT / "conf" / "env").glob("*.yaml"))
+    assert _row(sections, "env", "name").allowed.startswith(" · ".join(f"`{e}`" for e in envs) + " (or ")
+    kinds = {k for s in sections if s.group == "batch" for r in s.rows if r.key == "kind"
+             for k in re.findall(r"`(\w+)`", r.allowed)}
+    assert kinds == {p.stem for p in (ROOT / "conf" / "batch").glob("[!_]*.yaml")}
+    names = {r.allowed.split("`")[1] for s in sections if s.group == "algo" for r in s.rows if r.key == "name"}
+    assert names == set(ALGO_SCHEMAS)
+    free = {f"{s.group or ''}.{r.key}" for s in sections for r in s.rows if r.type == "str" and not r.allowed}
+    assert free == {".logger.project", "env.id"}  # free text; any other string key names what it allows
 
 
 # ---------------------------------------------------------------------------------------------------------------

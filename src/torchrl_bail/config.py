@@ -43,9 +43,10 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from torchrl_bail.errors import CommandLineError, ConfigError
 
 __all__ = ["ALGO_SCHEMAS", "algo_config", "checked_algo_config", "config_dir", "BATCH_SCHEMAS", "COMPILE_MODES",
-           "CollectionConfig", "collection_config", "DDPG_ENVS", "RUN_DIR_KEYS", "RUN_ONLY_KEYS", "CommandLineError",
-           "Config", "ConfigError", "batch_label", "group_options", "is_compile_setting", "register_schemas",
-           "run_dir_excluded_keys", "run_dir_suffix", "run_only", "validate_config"]
+           "CollectionConfig", "collection_config", "DDPG_ENVS", "RESUME_MODES", "RUN_DIR_KEYS", "RUN_ONLY_KEYS",
+           "CommandLineError", "Config", "ConfigError", "batch_label", "group_options", "is_compile_setting",
+           "option_name", "register_schemas", "registry_name", "run_dir_excluded_keys", "run_dir_suffix", "run_only",
+           "validate_config"]
 
 #: the envs the paper made DDPG batches for (docs: The batch catalogue)
 DDPG_ENVS = ("hopper", "walker", "halfcheetah")
@@ -93,7 +94,16 @@ def fraction():
 
 
 def one_of(*choices: Any):
-    return _rule(lambda v: v in choices, " | ".join(map(str, choices)))
+    """A closed set of values; ``metadata["choices"]`` holds them (the configuration reference lists them)."""
+    return field(default=MISSING, metadata={"check": lambda v: v in choices, "expected": " | ".join(map(str, choices)),
+                                            "choices": choices})
+
+
+def option_name(group: str):
+    """A key that names its own group option (``env.name`` is ``hopper`` in ``conf/env/hopper.yaml``). Any string is
+    accepted, so a yaml file of your own may add an option; ``metadata["option_of"]`` names the group, whose shipped
+    options the configuration reference lists as the allowed values."""
+    return field(default=MISSING, metadata={"option_of": group, "expected": f"the name of a conf/{group}/ option"})
 
 
 def layers():
@@ -102,6 +112,12 @@ def layers():
 
 def learning_rate():
     return positive("a positive learning rate")
+
+
+def registry_name(registry: str):
+    """A key holding its schema's name in a registry of this module (``algo.name`` in :data:`ALGO_SCHEMAS`,
+    ``batch.recipe`` in :data:`BATCH_SCHEMAS`), checked by :meth:`_Checked._registered_as`."""
+    return field(default=MISSING, metadata={"registry": registry, "expected": f"this schema's name in {registry}"})
 
 
 class _Checked:
@@ -136,7 +152,7 @@ class _Checked:
 
 @dataclass
 class EnvConfig(_Checked):
-    name: str = MISSING
+    name: str = option_name("env")
     id: str = MISSING
     max_episode_steps: Optional[int] = at_least(1, "a positive integer (or null for the env's default)")
     mediocre_threshold: int = MISSING
@@ -156,8 +172,8 @@ class OracleConfig(_Checked):
 
 @dataclass
 class BatchConfig(_Checked):
-    kind: str = MISSING
-    recipe: str = MISSING
+    kind: str = option_name("batch")
+    recipe: str = registry_name("BATCH_SCHEMAS")
     index: int = at_least(1, "an integer >= 1 (B1, B2, ...)")
     seed: Optional[int] = non_negative("null or an integer >= 0")
     steps: int = positive("a positive number of transitions")
@@ -248,7 +264,7 @@ class NetConfig(_Checked):
 
 @dataclass
 class AlgoConfig(_Checked):
-    name: str = MISSING
+    name: str = registry_name("ALGO_SCHEMAS")
     batch_size: int = at_least(1, "a positive mini-batch size")
     epochs: float = positive("a positive number of epochs (10^6 samples each)")
 
@@ -459,6 +475,18 @@ def _device_name(v: str) -> bool:
     return v in ("cpu", "cuda", "auto") or (v.startswith("cuda:") and v[5:].isdigit())
 
 
+#: the ``resume`` key's words; any other value must be an existing run directory (:mod:`torchrl_bail.resume`)
+RESUME_MODES = ("auto", "true", "false")
+_RESUME_EXPECTED = " | ".join(RESUME_MODES) + " | an existing run directory"
+
+
+def _resume_rule():
+    """``resume``'s documentation (checked in :meth:`Config.check`, where a path is looked up): one of
+    :data:`RESUME_MODES`, or else a run directory (``metadata["or"]``)."""
+    return field(default=MISSING, metadata={"expected": _RESUME_EXPECTED, "choices": RESUME_MODES,
+                                            "or": "an existing run directory"})
+
+
 @dataclass
 class Config(_Checked):
     env: EnvConfig = MISSING
@@ -474,7 +502,7 @@ class Config(_Checked):
     data_dir: Optional[str] = run_only()
     dataset: Optional[str] = MISSING
     progress: bool = run_only()
-    resume: str = run_only()   # auto | true | false | <run_dir> (see torchrl_bail.resume)
+    resume: str = run_only(_resume_rule())   # auto | true | false | <run_dir> (see torchrl_bail.resume)
     threads: Optional[int] = run_only(_rule(lambda v: v is None or v >= 1,  # noqa: UP045
                                             "null or a number of threads >= 1"))
     returns: ReturnsConfig = MISSING
@@ -503,8 +531,8 @@ class Config(_Checked):
 
             if not torch.cuda.is_available():
                 raise ConfigError("device", self.device, "a CUDA device, but torch sees none (use device=cpu or auto)")
-        if self.resume.lower() not in ("auto", "true", "false") and not Path(self.resume).expanduser().is_dir():
-            raise ConfigError("resume", self.resume, "auto | true | false | an existing run directory")
+        if self.resume.lower() not in RESUME_MODES and not Path(self.resume).expanduser().is_dir():
+            raise ConfigError("resume", self.resume, _RESUME_EXPECTED)
 
 
 @dataclass
