@@ -1,17 +1,28 @@
-"""Shared timing helpers for the benchmark scripts (``python benchmarks/bench_<name>.py``).
+"""Shared timing and record helpers for the benchmark scripts (``python benchmarks/bench_<name>.py``).
 
-Every benchmark measures a torchrl_bail code path and a bare-PyTorch version of the same math *in the same
-process, interleaved*, and reports ``ratio = torchrl_bail rate / bare rate`` (1.0 = no overhead; the issues ask
-for >= 0.8). Rates are medians over ``repeats`` alternating rounds, so a noisy neighbour hits both sides.
+Every benchmark measures a torchrl_bail code path and a reference doing the same work (bare PyTorch, a plain
+gymnasium loop, eager updates, sequential seeds) *in the same process, interleaved*, and reports
+``ratio = torchrl_bail rate / reference rate`` (1.0 = no overhead; the issues ask for >= 0.8). Rates are medians
+over ``repeats`` alternating rounds, so a noisy neighbour hits both sides.
+
+Every run writes a JSON record (:class:`Record`, default ``results/benchmarks/<script stem>.json``): the command
+line, package versions, CPU model and affinity, threads, load average at start and end, timestamps, every round's
+figure of every side, and the derived ratio rows (``table``). ``benchmarks/render_records.py`` renders the tables of
+``docs/benchmarks.md`` from these records.
 """
 
 from __future__ import annotations
 
-import json
+import argparse
+import datetime
 import os
+import platform
+import shlex
 import statistics
+import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from importlib import metadata
 from pathlib import Path
 
 os.environ.setdefault("RL_WARNINGS", "0")
@@ -19,7 +30,15 @@ os.environ.setdefault("RL_WARNINGS", "0")
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-__all__ = ["rate", "compare", "bare_mlp", "machine", "print_columns", "print_table", "write_json"]
+from torchrl_bail.io import write_json_atomic  # noqa: E402
+
+__all__ = ["rate", "compare", "summarise", "bare_mlp", "machine", "print_columns", "print_table", "write_json",
+           "Record", "RECORDS", "PACKAGES", "add_record_argument", "derive_table"]
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "results" / "benchmarks"
+# the versions a record states (the d3rlpy side of bench_d3rlpy*.py adds its own)
+PACKAGES = ("torch", "torchrl", "tensordict", "gymnasium", "mujoco", "numpy")
 
 
 def rate(fn: Callable[[], object], n: int, warmup: int = 10) -> float:
@@ -41,8 +60,32 @@ def compare(name: str, library: Callable[[], object], bare: Callable[[], object]
     for _ in range(repeats):
         lib_rates.append(rate(library, n, warmup=0))
         bare_rates.append(rate(bare, n, warmup=0))
-    lib, base = statistics.median(lib_rates), statistics.median(bare_rates)
-    return {"name": name, "unit": unit, "torchrl_bail": lib, "bare": base, "ratio": lib / base}
+    return summarise(name, unit, {"torchrl_bail": lib_rates, "bare": bare_rates}, calls_per_round=n)
+
+
+def summarise(name: str, unit: str, rounds: Mapping[str, Sequence[float]],
+              ratio_of: tuple[str, str] = ("torchrl_bail", "bare"), **extra) -> dict:
+    """One measured row: every side's rounds (``rounds[side]``, one figure per round), their medians under the
+    side's name, and ``ratio`` = median of ``ratio_of[0]`` / median of ``ratio_of[1]``; ``extra`` keys are kept."""
+    medians = {side: statistics.median(values) for side, values in rounds.items()}
+    numerator, denominator = ratio_of
+    return {"name": name, "unit": unit, **medians, "ratio": medians[numerator] / medians[denominator],
+            "ratio_of": [numerator, denominator], "rounds": {side: list(v) for side, v in rounds.items()}, **extra}
+
+
+def derive_table(rows: Sequence[dict]) -> list[dict]:
+    """The ratio rows a record's table shows, derived from its measured rows (those with ``ratio_of``): case, unit,
+    the two sides' medians, ``ratio`` and the number of rounds behind each median."""
+    table = []
+    for row in rows:
+        if "ratio_of" not in row:
+            continue
+        numerator, denominator = row["ratio_of"]
+        ours = statistics.median(row["rounds"][numerator])
+        reference = statistics.median(row["rounds"][denominator])
+        table.append({"case": row["name"], "unit": row["unit"], "torchrl_bail": ours, "reference": reference,
+                      "ratio": ours / reference, "rounds": len(row["rounds"][numerator])})
+    return table
 
 
 def bare_mlp(in_features: int, out_features: int, hidden: Sequence[int]) -> nn.Sequential:
@@ -85,4 +128,84 @@ def print_table(rows: list[dict], title: str) -> None:
 
 def write_json(rows: list[dict], path: str | os.PathLike | None) -> None:
     if path:
-        Path(path).write_text(json.dumps(rows, indent=2) + "\n")
+        write_json_atomic(path, rows)
+
+
+def add_record_argument(parser: argparse.ArgumentParser, script: str) -> None:
+    """``--json PATH``: where the run's :class:`Record` goes (default ``results/benchmarks/<script stem>.json``;
+    ``--json ''`` writes none)."""
+    default = RECORDS / f"{Path(script).stem}.json"
+    parser.add_argument("--json", default=str(default.relative_to(ROOT)),
+                        help="the run's JSON record (default: %(default)s, relative to the repository root; "
+                             "'' writes none)")
+
+
+def _versions(packages: Sequence[str] = PACKAGES) -> dict[str, str | None]:
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in packages:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
+class Record:
+    """A benchmark run's JSON record: made at the start of ``main`` (command line, start time and load average),
+    written by :meth:`write` at the end (or after each row of a long run) atomically to ``path``.
+
+    ``reference`` names what the ratio divides by (``"bare PyTorch"``, ``"eager"``, ...). :meth:`write` stores
+    ``rows`` as given (each round of each side included, see :func:`summarise`) and the derived ``table``.
+    """
+
+    def __init__(self, script: str, path: str | os.PathLike | None, *, reference: str, settings: Mapping | None = None):
+        self.script = Path(script).name
+        self.path = None if not path else (Path(path) if Path(path).is_absolute() else ROOT / path)
+        self.reference = reference
+        self.settings = dict(settings or {})
+        self.started = _now()
+        self.load_start = list(os.getloadavg())
+        self._t0 = time.perf_counter()
+
+    def snapshot(self, rows: Sequence[dict], **extra) -> dict:
+        """The record as it stands: everything :meth:`write` writes."""
+        affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        return {
+            "script": self.script,
+            "command": shlex.join(["python", os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]]),
+            "settings": self.settings,
+            "started": self.started,
+            "finished": _now(),
+            "wall_s": time.perf_counter() - self._t0,
+            "versions": _versions(),
+            "machine": {"cpu_model": _cpu_model(), "cpus": os.cpu_count(), "affinity": affinity,
+                        "torch_threads": torch.get_num_threads(),
+                        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
+            "load_average": {"start": self.load_start, "end": list(os.getloadavg())},
+            "reference": self.reference,
+            **extra,
+            "rows": list(rows),
+            "table": derive_table(rows),
+        }
+
+    def write(self, rows: Sequence[dict], **extra) -> dict:
+        """Writes the record (atomically; nothing when the path is empty) and returns it."""
+        record = self.snapshot(rows, **extra)
+        if self.path is not None:
+            write_json_atomic(self.path, record)
+            print(f"record: {self.path}", flush=True)
+        return record

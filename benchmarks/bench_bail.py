@@ -2,7 +2,7 @@
 Progressive BAIL updates per second beside a bare PyTorch loop doing the same math (same networks, same
 mini-batch, same optimizer) in the same process.
 
-    python benchmarks/bench_bail.py [--transitions 1000000] [--updates 300] [--json PATH]
+    python benchmarks/bench_bail.py [--transitions 1000000] [--updates 300] [--repeats 5] [--json PATH]
 
 The library side is exactly what a run executes per iteration:
 
@@ -21,7 +21,7 @@ import argparse
 import time
 
 import torch
-from _bench import bare_mlp, compare, print_table, write_json
+from _bench import Record, add_record_argument, bare_mlp, compare, print_table
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
@@ -63,6 +63,8 @@ def synthetic_batch(n: int, generator: torch.Generator) -> TensorDict:
 
 
 def bench_returns(n: int) -> dict:
+    """Seconds of one Monte-Carlo returns pass with gain augmentation and one without (no ratio: two variants of the
+    library's own computation, one round each)."""
     data = synthetic_batch(n, torch.Generator().manual_seed(0))
     monte_carlo_returns(data[:20_000])  # warm-up
     start = time.perf_counter()
@@ -71,12 +73,14 @@ def bench_returns(n: int) -> dict:
     start = time.perf_counter()
     monte_carlo_returns(data, gamma=0.99, horizon=1000, augment="none")
     plain = time.perf_counter() - start
-    print(f"\nMonte-Carlo returns on {n:,} transitions ({int(data['episode'][-1]) + 1} episodes): "
+    episodes = int(data["episode"][-1]) + 1
+    print(f"\nMonte-Carlo returns on {n:,} transitions ({episodes} episodes): "
           f"gain augmentation {gain:.2f} s, plain {plain:.2f} s")
-    return {"name": "returns", "transitions": n, "gain_s": gain, "plain_s": plain}
+    return {"name": f"Monte-Carlo returns, {n:,} transitions ({episodes} episodes)", "unit": "s",
+            "transitions": n, "gain_s": gain, "plain_s": plain, "rounds": {"gain_s": [gain], "plain_s": [plain]}}
 
 
-def bench_envelope(n_updates: int) -> dict:
+def bench_envelope(n_updates: int, repeats: int) -> dict:
     n, batch = 200_000, 800
     g = torch.Generator().manual_seed(1)
     observations, returns = torch.randn(n, OBS, generator=g), torch.rand(n, generator=g) * 300
@@ -114,10 +118,10 @@ def bench_envelope(n_updates: int) -> dict:
         loss.backward()
         bare_opt.step()
 
-    return compare("envelope update (batch 800)", library, bare, n=n_updates)
+    return compare("envelope update (batch 800)", library, bare, n=n_updates, repeats=repeats)
 
 
-def bench_policy(n_updates: int) -> dict:
+def bench_policy(n_updates: int, repeats: int) -> dict:
     n, batch = 300_000, 1000
     g = torch.Generator().manual_seed(2)
     data = TensorDict({"observation": torch.randn(n, OBS, generator=g),
@@ -143,10 +147,11 @@ def bench_policy(n_updates: int) -> dict:
         loss.backward()
         bare_opt.step()
 
-    return compare("policy update (BC, batch 1000)", library, bare, n=n_updates)
+    return compare("policy update (BC, batch 1000, replay sample included)", library, bare, n=n_updates,
+                   repeats=repeats)
 
 
-def bench_progressive(n_updates: int) -> dict:
+def bench_progressive(n_updates: int, repeats: int) -> dict:
     n, batch = 300_000, 1000
     g = torch.Generator().manual_seed(3)
     data = TensorDict({"observation": torch.randn(n, OBS, generator=g),
@@ -190,19 +195,22 @@ def bench_progressive(n_updates: int) -> dict:
         loss_bc.backward()
         act_opt.step()
 
-    return compare("Progressive BAIL update (batch 1000)", library, bare, n=n_updates)
+    return compare("Progressive BAIL update (batch 1000)", library, bare, n=n_updates, repeats=repeats)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--transitions", type=int, default=1_000_000)
-    parser.add_argument("--updates", type=int, default=300, help="updates per timed round (5 rounds per side)")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    parser.add_argument("--updates", type=int, default=300, help="updates per timed round")
+    parser.add_argument("--repeats", type=int, default=5, help="alternating rounds per side")
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="bare PyTorch", settings=vars(args))
     returns_row = bench_returns(args.transitions)
-    rows = [bench_envelope(args.updates), bench_policy(args.updates), bench_progressive(args.updates)]
+    rows = [bench_envelope(args.updates, args.repeats), bench_policy(args.updates, args.repeats),
+            bench_progressive(args.updates, args.repeats)]
     print_table(rows, "BAIL updates/s: torchrl_bail vs bare PyTorch, same process (ratio = torchrl_bail / bare)")
-    write_json([returns_row, *rows], args.json)
+    record.write([returns_row, *rows])
 
 
 if __name__ == "__main__":

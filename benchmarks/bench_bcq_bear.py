@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _bench import bare_mlp, compare, print_table, write_json
+from _bench import Record, add_record_argument, bare_mlp, compare, print_table
 from tensordict import TensorDict
 from torch import nn
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
@@ -220,8 +220,9 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=30, help="updates per timed round")
     parser.add_argument("--repeats", type=int, default=5, help="alternating rounds per side")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: torch's default)")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="bare PyTorch", settings=vars(args))
     if args.threads:
         torch.set_num_threads(args.threads)
     data = synthetic_data(100_000)
@@ -230,7 +231,7 @@ def main() -> None:
         bench("BEAR update (batch 100)", BEAR, BareBEAR, data, args.updates, args.repeats, warm_start_updates=0),
     ]
     print_table(rows, "BCQ / BEAR updates/s: torchrl_bail vs bare PyTorch, same process (ratio = torchrl_bail / bare)")
-    write_json(rows, args.json)
+    record.write(rows)
 
 
 if __name__ == "__main__":

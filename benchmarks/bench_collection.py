@@ -8,16 +8,15 @@ env step at episode ends) against a bare gymnasium + PyTorch loop doing the same
 
 Prints env steps/s per acting policy, the steady-state collection rate (one update per env step) with the hours a
 10^6-step collection takes, and tables of updates/s and loop steps/s with ``ratio`` = torchrl_bail / bare (1.0 = no
-overhead). ``--loop-steps 0`` skips the whole-loop comparison. With ``--json PATH`` the numbers are also written.
+overhead). ``--loop-steps 0`` skips the whole-loop comparison. The run's record (every round, the rates above)
+goes to ``results/benchmarks/bench_collection.json`` (``--json``).
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
-import json
 import os
-import statistics
 import sys
 import tempfile
 import time
@@ -27,7 +26,7 @@ os.environ.setdefault("RL_WARNINGS", "0")
 
 import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402
-from _bench import bare_mlp, compare, print_table  # noqa: E402
+from _bench import Record, add_record_argument, bare_mlp, compare, print_table, summarise  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
@@ -260,9 +259,8 @@ def bench_loops(env_id: str, steps: int, start: int, repeats: int, scratch: Path
         for r in range(repeats):
             lib.append(steps / library_loop(env_id, steps, start, algo, scratch))
             bare.append(steps / bare_loop(env_id, steps, start, algo, seed=r))
-        lib_rate, bare_rate = statistics.median(lib), statistics.median(bare)
-        rows.append({"name": f"{name} ({steps} steps, {start} random)", "unit": "env steps/s",
-                     "torchrl_bail": lib_rate, "bare": bare_rate, "ratio": lib_rate / bare_rate})
+        rows.append(summarise(f"{name} ({steps} steps, {start} random)", "env steps/s",
+                              {"torchrl_bail": lib, "bare": bare}))
     return rows
 
 
@@ -274,8 +272,9 @@ def main(argv=None) -> int:
     p.add_argument("--loop-steps", type=int, default=1500, help="env steps per whole-loop run (0: skip)")
     p.add_argument("--loop-start", type=int, default=300, help="random steps before learning in the loop runs")
     p.add_argument("--loop-repeats", type=int, default=3)
-    p.add_argument("--json", default=None)
+    add_record_argument(p, __file__)
     args = p.parse_args(argv)
+    record = Record(__file__, args.json, reference="bare PyTorch (+ bare gymnasium loop)", settings=vars(args))
     torch.manual_seed(0)
     env = make_collection_env(args.env, max_episode_steps=None, seed=0)
     obs_dim = env.observation_spec["observation"].shape[-1]
@@ -302,8 +301,7 @@ def main(argv=None) -> int:
         res[f"{row['name'].split()[0].lower()}_loop_ratio_torchrl_bail_over_bare"] = row["ratio"]
     if loops:
         print_table(loops, "Whole collection loop, env steps/s: the recipe vs a bare gymnasium + PyTorch loop")
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
+    record.write([*rows, *loops], collection=res)
     return 0
 
 

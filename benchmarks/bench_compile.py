@@ -22,11 +22,10 @@ BAIL's update is BC's imitation step on the selected pairs (the same method): it
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import torch
-from _bench import write_json
+from _bench import Record, add_record_argument, summarise
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
@@ -80,9 +79,10 @@ def measure(name: str, mode, device: torch.device, data: TensorDict, n: int, rep
     for _ in range(repeats):
         eager_rates.append(updates_per_second(eager, eager_buffer, n, device))
         compiled_rates.append(updates_per_second(compiled, compiled_buffer, n, device))
-    e, c = statistics.median(eager_rates), statistics.median(compiled_rates)
-    return {"algo": name, "mode": str(mode).lower(), "device": str(device), "eager_updates_per_s": e,
-            "compiled_updates_per_s": c, "ratio": c / e, "compile_s": compile_s, "batch_size": eager.batch_size}
+    return summarise(f"{name} update (batch {eager.batch_size}), compile={str(mode).lower()} on {device}",
+                     "updates/s", {"compiled_updates_per_s": compiled_rates, "eager_updates_per_s": eager_rates},
+                     ratio_of=("compiled_updates_per_s", "eager_updates_per_s"), algo=name, mode=str(mode).lower(),
+                     device=str(device), compile_s=compile_s, batch_size=eager.batch_size)
 
 
 def main() -> None:
@@ -94,8 +94,9 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=30, help="updates per timed round")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (0: torch's default)")
-    parser.add_argument("--json", default=None)
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="eager", settings=vars(args))
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -110,7 +111,7 @@ def main() -> None:
             rows.append(row)
             print(f"{name:<8} {row['mode']:<16} {row['batch_size']:>5} {row['eager_updates_per_s']:>10.1f} "
                   f"{row['compiled_updates_per_s']:>10.1f} {row['ratio']:>6.2f} {row['compile_s']:>10.1f}", flush=True)
-    write_json(rows, args.json)
+    record.write(rows)
 
 
 if __name__ == "__main__":

@@ -2,10 +2,10 @@
 
 Usage (d3rlpy 2.8.1 pins an older gymnasium, so it lives in its own virtual environment)::
 
-    python -m venv /tmp/d3venv
-    /tmp/d3venv/bin/pip install torch==2.13.0          # first, so d3rlpy keeps this torch
-    /tmp/d3venv/bin/pip install d3rlpy==2.8.1 torch==2.13.0
-    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy.py --python /tmp/d3venv/bin/python
+    python -m venv .d3venv
+    .d3venv/bin/pip install torch==2.13.0          # first, so d3rlpy keeps this torch
+    .d3venv/bin/pip install d3rlpy==2.8.1 torch==2.13.0
+    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy.py --python .d3venv/bin/python
 
 Both sides time one training iteration as each library's training loop runs it: torchrl_bail's
 ``algorithm.update(buffer.sample())`` (the trainer's loop, :mod:`torchrl_bail.trainer`), d3rlpy's
@@ -60,13 +60,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from _bench import machine, print_columns, write_json
+from _bench import Record, add_record_argument, machine, print_columns, summarise
 
 import torch  # noqa: E402
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  # noqa: E402
@@ -150,8 +149,9 @@ def main() -> None:
     parser.add_argument("--compile", default="false",
                         help="our side's compile setting (false, true, max-autotune, ...); d3rlpy 2.8 compiles "
                              "only on CUDA (its compile_graph), so its side stays eager on a CPU")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="d3rlpy 2.8 (updates per CPU second)", settings=vars(args))
     torch.set_num_threads(args.threads)
     compile_mode = {"false": False, "true": True}.get(args.compile.lower(), args.compile)
     peer = D3rlpySide(args.python, args.threads)
@@ -172,12 +172,13 @@ def main() -> None:
             for _ in range(args.repeats):
                 lib.append(rates(ours[algo], n))
                 d3.append(peer.rates(algo, n))
-            row = {"name": names[algo], "unit": "updates/s"}
-            for i, clock in enumerate(("wall", "cpu")):
-                a, b = statistics.median(r[i] for r in lib), statistics.median(r[i] for r in d3)
-                row.update({f"torchrl_bail_{clock}": a, f"d3rlpy_{clock}": b, f"ratio_{clock}": a / b})
-            row.update(rounds_torchrl_bail=lib, rounds_d3rlpy=d3)
+            row = summarise(names[algo], "updates per CPU-s",
+                            {"torchrl_bail_cpu": [r[1] for r in lib], "d3rlpy_cpu": [r[1] for r in d3],
+                             "torchrl_bail_wall": [r[0] for r in lib], "d3rlpy_wall": [r[0] for r in d3]},
+                            ratio_of=("torchrl_bail_cpu", "d3rlpy_cpu"))
+            row.update(ratio_cpu=row["ratio"], ratio_wall=row["torchrl_bail_wall"] / row["d3rlpy_wall"])
             rows.append(row)
+            record.write(rows, d3rlpy_versions=peer.versions)  # after every row: a stopped run keeps its rows
             print(f"{names[algo]:<44} CPU-time rates: torchrl_bail {row['torchrl_bail_cpu']:7.1f}  d3rlpy "
                   f"{row['d3rlpy_cpu']:7.1f}  ratio {row['ratio_cpu']:5.2f}   (wall clock: {row['ratio_wall']:.2f})",
                   flush=True)
@@ -188,7 +189,7 @@ def main() -> None:
                   f"{peer_versions})", rows,
                   [("torchrl_bail", "torchrl_bail_cpu", ">13.1f"), ("d3rlpy", "d3rlpy_cpu", ">9.1f"),
                    ("ratio", "ratio_cpu", ">7.2f"), ("(wall clock ratio)", "ratio_wall", ">18.2f")])
-    write_json(rows, args.json)
+    record.write(rows, d3rlpy_versions=peer.versions)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """BC in lockstep: torchrl_bail's and d3rlpy 2.8.1's behaviour cloning from the same initial weights on the same
 mini-batches. Do the two follow one trajectory?
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy_lockstep.py --python /work/d3venv/bin/python \\
+    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy_lockstep.py --python .d3venv/bin/python \\
         --batch hopper_ddpg05_b1 --batch-overrides preset=quick --seeds 1,2,3 --json results/d3rlpy/lockstep.json
 
 ``bench_d3rlpy_returns.py`` compares the two libraries by their spread over seeds, since each draws its own initial
@@ -29,7 +29,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _bench import machine, write_json
+from _bench import Record, machine
 from bench_d3rlpy_returns import (
     D3rlpyRun,
     add_run_arguments,
@@ -106,8 +106,9 @@ def main() -> int:
     parser.add_argument("--batch", required=True, help="a catalogue batch name (hopper_ddpg05_b1) or a batch path")
     parser.add_argument("--batch-overrides", nargs="*", default=[],
                         help="the collect overrides that name the cached batch (e.g. preset=quick)")
-    add_run_arguments(parser)
+    add_run_arguments(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="d3rlpy 2.8.1 (BC in lockstep)", settings=vars(args))
     torch.set_num_threads(args.threads)
     try:
         batch = resolve_batch(args.batch, overrides=args.batch_overrides)
@@ -129,7 +130,7 @@ def main() -> int:
                   f"{row['loss_max_relative_difference_first_100']:.1e}); final actions differ by at most "
                   f"{row['action_max_abs_difference']:.1e}; return {row['returns']['torchrl_bail']:.1f} / "
                   f"{row['returns']['d3rlpy']:.1f}", flush=True)
-    write_json(rows, args.json)
+    record.write(rows)
     return 0
 
 

@@ -4,11 +4,11 @@ Usage (d3rlpy 2.8.1 pins gymnasium 1.0, so it lives in its own virtual environme
 to make it)::
 
     # the results study's Hopper batches (50k transitions, B1), 3 seeds, the study's schedules
-    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy_returns.py --python /work/d3venv/bin/python \\
+    OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy_returns.py --python .d3venv/bin/python \\
         --batch hopper_ddpg05_b1 --batch hopper_sac_b1 --batch-overrides preset=quick --seeds 1,2,3 --preset study
 
     # a smoke run on any batch (a catalogue name or a path) at a tiny scale
-    python benchmarks/bench_d3rlpy_returns.py --python /work/d3venv/bin/python --batch /path/to/batch --seeds 1 \\
+    python benchmarks/bench_d3rlpy_returns.py --python .d3venv/bin/python --batch /path/to/batch --seeds 1 \\
         --overrides algo.epochs=0.002 eval.every_epochs=0.001 eval.episodes=2
 
 For each batch, algorithm and seed, **torchrl_bail** trains through its own pipeline (``torchrl_bail.train.run``
@@ -56,7 +56,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _bench import machine, write_json
+from _bench import Record, add_record_argument, machine
 from bench_d3rlpy import start_worker
 
 import numpy as np  # noqa: E402
@@ -191,14 +191,14 @@ def d3rlpy_final_return(python: str, cfg, arrays: Path, threads: int) -> dict:
             "transitions": peer.info["transitions"]}
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options both sides' runs share (env, seeds, preset, overrides, threads, JSON record)."""
+def add_run_arguments(parser: argparse.ArgumentParser, script: str) -> None:
+    """The options both sides' runs share (env, seeds, preset, overrides, threads, the JSON record of ``script``)."""
     parser.add_argument("--env", default=None, help="conf/env name (default: from the batch's env id)")
     parser.add_argument("--seeds", default="1,2,3")
     parser.add_argument("--preset", default="study", help="the training preset of both sides (schedules, eval)")
     parser.add_argument("--overrides", nargs="*", default=[], help="more training overrides, applied to both sides")
     parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_record_argument(parser, script)
 
 
 def main() -> None:
@@ -209,8 +209,9 @@ def main() -> None:
     parser.add_argument("--batch-overrides", nargs="*", default=[],
                         help="the collect overrides that name the cached batch (e.g. preset=quick)")
     parser.add_argument("--algos", default=",".join(ALGOS), help="comma-separated subset of bc,bcq,bear")
-    add_run_arguments(parser)
+    add_run_arguments(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="d3rlpy 2.8.1 (final returns)", settings=vars(args))
     torch.set_num_threads(args.threads)
     seeds = [int(s) for s in args.seeds.split(",")]
     rows = []
@@ -238,7 +239,7 @@ def main() -> None:
                            "d3rlpy_evaluations": peer["evaluations"], "d3rlpy_versions": peer["versions"],
                            "torchrl_bail_wall_s": ours["wall_time_s"], "d3rlpy_train_cpu_s": peer["train_cpu_s"]}
                     rows.append(row)
-                    write_json(rows, args.json)  # after every row: a long comparison stopped midway keeps its rows
+                    record.write(rows)  # after every row: a long comparison stopped midway keeps its rows
                     print(f"{label:<24} {algo:<5} seed {seed}: torchrl_bail {row['torchrl_bail']:8.1f}   "
                           f"d3rlpy {row['d3rlpy']:8.1f}   ({row['updates']} updates)", flush=True)
     print(f"\nfinal return, mean +- sample std over seeds {args.seeds} ({machine()}; d3rlpy "
@@ -254,7 +255,7 @@ def main() -> None:
                 return f"{statistics.mean(values):.1f} +- {spread:.1f}"
 
             print(f"{label:<24} {algo:<5} {cell('torchrl_bail'):>20} {cell('d3rlpy'):>20}")
-    write_json(rows, args.json)
+    record.write(rows)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ observations, ``env.step`` per running episode. The episodes must score identica
 termination is switched off (``terminate_when_unhealthy=False``) so that every episode runs its full
 ``--max-steps`` like a trained policy's does. ``ratio`` = Evaluator rate / plain rate (1.0 = no overhead;
 the issue asks for >= 1/1.3 = 0.77). ``--serial-env`` adds the previous implementation (TorchRL ``SerialEnv``
-rollout) for reference. With ``--json PATH`` the numbers are also written as JSON.
+rollout) for reference. The run's record goes to ``results/benchmarks/bench_evaluation.json`` (``--json``).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ os.environ.setdefault("RL_WARNINGS", "0")
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from _bench import compare, print_table, write_json  # noqa: E402
+from _bench import Record, add_record_argument, compare, print_table  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E402
 
@@ -94,8 +94,9 @@ def main(argv=None) -> int:
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--repeats", type=int, default=5, help="interleaved rounds (the median is reported)")
     p.add_argument("--serial-env", action="store_true", help="also time the previous SerialEnv evaluator")
-    p.add_argument("--json", default=None)
+    add_record_argument(p, __file__)
     args = p.parse_args(argv)
+    record = Record(__file__, args.json, reference="plain gymnasium loop", settings=vars(args))
     env_kwargs = {"max_episode_steps": args.max_steps, "terminate_when_unhealthy": False}
     seed = 0
     evaluator = Evaluator(args.env, episodes=args.episodes, seed=seed, max_steps=args.max_steps,
@@ -117,13 +118,14 @@ def main(argv=None) -> int:
                       repeats=args.repeats, unit="evaluations/s")
         rows.append(row)
         serial.close()
-    for row in rows:  # evaluations/s -> env steps/s (both sides play the same steps)
+    for row in rows:  # evaluations/s -> env steps/s (both sides play the same steps), every round too
         row.update(torchrl_bail=row["torchrl_bail"] * steps, bare=row["bare"] * steps, unit="env steps/s",
-                   wall_time_ratio=1 / row["ratio"])
+                   wall_time_ratio=1 / row["ratio"], steps_per_evaluation=steps,
+                   rounds={side: [r * steps for r in values] for side, values in row["rounds"].items()})
     print_table(rows, "Evaluation: torchrl_bail vs a plain gymnasium loop (ratio = torchrl_bail / plain)")
     for row in rows:
         print(f"{row['name']}: wall time {row['wall_time_ratio']:.2f}x the plain loop's")
-    write_json(rows, args.json)
+    record.write(rows)
     evaluator.close()
     plain.close()
     return 0

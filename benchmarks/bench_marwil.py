@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _bench import bare_mlp, compare, print_table, write_json
+from _bench import Record, add_record_argument, bare_mlp, compare, print_table
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
@@ -118,15 +118,16 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=1, help="updates per timed round")
     parser.add_argument("--repeats", type=int, default=301, help="alternating rounds per side")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="bare PyTorch", settings=vars(args))
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"actor {list(CFG.policy.hidden)}, value {list(CFG.value.hidden)}, batch {CFG.batch_size}, obs {OBS}, "
           f"act {ACT}, beta {CFG.beta}, c2 {CFG.c2_init} (rate {CFG.c2_rate})")
     rows = [bench_update(args.updates, args.repeats), bench_iteration(args.updates, args.repeats)]
     print_table(rows, "MARWIL updates/s: torchrl_bail vs bare PyTorch, same process (ratio = torchrl_bail / bare)")
-    write_json(rows, args.json)
+    record.write(rows)
 
 
 if __name__ == "__main__":

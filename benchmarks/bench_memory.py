@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import torch
+from _bench import Record, add_record_argument
 from tensordict import TensorDict
 
 from torchrl_bail.data.batch import save_batch
@@ -61,8 +62,10 @@ def main() -> None:
     parser.add_argument("--env", default="humanoid", choices=sorted(SHAPES))
     parser.add_argument("--transitions", type=int, default=1_000_000)
     parser.add_argument("--updates", type=int, default=20, help="imitation mini-batches after the envelope fit")
-    parser.add_argument("--out", type=Path, default=None, help="JSON record (default: print only)")
+    add_record_argument(parser, __file__)
+    parser.add_argument("--out", dest="json", help="the same as --json (the record's path)")
     args = parser.parse_args()
+    run_record = Record(__file__, args.json, reference="none (absolute figures)", settings=vars(args))
 
     env_id, obs_dim, act_dim, bound = SHAPES[args.env]
     with tempfile.TemporaryDirectory() as tmp:
@@ -94,9 +97,7 @@ def main() -> None:
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}",
     }
     print(json.dumps(record, indent=1))
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(record, indent=1) + "\n")
+    run_record.write([], memory=record)
 
 
 if __name__ == "__main__":

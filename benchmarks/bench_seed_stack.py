@@ -21,11 +21,10 @@ the rounds, so a noisy neighbour on a shared machine hits both sides alike.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import torch
-from _bench import machine, print_columns, write_json
+from _bench import Record, add_record_argument, machine, print_columns, summarise
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
@@ -61,8 +60,9 @@ def _one_round(fn, rates: list[float]) -> None:
     rates.append(1.0 / (time.perf_counter() - start))
 
 
-def interleaved(stacked, sequential, single, *, repeats: int, warmup: int = 3) -> tuple[float, float, float]:
-    """Median rates of the three callables, alternating round by round."""
+def interleaved(name: str, stacked, sequential, single, *, repeats: int, warmup: int = 3) -> dict:
+    """Rates of the three callables, alternating round by round: one row with every round, the medians,
+    ``speedup`` (= ``ratio``, stacked / sequential) and ``vs_one_seed`` (stacked time / one seed's time)."""
     for fn in (stacked, sequential, single):
         for _ in range(warmup):
             fn()
@@ -70,7 +70,10 @@ def interleaved(stacked, sequential, single, *, repeats: int, warmup: int = 3) -
     for _ in range(repeats):
         for fn, r in zip((stacked, sequential, single), rates):
             _one_round(fn, r)
-    return tuple(statistics.median(r) for r in rates)
+    row = summarise(name, "iterations/s", dict(zip(("stacked_per_s", "sequential_per_s", "single_per_s"), rates)),
+                    ratio_of=("stacked_per_s", "sequential_per_s"))
+    row.update(speedup=row["ratio"], vs_one_seed=row["single_per_s"] / row["stacked_per_s"])
+    return row
 
 
 def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int) -> dict:
@@ -106,9 +109,7 @@ def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int)
         singles[0].update(buffers[0].sample())
         _sync(device)
 
-    st, seq, one = interleaved(stacked, sequential, single, repeats=repeats)
-    return {"name": f"{name} update (batch {stack.batch_size})", "stacked_per_s": st, "sequential_per_s": seq,
-            "speedup": st / seq, "vs_one_seed": one / st}
+    return interleaved(f"{name} update (batch {stack.batch_size})", stacked, sequential, single, repeats=repeats)
 
 
 def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
@@ -138,9 +139,8 @@ def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
                            **kwargs)
         _sync(device)
 
-    st, seq, one = interleaved(stacked, sequential, single, repeats=max(3, repeats // 5), warmup=1)
-    return {"name": f"bail envelope fit (2 epochs, batch {env.batch_size})", "stacked_per_s": st,
-            "sequential_per_s": seq, "speedup": st / seq, "vs_one_seed": one / st}
+    return interleaved(f"bail envelope fit (2 epochs, batch {env.batch_size})", stacked, sequential, single,
+                       repeats=max(3, repeats // 5), warmup=1)
 
 
 def main() -> None:
@@ -151,8 +151,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--json", default=None)
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference=f"{args.seeds} seeds one after the other", settings=vars(args))
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -163,7 +164,7 @@ def main() -> None:
     columns = [("stacked/s", "stacked_per_s", ">10.2f"), ("sequential/s", "sequential_per_s", ">13.2f"),
                    ("speedup", "speedup", ">8.2f"), ("vs 1 seed", "vs_one_seed", ">10.2f")]
     print_columns(f"{args.seeds} seeds stacked vs {args.seeds} sequential on {device} ({machine()})", rows, columns)
-    write_json(rows, args.json)
+    record.write(rows)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bench import Record, add_record_argument, summarise
+
 RECIPE = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1500", "batch.start_steps=500", "progress=false"]
 
 
@@ -47,7 +49,9 @@ def main() -> None:
     parser.add_argument("--epochs", type=float, default=0.05)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--algo", default="bc")
+    add_record_argument(parser, __file__)
     args = parser.parse_args()
+    record = Record(__file__, args.json, reference="serial sweep", settings=vars(args))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     os.environ.update(env)
     with tempfile.TemporaryDirectory() as tmp:
@@ -71,6 +75,12 @@ def main() -> None:
     print(f"{args.jobs} jobs of {args.algo}, {args.epochs} epochs each on {os.cpu_count()} cores: serial "
           f"{serial:.1f} s, joblib {parallel:.1f} s, serial/joblib = {serial / parallel:.2f}; "
           f"same final returns: {same}")
+    # sweeps per hour, so that ratio = joblib rate / serial rate = serial time / joblib time (> 1: joblib is faster)
+    row = summarise(f"{args.jobs} jobs of {args.algo}, {args.epochs} epochs each", "sweeps/h",
+                    {side: [3600 / t for t in values] for side, values in (("joblib", times["joblib"]),
+                                                                           ("serial", times["serial"]))},
+                    ratio_of=("joblib", "serial"), wall_s=times, same_final_returns=same, final_returns=returns)
+    record.write([row])
 
 
 if __name__ == "__main__":

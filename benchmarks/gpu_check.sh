@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks of device=cuda and compile=true, for a session that has a CUDA GPU (at most 8 minutes: the
 # steps' time limits add up to 480 s). Run from the repository root:   bash benchmarks/gpu_check.sh
-# Results land in $OUT (default ./gpu_check_out): one log per step, bench_compile.json, the tiny run's summary.
+# Results land in $OUT (default ./gpu_check_out): one log per step, the benchmarks' records (bench_compile.json, ...),
+# the tiny run's summary.
 #   1. tests/test_compile.py on cuda: no host reads between log points (and torch.cuda.set_sync_debug_mode("error")),
 #      tensors made on the device, one transfer each way per evaluation step, compiled == eager, and the whole-update
 #      CUDA graph (compile=true) against eager;
@@ -41,7 +42,7 @@ step bench_compile_cuda 150 python benchmarks/bench_compile.py --device cuda --t
 step bench_compile_reduce_overhead_cuda 45 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc \
   --modes reduce-overhead,default --updates 100 --repeats 3 --json "$OUT/bench_compile_reduce_overhead.json"
 if [ -f benchmarks/bench_seed_stack.py ]; then
-  step bench_seed_stack_cuda 45 python benchmarks/bench_seed_stack.py --device cuda
+  step bench_seed_stack_cuda 45 python benchmarks/bench_seed_stack.py --device cuda --json "$OUT/bench_seed_stack.json"
 fi
 echo "failed steps: $failed" | tee -a "$OUT/gpu_check.log"
 exit "$failed"
