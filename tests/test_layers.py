@@ -16,8 +16,9 @@ import torchrl_bail
 
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
 ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate"}
-# the atomic writes and the one-line error classes: part of the bottom layer, they import nothing from the package
-BOTTOM = {"torchrl_bail.io", "torchrl_bail.errors"}
+# the atomic writes, the one-line error classes and the interrupt requests: part of the bottom layer, they import
+# nothing from the package
+BOTTOM = {"torchrl_bail.io", "torchrl_bail.errors", "torchrl_bail.interrupts"}
 
 
 def _module_name(path: Path) -> str:

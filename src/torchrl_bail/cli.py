@@ -7,6 +7,10 @@ about a second, before torch loads. What it reports in one line: the errors of :
 
 ``--help`` lists the options of each config group as the files of ``conf/`` name them
 (:func:`torchrl_bail.config.group_options`).
+
+Ctrl-C and SIGTERM (:mod:`torchrl_bail.interrupts`, installed here for the whole command): the running loop writes
+its checkpoint at its next safe point, and the command ends with one line on stderr naming what was saved and the
+command that continues (:func:`continue_command`), exit status 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
@@ -14,15 +18,17 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import shlex
 import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
 from torchrl_bail.config import config_dir, group_options, validate_config
 from torchrl_bail.errors import USER_ERRORS, CommandLineError
+from torchrl_bail.interrupts import Interrupted, handled, signal_name
 from torchrl_bail.io import describe_file_error
 
-__all__ = ["describe_error", "exit_on_config_error", "run_cli"]
+__all__ = ["continue_command", "describe_error", "describe_interrupt", "exit_on_config_error", "run_cli"]
 
 
 def describe_error(err: BaseException) -> str:
@@ -113,12 +119,45 @@ def exit_on_config_error() -> Iterator[None]:
         sys.exit(2)
 
 
-def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None) -> None:
+def continue_command(command: str, argv: list[str]) -> str:
+    """The command line that continues an interrupted ``command argv``: the same, without a ``resume=`` override
+    (``resume=false`` would start over, ``resume=<dir>`` is refused once the run directory has a checkpoint of its
+    own; the default, ``resume=auto``, continues).
+
+    Examples:
+        >>> continue_command("python -m torchrl_bail.train", ["+exp=hopper_ddpg05", "resume=false", "algo.name=a b"])
+        "python -m torchrl_bail.train +exp=hopper_ddpg05 'algo.name=a b'"
+    """
+    kept = [a for a in argv if a.partition("=")[0].lstrip("+") != "resume"]
+    return " ".join([command, *map(shlex.quote, kept)])
+
+
+def describe_interrupt(err: Interrupted, command: str) -> str:
+    """The one line an interrupted command ends with: the signal, what was saved, the command that continues."""
+    saved = (f"saved {err.saved}" if err.saved else
+             "stopped before anything new was saved (the last checkpoint, if any, is kept)")
+    return f"interrupted by {signal_name(err.signum)}: {saved}; continue with: {command}"
+
+
+def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None, *,
+            command: str | None = None) -> None:
     """Runs a ``@hydra.main`` function after composing and validating every job's config, so that a bad command
-    line ends with one line on stderr and exit code 2 before anything is written or imported."""
+    line ends with one line on stderr and exit code 2 before anything is written or imported.
+
+    SIGINT and SIGTERM end it at the running loop's next checkpoint with one line on stderr and exit status 130 or
+    143 (:func:`describe_interrupt`; ``command``, e.g. ``python -m torchrl_bail.train``, starts the command line
+    that continues it)."""
     os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra re-raises instead of printing its own multi-line report
-    argv = [*sys.argv[1:], *(extra_overrides or [])]
-    with exit_on_config_error():
-        _precompose(argv)
-        sys.argv = [sys.argv[0], *argv]
-        hydra_main()
+    user_argv = sys.argv[1:]
+    argv = [*user_argv, *(extra_overrides or [])]
+    with handled():
+        try:
+            with exit_on_config_error():
+                _precompose(argv)
+                sys.argv = [sys.argv[0], *argv]
+                hydra_main()
+        except Interrupted as err:
+            again = continue_command(command or f"python {sys.argv[0]}", user_argv)
+            sys.stdout.flush()
+            print(f"torchrl_bail: {describe_interrupt(err, again)}", file=sys.stderr, flush=True)
+            sys.exit(err.exit_status)

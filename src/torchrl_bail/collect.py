@@ -320,7 +320,8 @@ def main() -> None:
             "hydra.sweep.dir=multirun/collect/${now:%Y-%m-%d_%H-%M-%S}",
         ]
     os.environ.setdefault("RL_WARNINGS", "0")
-    run_cli(_hydra_main, extra)  # a bad command line: one line on stderr, exit code 2
+    # a bad command line: one line on stderr, exit code 2; Ctrl-C/SIGTERM: checkpoint, one line, exit code 130/143
+    run_cli(_hydra_main, extra, command="python -m torchrl_bail.collect")
 
 
 if __name__ == "__main__":

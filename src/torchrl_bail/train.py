@@ -446,7 +446,7 @@ def _hydra_main(cfg: DictConfig) -> float:
 
 def main() -> None:
     """Console entry point (``torchrl-bail-train``): a bad command line ends with one line on stderr, exit code 2."""
-    run_cli(_hydra_main)
+    run_cli(_hydra_main, command="python -m torchrl_bail.train")  # Ctrl-C/SIGTERM: checkpoint, one line, 130/143
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@
 ``train`` samples mini-batches with replacement from the data an algorithm prepared, calls the algorithm's
 update step, evaluates the deterministic policy every ``eval_every_epochs`` (an epoch is 10^6 samples
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
-and writes an atomic checkpoint before the first update, after each evaluation and every few minutes. Given
+and writes an atomic checkpoint before the first update, after each evaluation and every few minutes, and, when
+the entry point turned Ctrl-C or SIGTERM into a request (:mod:`torchrl_bail.interrupts`), after the update during
+which it came, before it raises :class:`~torchrl_bail.interrupts.Interrupted`. Given
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
 as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
@@ -27,6 +29,7 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import random
 import time
@@ -41,6 +44,7 @@ from tensordict import TensorDictBase
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from tqdm.auto import tqdm
 
+from torchrl_bail import interrupts
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.io import write_atomic
 
@@ -290,6 +294,10 @@ def train_seeds(
     start = time.perf_counter()
 
     def checkpoint(it: int) -> None:
+        with interrupts.saving():  # every seed's file whole before a signal may stop the process
+            write_checkpoint(it)
+
+    def write_checkpoint(it: int) -> None:
         state = {
             "format": CHECKPOINT_FORMAT,
             "iteration": it,
@@ -303,42 +311,51 @@ def train_seeds(
         for path, seed_state, extra in zip(checkpoint_paths, trainee.checkpoints(state), extras):
             save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
 
-    if checkpoint_paths is not None and done == 0:
-        checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
-    last_checkpoint = time.monotonic()
     bar = tqdm(total=iterations, initial=done, desc=f"{trainee.name}", unit="it", disable=not progress,
                dynamic_ncols=True)
-    for it in range(done + 1, iterations + 1):
-        metrics = trainee.update(trainee.sample())
-        for k, v in metrics.items():
-            sums[k] = sums.get(k, 0.0) + v
-        if it % log_every == 0:
-            for seed_logger, seed_sums in zip(loggers, trainee.seed_metrics(sums)):
-                for k, v in seed_sums.items() if seed_logger is not None else ():
-                    seed_logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
-            sums.clear()
-        evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
-        if evaluated:
-            points = _evaluate(evaluate, trainee, it, it * per_update / samples_per_epoch)
-            for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks):
-                is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
-                seed_history.evaluations.append(point)
-                if callback is not None and is_best:
-                    callback(point, len(seed_history.evaluations) - 1)
-                if seed_logger is not None:
-                    seed_logger.log_scalar("eval/return", point.mean_return, step=it)
-                    seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
-                    seed_logger.log_scalar("eval/failures", point.failures, step=it)
-            mean_return = sum(p.mean_return for p in points) / len(points)
-            bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
-        if checkpoint_paths is not None and (
-            evaluated or it == iterations
-            or (checkpoint_every_s is not None and time.monotonic() - last_checkpoint >= checkpoint_every_s)
-        ):
-            checkpoint(it)
-            last_checkpoint = time.monotonic()
-        bar.update(1)
-    bar.close()
+    # signals wait for the end of an update (interrupts.safe_points); the bar is closed on every way out
+    with interrupts.safe_points(), contextlib.closing(bar):
+        if checkpoint_paths is not None and done == 0:
+            checkpoint(0)  # what prepare() produced survives a kill before the first evaluation
+        last_checkpoint = time.monotonic()
+        for it in range(done + 1, iterations + 1):
+            metrics = trainee.update(trainee.sample())
+            for k, v in metrics.items():
+                sums[k] = sums.get(k, 0.0) + v
+            if it % log_every == 0:
+                for seed_logger, seed_sums in zip(loggers, trainee.seed_metrics(sums)):
+                    for k, v in seed_sums.items() if seed_logger is not None else ():
+                        seed_logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
+                sums.clear()
+            evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
+            if evaluated:
+                points = _evaluate(evaluate, trainee, it, it * per_update / samples_per_epoch)
+                for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks):
+                    is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
+                    seed_history.evaluations.append(point)
+                    if callback is not None and is_best:
+                        callback(point, len(seed_history.evaluations) - 1)
+                    if seed_logger is not None:
+                        seed_logger.log_scalar("eval/return", point.mean_return, step=it)
+                        seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
+                        seed_logger.log_scalar("eval/failures", point.failures, step=it)
+                mean_return = sum(p.mean_return for p in points) / len(points)
+                bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
+            saved = checkpoint_paths is not None and (
+                evaluated or it == iterations
+                or (checkpoint_every_s is not None and time.monotonic() - last_checkpoint >= checkpoint_every_s)
+            )
+            if saved:
+                checkpoint(it)
+                last_checkpoint = time.monotonic()
+            bar.update(1)
+            if interrupts.requested() is not None:  # Ctrl-C/SIGTERM: the checkpoint at this iteration, then stop
+                if checkpoint_paths is None:
+                    interrupts.stop("nothing (checkpoint.enabled=false: a rerun starts over)")
+                if not saved:
+                    checkpoint(it)
+                interrupts.stop(f"the checkpoint at iteration {it} of {iterations} in "
+                                f"{', '.join(str(p) for p in checkpoint_paths)}")
     for seed_history in histories:
         seed_history.iterations = iterations
         seed_history.wall_time_s = prior_wall_time + time.perf_counter() - start

@@ -13,6 +13,7 @@ import os
 import time
 from pathlib import Path
 
+from torchrl_bail import interrupts
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.ddpg import collect_ddpg
 from torchrl_bail.behaviour.execution import collect_sac_exec
@@ -75,20 +76,25 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
              path)
     beat = liveness_settings(cfg)[1]
     checkpoint = run_checkpoint(cfg, root) if recipe == "sac" else CollectionCheckpoint.for_config(cfg, root, path.name)
-    with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
-        if recipe == "ddpg":
-            data, extra = collect_ddpg(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
-        elif recipe == "sac":
-            data, extra = collect_sac(cfg, scratch=scratch, progress=progress, data_dir=root, checkpoint=checkpoint)
+    # Ctrl-C/SIGTERM (interrupts): the loop checkpoints at its next episode end and stops; a signal that comes after
+    # the last one waits for the batch to be saved
+    with interrupts.safe_points():
+        with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
+            if recipe == "ddpg":
+                data, extra = collect_ddpg(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
+            elif recipe == "sac":
+                data, extra = collect_sac(cfg, scratch=scratch, progress=progress, data_dir=root,
+                                          checkpoint=checkpoint)
+            else:
+                data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=root,
+                                               checkpoint=checkpoint)
+            metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
+            HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
+            batch = save_batch(data, path, metadata)
+        if recipe == "sac":  # the run's checkpoint is shared with whoever needs the same SAC run; under its lock
+            with sac_run_lock(cfg, root):
+                checkpoint.remove()
         else:
-            data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=root,
-                                           checkpoint=checkpoint)
-        metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
-        HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
-        batch = save_batch(data, path, metadata)
-    if recipe == "sac":  # the run's checkpoint is shared with whoever needs the same SAC run: remove it under its lock
-        with sac_run_lock(cfg, root):
             checkpoint.remove()
-    else:
-        checkpoint.remove()
+        interrupts.stop_if_requested(f"the finished batch {path}")
     return batch

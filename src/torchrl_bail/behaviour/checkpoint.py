@@ -17,7 +17,10 @@ renamed): nothing half-written ever loads as whole.
 
 When: only at an episode end (after the agent's gradient steps and any evaluation), when
 ``batch.checkpoint_every_s`` seconds of work passed since the last one (default 120) or
-``batch.checkpoint_every_steps`` env steps (``null`` by default; tests use it to force checkpoints). MuJoCo envs
+``batch.checkpoint_every_steps`` env steps (``null`` by default; tests use it to force checkpoints), or when Ctrl-C
+or SIGTERM asked the entry point to stop (:mod:`torchrl_bail.interrupts`: the run goes on to the episode's end,
+saves, and stops there; one that came during the batch's last episode waits for the batch itself, or for the
+checkpoint before a recipe's final step such as SAC's final evaluation). MuJoCo envs
 cannot be pickled reliably, but at an episode end none is needed: the next reset is a function of the env's
 ``np_random`` state, which is saved *before* that reset, and the resumed run performs the very same reset.
 Saving consumes no random numbers, so when and how often checkpoints are taken never changes the data: the resumed
@@ -44,6 +47,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_bail import interrupts
 from torchrl_bail.data.locks import HEARTBEAT, partial_directory
 from torchrl_bail.io import atomic_path
 
@@ -239,12 +243,21 @@ class Resumable:
         return int(state["loop"]["t"])
 
     def maybe_save(self, t: int) -> None:
-        """Saves a checkpoint if one is due (called by the loop at episode ends only)."""
-        if self.checkpoint.due(t):
+        """Saves a checkpoint if one is due or Ctrl-C/SIGTERM asked for one (:mod:`torchrl_bail.interrupts`), and
+        then stops the run in the latter case (called by the loop at episode ends only)."""
+        if interrupts.requested() is not None or self.checkpoint.due(t):
             self.save()
+        self.stop_if_requested()
+
+    def stop_if_requested(self) -> None:
+        """Raises :class:`~torchrl_bail.interrupts.Interrupted` naming the checkpoint just saved, if a signal asked
+        for a stop."""
+        interrupts.stop_if_requested(f"the collection checkpoint at env step {self.runner.t} in "
+                                     f"{self.checkpoint.directory}")
 
     def save(self) -> None:
-        state = {"loop": self.runner.state_dict(), "buffers": self.buffers.state_dict(),
-                 "recipe": self._state() if self._state is not None else {}, "rng": global_rng_state(),
-                 "resumes": list(self.resumes)}
-        self.checkpoint.save(state, self.buffers.stores)
+        with interrupts.saving():  # segments and state.pt, whole, before a signal may stop the process
+            state = {"loop": self.runner.state_dict(), "buffers": self.buffers.state_dict(),
+                     "recipe": self._state() if self._state is not None else {}, "rng": global_rng_state(),
+                     "resumes": list(self.resumes)}
+            self.checkpoint.save(state, self.buffers.stores)

@@ -31,6 +31,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 from tqdm.auto import tqdm
 
+from torchrl_bail import interrupts
 from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
 from torchrl_bail.data.cache import plain
 from torchrl_bail.simulator import make_guarded_env
@@ -310,13 +311,19 @@ def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
     """``buffers.collect(runner)``, then ``after()`` (e.g. a final evaluation), closing the runner's progress bar
     in every case; returns ``(batch, wall seconds)``. With a ``resumable``
     (:class:`~torchrl_bail.behaviour.checkpoint.Resumable`) the run first resumes from its last checkpoint, if
-    any, and saves checkpoints as it goes."""
+    any, and saves checkpoints as it goes, and at an episode end after Ctrl-C or SIGTERM, before it stops
+    (:mod:`torchrl_bail.interrupts`)."""
     start = time.perf_counter()
     try:
         if resumable is not None:
             resumable.resume()
         data = buffers.collect(runner, checkpoint=resumable)
         if after is not None:
+            if resumable is not None and interrupts.requested() is not None:
+                # Ctrl-C/SIGTERM during the last episode: checkpoint the full batch, stop before `after`; a rerun
+                # resumes here (the loop takes no step) and runs `after` from the same random state
+                resumable.save()
+                resumable.stop_if_requested()
             after()
     finally:
         if runner.tracker is not None:

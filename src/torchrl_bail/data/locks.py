@@ -35,6 +35,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from torchrl_bail.interrupts import stop_if_requested
+
 __all__ = [
     "SCRATCH",
     "LOCKS",
@@ -411,6 +413,7 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
                          "within %.0f s (a killed job's lock), stopping if one does", owner.get("what", path.stem),
                          owner.get("host", "?"), owner.get("pid", "?"), age, stale_after_s - age)
             last_log = now
+        stop_if_requested(None)  # Ctrl-C/SIGTERM (an entry point's request) while waiting: stop now, nothing to save
         time.sleep(delay)
         delay = min(delay * 1.5, 5.0)
     HEARTBEAT.lost.discard(path)

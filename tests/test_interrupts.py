@@ -1,0 +1,221 @@
+"""Ctrl-C and SIGTERM end a command in one line and keep the work.
+
+Real, unpatched ``python -m torchrl_bail.collect`` and ``python -m torchrl_bail.train`` processes (tiny configs) are
+interrupted with SIGINT and SIGTERM: each writes its checkpoint at the interrupt, ends with exit status 130 / 143 and
+one line on stderr naming what it saved and the command that continues, and that command makes the same batch (every
+data file, byte for byte) or the same ``summary.json`` and scalar logs as a run that was never interrupted. The
+children get SIGINT's default handler back (``preexec_fn``): a suite started in the background hands them SIGINT
+ignored, and an ignored SIGINT stays ignored by design. The unit part checks :mod:`torchrl_bail.interrupts` itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from torchrl_bail import interrupts
+from torchrl_bail.cli import continue_command
+from torchrl_bail.data.locks import PARTIAL, SCRATCH
+
+ROOT = Path(__file__).resolve().parents[1]
+#: a DDPG batch of 2000 Hopper steps from a tiny agent, short episodes: a collection of a few seconds
+TINY_COLLECT = ["+exp=hopper_ddpg05", "batch.steps=2000", "batch.start_steps=100", "env.max_episode_steps=40",
+                "batch.agent.actor_hidden=[16,16]", "batch.agent.critic_hidden=[16,16]", "batch.agent.batch_size=16",
+                "progress=false"]
+#: BC on a 1000-step batch: 1200 updates, an evaluation every 300
+TINY_TRAIN = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1000", "batch.start_steps=200",
+              "batch.agent.actor_hidden=[16,16]", "batch.agent.critic_hidden=[16,16]", "env.max_episode_steps=50",
+              "eval.episodes=2", "eval.max_steps=50", "returns.horizon=50", "progress=false", "algo=bc",
+              "algo.policy.hidden=[64,64]", "algo.batch_size=100", "algo.epochs=0.12", "eval.every_epochs=0.03"]
+SUMMARY_VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
+METADATA_VOLATILE = ("created_at", "collection_wall_time_s", "env_steps_per_s", "updates_per_s", "resumed_from_step")
+
+
+def _env() -> dict[str, str]:
+    src = str(ROOT / "src")
+    path = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": f"{src}{os.pathsep}{path}" if path else src, "RL_WARNINGS": "0",
+            "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _default_sigint() -> None:
+    # a suite started as a background job hands its children SIGINT ignored: Ctrl-C's handler is put back
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _command(module: str, args: list[str]) -> list[str]:
+    return [sys.executable, "-m", f"torchrl_bail.{module}", *args]
+
+
+def _run(module: str, args: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
+    done = subprocess.run(_command(module, args), capture_output=True, text=True, env=_env(), cwd=ROOT,
+                          timeout=timeout, preexec_fn=_default_sigint)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def _interrupt(module: str, args: list[str], sig: int, ready, timeout: float = 300) -> tuple[int, str]:
+    """Starts the command, sends ``sig`` once ``ready()`` holds; returns ``(exit status, stderr)``."""
+    proc = subprocess.Popen(_command(module, args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=_env(), cwd=ROOT, preexec_fn=_default_sigint)
+    try:
+        deadline = time.time() + timeout
+        while not ready() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None, f"the command ended before the signal: {proc.stderr.read()[-3000:]}"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err
+
+
+def _the_line(stderr: str, sig: int, continues: list[str], module: str) -> str:
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, f"one line on stderr, got:\n{stderr[-3000:]}"
+    (line,) = lines
+    assert line.startswith(f"torchrl_bail: interrupted by {signal.Signals(sig).name}: saved "), line
+    assert "Traceback" not in stderr
+    assert line.endswith(f"; continue with: {continue_command(f'python -m torchrl_bail.{module}', continues)}"), line
+    return line
+
+
+def _batch_files(data_dir: Path) -> dict[str, object]:
+    (batch,) = [p for p in data_dir.iterdir() if (p / "metadata.json").is_file()]
+    out: dict[str, object] = {}
+    for path in sorted(p for p in batch.rglob("*") if p.is_file()):
+        if path.name == "metadata.json":
+            meta = json.loads(path.read_text())
+            out[path.name] = {k: v for k, v in meta.items() if k not in METADATA_VOLATILE}
+        else:
+            out[path.relative_to(batch).as_posix()] = path.read_bytes()
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference_batch(tmp_path_factory):
+    root = tmp_path_factory.mktemp("reference_batch")
+    _run("collect", [*TINY_COLLECT, f"data_dir={root / 'data'}", f"hydra.run.dir={root / 'hydra'}"])
+    return _batch_files(root / "data")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_collection_checkpoints_says_so_in_one_line_and_continues_to_the_same_batch(
+        tmp_path, reference_batch, sig):
+    data_dir = tmp_path / "data"
+    args = [*TINY_COLLECT, f"data_dir={data_dir}", f"hydra.run.dir={tmp_path / 'hydra'}"]
+
+    def collecting() -> bool:  # the scratch directory appears once the collection's loop is being set up
+        return any((data_dir / SCRATCH).glob("*")) if (data_dir / SCRATCH).is_dir() else False
+
+    status, stderr = _interrupt("collect", args, sig, collecting)
+    assert status == 128 + sig
+    line = _the_line(stderr, sig, args, "collect")
+    (state,) = list((data_dir / PARTIAL).glob("*/state.pt"))
+    assert "the collection checkpoint at env step " in line and str(state.parent) in line
+    step = int(line.split("at env step ")[1].split()[0])
+    assert 0 < step < 2000
+    assert not [p for p in data_dir.iterdir() if (p / "metadata.json").is_file()], "no batch yet"
+    assert list((data_dir / SCRATCH).glob("*")) == [], "the scratch directory went with the process"
+    _run("collect", args)  # the same command continues
+    meta = json.loads(next(data_dir.glob("*/metadata.json")).read_text())
+    assert meta["resumed_from_step"] == step
+    assert _batch_files(data_dir) == reference_batch, "every file of the batch, byte for byte"
+    assert list((data_dir / PARTIAL).iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """The batch (collected once) and the uninterrupted runs' outputs: ``{(seeds, seed): outputs}``."""
+    root = tmp_path_factory.mktemp("reference_runs")
+    data = [f"data_dir={root / 'data'}"]
+    _run("collect", [*TINY_TRAIN, *data, f"hydra.run.dir={root / 'collect'}"])
+    _run("train", [*TINY_TRAIN, *data, f"hydra.run.dir={root / 'single' / 'seed1'}"])
+    _run("train", [*TINY_TRAIN, *data, "seeds=[1, 2]", f"hydra.run.dir={root / 'stacked' / 'seed1'}"])
+    return data, {(None, 1): _outputs(root / "single" / "seed1"),
+                  **{((1, 2), s): _outputs(root / "stacked" / f"seed{s}") for s in (1, 2)}}
+
+
+def _outputs(run_dir: Path) -> dict[str, object]:
+    summary = json.loads((run_dir / "summary.json").read_text())
+    logs = {p.relative_to(run_dir).as_posix(): p.read_text() for p in sorted((run_dir / "logs").rglob("*.csv"))}
+    return {"summary": {k: v for k, v in summary.items() if k not in SUMMARY_VOLATILE}, "logs": logs,
+            "policy": (run_dir / "policy.pt").stat().st_size > 0}
+
+
+@pytest.mark.parametrize("sig,seeds", [(signal.SIGINT, None), (signal.SIGTERM, None), (signal.SIGTERM, (1, 2))],
+                         ids=["SIGINT", "SIGTERM", "SIGTERM-stacked"])
+def test_an_interrupted_training_run_checkpoints_says_so_in_one_line_and_continues_to_the_same_summary(
+        tmp_path, trained, sig, seeds):
+    data, reference = trained
+    args = [*TINY_TRAIN, *data, f"hydra.run.dir={tmp_path / 'seed1'}", *([f"seeds={list(seeds)}"] if seeds else [])]
+    dirs = [tmp_path / f"seed{s}" for s in seeds or [1]]
+    first = dirs[0] / "checkpoint.pt"
+
+    def training() -> bool:  # the checkpoint before the first update
+        return first.is_file()
+
+    status, stderr = _interrupt("train", args, sig, training)
+    assert status == 128 + sig
+    line = _the_line(stderr, sig, args, "train")
+    assert "the checkpoint at iteration " in line and all(str(d / "checkpoint.pt") in line for d in dirs)
+    iteration = int(line.split("at iteration ")[1].split()[0])
+    assert 0 < iteration < 1200, "stopped mid-training, after an update"
+    assert not any((d / "summary.json").exists() for d in dirs)
+    _run("train", args)  # the same command continues
+    for seed, run_dir in zip(seeds or [1], dirs):
+        summary = json.loads((run_dir / "summary.json").read_text())
+        assert summary["resumed_from_iteration"] == [iteration]
+        assert _outputs(run_dir) == reference[seeds, seed], "summary.json and every scalar log, as if never interrupted"
+
+
+# -- the requests themselves -------------------------------------------------------------------------------------
+def test_a_signal_outside_a_loop_stops_at_once_and_an_ignored_signal_stays_ignored():
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        with interrupts.handled():
+            assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN, "an ignored signal stays ignored"
+            signal.raise_signal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        with interrupts.handled():
+            with pytest.raises(interrupts.Interrupted) as raised:
+                signal.raise_signal(signal.SIGTERM)
+        assert raised.value.exit_status == 143 and raised.value.saved is None
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL, "the previous handler is put back"
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_a_second_signal_stops_at_once_except_while_a_checkpoint_is_written():
+    with interrupts.handled():
+        with pytest.raises(interrupts.Interrupted) as raised:
+            with interrupts.safe_points():
+                signal.raise_signal(signal.SIGINT)
+                assert interrupts.requested() == signal.SIGINT, "the first one waits for a safe point"
+                with interrupts.saving():
+                    signal.raise_signal(signal.SIGINT)  # waits for the write
+                    written = True
+                assert written and interrupts.requested() == signal.SIGINT
+                signal.raise_signal(signal.SIGINT)  # not during a write: at once
+                pytest.fail("the second signal did not stop the process")
+        assert raised.value.signum == signal.SIGINT and raised.value.saved is None
+        with pytest.raises(interrupts.Interrupted):
+            with interrupts.safe_points():
+                signal.raise_signal(signal.SIGINT)
+        # a region left without a safe point on the way raises for the pending request, saying nothing was saved
+
+
+def test_the_continue_command_drops_resume_overrides():
+    assert continue_command("python -m torchrl_bail.train", ["+exp=hopper_ddpg05", "resume=false", "seed=2"]) == \
+        "python -m torchrl_bail.train +exp=hopper_ddpg05 seed=2"
+    assert continue_command("python -m torchrl_bail.collect", ["+resume=/x", "batch.agent.actor_hidden=[16,16]"]) == \
+        "python -m torchrl_bail.collect 'batch.agent.actor_hidden=[16,16]'"
