@@ -1,8 +1,11 @@
-"""Kill drill: does a long job survive SIGKILL? ``python benchmarks/kill_drill.py --algo bail --trials 10``
+"""Kill drill: does a long job survive SIGKILL, Ctrl-C and SIGTERM? ``python benchmarks/kill_drill.py --trials 10``
 
 Runs a reference job once, uninterrupted. Then each trial starts the same job in a fresh directory, SIGKILLs it
 after a random delay (one or two times, each kill followed by a restart of the same command, which resumes), lets
-the last start finish, and compares its outputs with the reference's: for training, ``summary.json`` (wall time,
+the last start finish, and compares its outputs with the reference's. ``--signal INT`` or ``--signal TERM`` sends
+that signal instead, and each interrupted start must also end as the docs promise: exit status 130 / 143 and one
+line on stderr, ``torchrl_bail: interrupted by SIG...: saved ...; continue with: <the command>`` (a start that
+breaks it counts as a mismatch). The comparison: for training, ``summary.json`` (wall time,
 paths and ``resumed_from_iteration`` aside), every CSV scalar log byte for byte, and the final weights of every
 network. It prints one line per trial and how many trials matched; the exit status is 1 when any did not.
 
@@ -147,27 +150,62 @@ class CollectionTarget:
 TARGETS = {"training": TrainingTarget, "collection": CollectionTarget}
 
 
-def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None = None) -> tuple[bool, float, float]:
-    """Runs ``cmd`` (output to ``log``); SIGKILLs it after ``kill_after`` s.
+def _default_sigint() -> None:
+    """A drill started in the background hands its children SIGINT ignored, which they keep: put Ctrl-C back."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
-    Returns ``(killed, seconds, seconds until `watch` appeared or nan)``.
+
+def interrupt_fault(sig: int, returncode: int, stderr: str) -> str | None:
+    """What is wrong with how a job ended after ``sig`` (``None``: exit status ``128 + sig``, no traceback, and one
+    line on stderr naming what was saved and the command that continues).
+
+    Examples:
+        >>> interrupt_fault(signal.SIGINT, 130, "torchrl_bail: interrupted by SIGINT: saved; continue with: python -m")
+        >>> interrupt_fault(signal.SIGTERM, -15, "")
+        'exit status -15, not 143'
+    """
+    lines = stderr.strip().splitlines()
+    if returncode != 128 + sig:
+        return f"exit status {returncode}, not {128 + sig}"
+    if len(lines) != 1:
+        return f"{len(lines)} lines on stderr, not one"
+    name = signal.Signals(sig).name
+    if not (lines[0].startswith(f"torchrl_bail: interrupted by {name}: ") and "; continue with: python -m" in lines[0]):
+        return f"stderr line {lines[0][:80]!r}"
+    return None
+
+
+def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None = None,
+         sig: int = signal.SIGKILL) -> tuple[bool, float, float, str | None]:
+    """Runs ``cmd`` (output to ``log``); sends it ``sig`` (SIGKILL) after ``kill_after`` s.
+
+    Returns ``(signalled, seconds, seconds until `watch` appeared or nan, what was wrong with how it ended after
+    SIGINT/SIGTERM or None)``; a job that finished before the signal counts as not signalled.
     """
     start = time.perf_counter()
     appeared = float("nan")
-    with open(log, "a") as f:
-        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=_env(), cwd=ROOT)
+    err_path = log.with_suffix(".stderr")
+    with open(log, "a") as f, open(err_path, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=err, env=_env(), cwd=ROOT, preexec_fn=_default_sigint)
         while proc.poll() is None:
             elapsed = time.perf_counter() - start
             if kill_after is not None and elapsed >= kill_after:
-                proc.send_signal(signal.SIGKILL)
-                proc.wait()
-                return True, elapsed, appeared
+                proc.send_signal(sig)
+                proc.wait(timeout=None if sig == signal.SIGKILL else 600)
+                break
             if watch is not None and appeared != appeared and watch.exists():
                 appeared = elapsed
             time.sleep(0.05)
+    stderr = err_path.read_text()
+    with open(log, "a") as f:
+        f.write(stderr)
+    elapsed = time.perf_counter() - start
+    if kill_after is not None and elapsed >= kill_after and proc.returncode != 0:
+        fault = None if sig == signal.SIGKILL else interrupt_fault(sig, proc.returncode, stderr)
+        return True, elapsed, appeared, fault
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[:4])} ... exited with {proc.returncode}; see {log}")
-    return False, time.perf_counter() - start, appeared
+    return False, elapsed, appeared, None
 
 
 def _differences(a: dict, b: dict) -> list[str]:
@@ -183,13 +221,13 @@ def _differences(a: dict, b: dict) -> list[str]:
     return out
 
 
-def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int = 2,
+def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int = 2, sig: int = signal.SIGKILL,
           report=print) -> tuple[int, list[dict]]:
-    """Reference run + ``trials`` killed-and-resumed runs; returns ``(matches, per-trial records)``."""
+    """Reference run + ``trials`` runs interrupted by ``sig`` and resumed; returns ``(matches, per-trial records)``."""
     target.setup()
     ref_dir = workdir / "reference"
-    _, ref_seconds, first = _run(target.command(ref_dir), workdir / "reference.log", None,
-                                 watch=ref_dir / target.progress_file)
+    _, ref_seconds, first, _ = _run(target.command(ref_dir), workdir / "reference.log", None,
+                                    watch=ref_dir / target.progress_file)
     reference = target.outputs(ref_dir)
     first = ref_seconds / 2 if first != first else first
     report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) "
@@ -199,18 +237,19 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
     for trial in range(1, trials + 1):
         run_dir = workdir / f"trial{trial:02d}"
         log = workdir / f"trial{trial:02d}.log"
-        kills = []
+        kills, faults = [], []
         for _ in range(rng.randint(1, max_kills)):
             # most kills land after the first checkpoint (training, evaluation, writing), some before it
             delay = rng.uniform(0.7 * first, ref_seconds)
-            killed, seconds, _ = _run(target.command(run_dir), log, delay)
+            killed, seconds, _, fault = _run(target.command(run_dir), log, delay, sig=sig)
             kills.append(f"{seconds:.1f}s" if killed else "(finished first)")
+            faults += [] if fault is None else [fault]
         _run(target.command(run_dir), log, None)
-        diffs = _differences(reference, target.outputs(run_dir))
+        diffs = [*faults, *_differences(reference, target.outputs(run_dir))]
         matches += not diffs
         record = {"trial": trial, "kills": kills, "resumed_from": target.resumed_from(run_dir), "diffs": diffs}
         records.append(record)
-        report(f"trial {trial:2d}: SIGKILL at {', '.join(kills):<26} resumed from iterations "
+        report(f"trial {trial:2d}: {signal.Signals(sig).name} at {', '.join(kills):<26} resumed from "
                f"{record['resumed_from'] or '-'} -> {'match' if not diffs else 'MISMATCH ' + ', '.join(diffs)}")
     return matches, records
 
@@ -223,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--max-kills", type=int, default=2, help="kills per trial: 1..N, drawn at random")
     parser.add_argument("--seed", type=int, default=0, help="seeds the kill delays")
+    parser.add_argument("--signal", choices=["KILL", "INT", "TERM"], default="KILL",
+                        help="what interrupts the jobs: SIGKILL (default), SIGINT (Ctrl-C) or SIGTERM")
     parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary directory, removed")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides (after --)")
     args = parser.parse_args(argv)
@@ -230,14 +271,15 @@ def main(argv: list[str] | None = None) -> int:
     workdir.mkdir(parents=True, exist_ok=True)
     target = TARGETS[args.target](args.algo, list(args.overrides), workdir / "data")
     try:
-        matches, records = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills)
+        matches, records = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills,
+                                 sig=getattr(signal, f"SIG{args.signal}"))
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
     kills = sum(len([k for k in r["kills"] if k != "(finished first)"]) for r in records)
     resumed = sum(bool(r["resumed_from"]) for r in records)
     label = args.algo if args.target == "training" else "collection"
-    print(f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIGKILLs; "
+    print(f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIG{args.signal}s; "
           f"{resumed} trials resumed from a checkpoint, the others restarted before the first one)")
     return 0 if matches == args.trials else 1
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from torchrl_bail import interrupts
-from torchrl_bail.cli import continue_command
+from torchrl_bail.cli import checkpoint_before_requeue, continue_command
 from torchrl_bail.data.locks import PARTIAL, SCRATCH
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -219,3 +219,39 @@ def test_the_continue_command_drops_resume_overrides():
         "python -m torchrl_bail.train +exp=hopper_ddpg05 seed=2"
     assert continue_command("python -m torchrl_bail.collect", ["+resume=/x", "batch.agent.actor_hidden=[16,16]"]) == \
         "python -m torchrl_bail.collect 'batch.agent.actor_hidden=[16,16]'"
+
+
+def test_a_slurm_preemption_signal_checkpoints_first_then_goes_to_submitits_requeue(monkeypatch, capsys):
+    """Under submitit (``SUBMITIT_FOLDER``), its preemption signal (USR2) is a request the loop honours at its next
+    safe point; then submitit's own handler (here a stand-in that records its call) requeues the job."""
+    events = []
+
+    class Requeued(SystemExit):
+        pass
+
+    def submitit_handler(signum, frame):
+        events.append("requeue")
+        raise Requeued(-1)
+
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
+    monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
+    previous = signal.signal(signal.SIGUSR2, submitit_handler)
+    try:
+        with pytest.raises(Requeued):
+            with checkpoint_before_requeue():
+                with interrupts.safe_points():
+                    signal.raise_signal(signal.SIGUSR2)
+                    events.append("update")  # the signal waits for the safe point
+                    assert interrupts.requested() == signal.SIGUSR2
+                    events.append("checkpoint")
+                    interrupts.stop("the checkpoint at iteration 3 of 9 in run/checkpoint.pt")
+        assert events == ["update", "checkpoint", "requeue"]
+        assert signal.getsignal(signal.SIGUSR2) is submitit_handler, "submitit's handler is back in place"
+        assert capsys.readouterr().err.strip() == (
+            "torchrl_bail: SIGUSR2 from Slurm: saved the checkpoint at iteration 3 of 9 in run/checkpoint.pt; "
+            "handing over to submitit's requeue")
+        monkeypatch.delenv("SUBMITIT_FOLDER")  # not a submitit job: USR2 is left alone
+        with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
+            signal.raise_signal(signal.SIGUSR2)
+    finally:
+        signal.signal(signal.SIGUSR2, previous)

@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import os
 import shlex
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -28,7 +29,8 @@ from torchrl_bail.errors import USER_ERRORS, CommandLineError
 from torchrl_bail.interrupts import Interrupted, handled, signal_name
 from torchrl_bail.io import describe_file_error
 
-__all__ = ["continue_command", "describe_error", "describe_interrupt", "exit_on_config_error", "run_cli"]
+__all__ = ["checkpoint_before_requeue", "continue_command", "describe_error", "describe_interrupt",
+           "exit_on_config_error", "run_cli"]
 
 
 def describe_error(err: BaseException) -> str:
@@ -137,6 +139,38 @@ def describe_interrupt(err: Interrupted, command: str) -> str:
     saved = (f"saved {err.saved}" if err.saved else
              "stopped before anything new was saved (the last checkpoint, if any, is kept)")
     return f"interrupted by {signal_name(err.signum)}: {saved}; continue with: {command}"
+
+
+def _preemption_signal() -> int | None:
+    """The signal submitit (the Slurm launcher) requeues the job on, when this process is a submitit job whose
+    handler for it is in place; ``None`` otherwise."""
+    if "SUBMITIT_FOLDER" not in os.environ:
+        return None
+    sig = getattr(signal, f"SIG{os.environ.get('SUBMITIT_PREEMPT_SIGNAL', 'USR2')}", None)
+    return sig if sig is not None and callable(signal.getsignal(sig)) else None
+
+
+@contextlib.contextmanager
+def checkpoint_before_requeue() -> Iterator[None]:
+    """In a Slurm job (hydra-submitit launcher): submitit's preemption / time-limit signal first makes the running
+    loop write its checkpoint at its next safe point (:mod:`torchrl_bail.interrupts`), then goes to submitit's own
+    handler, which requeues the job and exits. Elsewhere a no-op (the entry point's :func:`run_cli` handles
+    SIGINT and SIGTERM)."""
+    sig = _preemption_signal()
+    if sig is None:
+        yield
+        return
+    try:
+        with handled([sig]):
+            yield
+    except Interrupted as err:
+        if err.signum != sig:
+            raise
+        print(f"torchrl_bail: {signal_name(sig)} from Slurm: "
+              f"{'saved ' + err.saved if err.saved else 'nothing new saved'}; handing over to submitit's requeue",
+              file=sys.stderr, flush=True)
+        signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
+        raise
 
 
 def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None, *,

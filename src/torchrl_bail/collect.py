@@ -39,7 +39,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
-from torchrl_bail.cli import exit_on_config_error, run_cli
+from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
 from torchrl_bail.config import CommandLineError, collection_config, validate_config
 
 __all__ = ["collect", "export_main", "format_listing", "import_main", "install_main", "main"]
@@ -99,7 +99,7 @@ def _print_summary(s: dict) -> None:
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    with exit_on_config_error():
+    with checkpoint_before_requeue(), exit_on_config_error():  # Slurm: checkpoint, then submitit requeues
         validate_config(cfg)
         summary = collect(cfg)
     _print_summary(summary)

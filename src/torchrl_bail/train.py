@@ -20,7 +20,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.cli import exit_on_config_error, run_cli
+from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
 from torchrl_bail.config import ConfigError, validate_config
 if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported where a run starts
     from torchrl_bail.resume import Resumption
@@ -439,7 +439,7 @@ def _hydra_main(cfg: DictConfig) -> float:
 
         torch.set_num_threads(threads)
         log.info("torch threads: %d", threads)
-    with exit_on_config_error():
+    with checkpoint_before_requeue(), exit_on_config_error():  # Slurm: checkpoint, then submitit requeues
         summaries = run(cfg, Path(HydraConfig.get().runtime.output_dir))
     return sum(s["final_return"] for s in summaries) / len(summaries)  # the sweeper's objective: the seeds' mean
 
