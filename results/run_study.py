@@ -15,7 +15,8 @@ a row from scratch, collection included.
 
 When the runs are done, ``--results`` (default: ``results/study`` beside this script) receives each finished
 run's ``summary.json``, resolved ``config.yaml`` and ``logs/`` (evaluation and training scalars; never checkpoints,
-policies or batches), ``timings.json`` (wall time of every job) and the two reports of ``torchrl_bail.report``:
+policies or batches), ``timings.json`` (every job's wall seconds, torch threads, CPUs, CPU model and the load averages
+at its start and end; older entries hold the wall seconds alone) and the two reports of ``torchrl_bail.report``:
 ``study.*`` (every batch x algorithm) and ``ablations.*`` (supp. D.1-D.3 on Hopper DDPG sigma=0.5), each as
 ``.md``, ``.csv``, ``.json`` and figures, and ``curves.{md,json}``: whether each learning curve has flattened
 over the second half of training (:func:`curve_check`).
@@ -30,6 +31,9 @@ regression, penalty K = 1), seeds 1-3.
 
 ``--study paper_hopper`` (results in ``results/paper_hopper``): Hopper-v5 at the paper's batch size (10^6
 transitions, ``preset=paper``), in the order that lands what matters most first (:func:`paper_hopper_jobs`).
+Its ``cell.{md,json}`` (:func:`paper_cell_report`) sets the DDPG σ = 0.5 cell beside the published figures, gives a
+verdict per claim of the paper and the measured cost of every run. A job whose summary is already kept in
+``--results`` is done: it neither runs again nor needs the workdir that made it.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
 with the checkpoint's progress (updates done / scheduled) where one exists.
 """
@@ -47,6 +51,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from omegaconf import OmegaConf
 
 from torchrl_bail.config import ALGO_SCHEMAS
 
@@ -157,11 +163,12 @@ def paper_hopper_jobs() -> list[Job]:
 STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs}
 
 
-def run_dir_of(job: Job, workdir: Path) -> Path | None:
-    """The run directory a training job writes (Hydra's: ``outputs/<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
+def run_dir_of(job: Job, runs: Path) -> Path | None:
+    """The run directory of a training job under ``runs`` (the workdir's ``outputs``, or the results' ``runs``, which
+    keeps the same layout: ``<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
     named = dict(arg.split("=", 1) for arg in job.args)
     extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=")))
-    for run in sorted((workdir / "outputs" / f"{named['+exp']}_b1" / named["algo"]).glob(f"seed{named['seed']}*")):
+    for run in sorted((runs / f"{named['+exp']}_b1" / named["algo"]).glob(f"seed{named['seed']}*")):
         if run.name.split(",")[0] == f"seed{named['seed']}" and sorted(run.name.split(",")[1:]) == extra:
             return run
     return None
@@ -192,9 +199,21 @@ def _collected_steps(job: Job, data_dir: Path | None) -> str:
     return f" ({max(steps)} steps collected)" if steps else ""
 
 
-def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:
+def landed(job: Job, results: Path | None) -> bool:
+    """Whether a training job's ``summary.json`` is already kept in ``results/runs`` (gathered by an earlier call,
+    maybe on another machine whose workdir is gone): such a job is done and does not run again."""
+    if results is None or job.module != "torchrl_bail.train":
+        return False
+    run = run_dir_of(job, results / "runs")
+    return run is not None and (run / "summary.json").is_file()
+
+
+def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> str:
     """``done``, ``running`` or ``left``, with the progress of its checkpoint (``updates done/scheduled``) or of its
-    partial collection (``steps collected``) where there is one."""
+    partial collection (``steps collected``) where there is one. A job whose summary is kept in ``results`` is
+    done."""
+    if landed(job, results):
+        return "done"
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
     running = _is_running(log)
     if job.module != "torchrl_bail.train":
@@ -202,7 +221,7 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:
         if re.search(r": (collected|already cached) at ", text):
             return "done"
         return ("running" if running else "left") + _collected_steps(job, data_dir)
-    run = run_dir_of(job, workdir)
+    run = run_dir_of(job, workdir / "outputs")
     if run is not None and (run / "summary.json").is_file():
         return "done"
     progress = ""
@@ -214,17 +233,28 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None) -> str:
     return ("running" if running else "left") + progress
 
 
-def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | None, float]:
+def conditions() -> dict:
+    """What the machine was doing as a job started or ended: the 1/5/15-minute load averages and the UTC time."""
+    return {"load": [round(x, 2) for x in os.getloadavg()], "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def run_job(job: Job, workdir: Path, data_dir: Path | None,
+            results: Path | None = None) -> tuple[Job, int | None, float, dict]:
     """Runs ``job`` (its output appended to ``workdir/logs/<job>.log``); returns its exit code (``None``: it had
-    finished in an earlier call, its log says so, and nothing ran) and wall seconds."""
+    finished in an earlier call, its log or its kept summary in ``results`` says so, and nothing ran), wall
+    seconds and the job's record for ``timings.json``: wall seconds, torch threads, the CPUs the job may run on,
+    the load averages at its start and end (a load near the job's own threads is a quiet machine), the CPU."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     if data_dir is not None:
         env["TORCHRL_BAIL_DATA_DIR"] = str(data_dir)
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
     log.parent.mkdir(parents=True, exist_ok=True)
-    if job.module == "torchrl_bail.train" and log.is_file() and FINISHED.search(log.read_text(errors="replace")):
-        return job, None, 0.0
+    if landed(job, results) or (job.module == "torchrl_bail.train" and log.is_file()
+                                and FINISHED.search(log.read_text(errors="replace"))):
+        return job, None, 0.0, {}
     extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
+    record = {"threads": 1 if job.module == "torchrl_bail.train" else None, "cpus": sorted(os.sched_getaffinity(0)),
+              "cpu": machine_cpu(), "start": conditions()}
     start = time.perf_counter()
     pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
     with open(log, "a") as out:
@@ -235,7 +265,25 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None) -> tuple[Job, int | 
             rc = proc.wait()
         finally:
             pid_file.unlink(missing_ok=True)
-    return job, rc, time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    return job, rc, seconds, {"wall_s": seconds, **record, "end": conditions()}
+
+
+def machine_cpu() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
+    import platform
+
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown"
+
+
+def wall_seconds(entry: float | dict) -> float:
+    """A ``timings.json`` entry's wall seconds: the bare number of older entries, or a record's ``wall_s``."""
+    return float(entry["wall_s"] if isinstance(entry, dict) else entry)
 
 
 def gather(workdir: Path, results: Path) -> list[Path]:
@@ -253,7 +301,9 @@ def gather(workdir: Path, results: Path) -> list[Path]:
     return copied
 
 
-def report(results: Path) -> None:
+def report(results: Path, ablations: bool = True) -> None:
+    """``study.*`` (every kept run but the ablations) and, with ``ablations``, ``ablations.*`` (supp. D on Hopper
+    DDPG σ = 0.5) through ``torchrl_bail.report``."""
     runs = results / "runs"
     ablation = re.compile(r"selection\.by=|envelope\.penalty=|oracle|augment")
     main_runs = [p for p in sorted(runs.glob("*/*/*")) if not ablation.search(p.name)]
@@ -264,7 +314,7 @@ def report(results: Path) -> None:
         path = path.resolve()
         return str(path.relative_to(repo)) if path.is_relative_to(repo) else str(path)
 
-    for prefix, paths in (("study", main_runs), ("ablations", bail_ddpg05)):
+    for prefix, paths in (("study", main_runs), ("ablations", bail_ddpg05 if ablations else [])):
         if paths:
             subprocess.check_call([sys.executable, "-m", "torchrl_bail.report", *map(shown, paths),
                                    "--out", shown(results / prefix), "--plot"], cwd=repo, stdout=subprocess.DEVNULL)
@@ -348,6 +398,134 @@ def curve_check(results: Path) -> list[dict]:
     return rows
 
 
+#: published figures the paper-scale cell is read beside: raw returns of gym's -v2 Hopper, where these runs use
+#: Gymnasium's -v5 (its simulator and rewards changed), so a level is a ballpark and the ordering is what compares
+PAPER_ANCHORS = {
+    "bail": ("2054 ± 158", "BAIL's authors, Hopper DDPG σ = 0.5 B1, 10^6 transitions (arXiv:1910.12179, Table 1)"),
+    "bcq": ("curve only", "BCQ paper Fig. 2a, Hopper final buffer (arXiv:1812.02900): no table, so no number is "
+                          "quoted; supp. C.2 of the BAIL paper says its BCQ runs agree with that figure"),
+}
+#: the paper's claims on this cell, each a comparison of two groups' IQM intervals: (claim, a, b, kind); kind
+#: "above": a's interval lies above b's; "similar": the two intervals overlap (no difference shown)
+PAPER_CLAIMS = [
+    ("BAIL ≫ BC", "bail", "bc", "above"),
+    ("BAIL above BCQ (BCQ at 10^5 of the paper's 10^6 updates)", "bail", "bcq", "above"),
+    ("BAIL above BEAR (BEAR at 10^5 of the paper's 10^6 updates)", "bail", "bear", "above"),
+    ("Progressive BAIL ≈ BAIL", "pbail", "bail", "similar"),
+    ("MARWIL above BC", "marwil", "bc", "above"),
+    ("MARWIL with V fitted first above BC", "marwil (value_warmup_updates=1000)", "bc", "above"),
+]
+#: fewer seeds than this and a claim's verdict is "pending"
+MIN_SEEDS_FOR_VERDICT = 3
+
+
+def cell_label(row: dict) -> str:
+    """A report row's name in the cell: its algorithm, and the overrides that set it apart (e.g. MARWIL's warm-up)."""
+    extra = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in sorted(row["overrides"].items()) if v is not None)
+    return f"{row['algo']} ({extra})" if extra else row["algo"]
+
+
+def claim_verdict(a: dict | None, b: dict | None, kind: str) -> str:
+    """The verdict on one claim from the two groups' report rows (IQM and its 95 % bootstrap interval)."""
+    seeds = [0 if row is None else row["seeds"] for row in (a, b)]
+    if min(seeds) < MIN_SEEDS_FOR_VERDICT:
+        return f"pending (seeds so far: {seeds[0]} and {seeds[1]}; {MIN_SEEDS_FOR_VERDICT} each needed)"
+    lo_a, hi_a = a["final_return_iqm_ci_low"], a["final_return_iqm_ci_high"]
+    lo_b, hi_b = b["final_return_iqm_ci_low"], b["final_return_iqm_ci_high"]
+    if lo_a > hi_b:
+        order = "above: the IQM intervals are disjoint"
+    elif lo_b > hi_a:
+        order = "below: the IQM intervals are disjoint"
+    else:
+        order = "no difference shown: the IQM intervals overlap"
+    holds = order.startswith("above") if kind == "above" else order.startswith("no difference")
+    return f"{'holds' if holds else 'does not hold'} ({order})"
+
+
+def cost_rows(results: Path, jobs: list[Job]) -> list[dict]:
+    """One row per training job with a kept run: wall seconds (``timings.json``, else the summary's
+    ``wall_time_s``), torch threads, updates and updates per wall second (evaluations included), and the load
+    averages at the job's start and end."""
+    timings_path = results / "timings.json"
+    timings = json.loads(timings_path.read_text()) if timings_path.is_file() else {}
+    rows = []
+    for job in jobs:
+        run = run_dir_of(job, results / "runs") if job.module == "torchrl_bail.train" else None
+        if run is None or not (run / "summary.json").is_file():
+            continue
+        summary = json.loads((run / "summary.json").read_text())
+        entry = timings.get(job.name)
+        wall = wall_seconds(entry) if entry is not None else float(summary["wall_time_s"])
+        record = entry if isinstance(entry, dict) else {}
+        threads = record.get("threads")
+        if threads is None and (run / "config.yaml").is_file():
+            threads = OmegaConf.load(run / "config.yaml").get("threads")
+        updates = summary.get("iterations")
+        rows.append({"job": job.name, "wall_s": wall, "threads": threads, "updates": updates,
+                     "updates_per_s": updates / wall if updates else None,
+                     "load_start": record.get("start", {}).get("load"), "load_end": record.get("end", {}).get("load"),
+                     "cpu": record.get("cpu"), "recorded": "timings.json" if entry is not None else "summary.json"})
+    return rows
+
+
+def load_change(cost: dict) -> str:
+    """``start → end`` of a cost row's 1-minute load average, or nothing where the job's record has none."""
+    if cost["load_start"] is None or cost["load_end"] is None:
+        return ""
+    return f"{cost['load_start'][0]} → {cost['load_end'][0]}"
+
+
+def paper_cell_report(results: Path, jobs: list[Job]) -> str:
+    """``cell.{md,json}`` of the paper-scale study: every group of the cell (per-seed final returns, mean ± std, IQM
+    with its 95 % bootstrap interval, best evaluation) beside :data:`PAPER_ANCHORS`, a verdict per claim of
+    :data:`PAPER_CLAIMS` (:func:`claim_verdict`), and the cost of every kept run (:func:`cost_rows`). Reads the
+    report's ``study.json``; returns the markdown."""
+    from torchrl_bail.io import write_json_atomic, write_text_atomic
+
+    study = json.loads((results / "study.json").read_text()) if (results / "study.json").is_file() else {"groups": []}
+    rows = {cell_label(row): row for row in study["groups"]}
+    for row in rows.values():  # run_dirs are relative to the repository (report), or absolute
+        row["per_seed"] = [json.loads((HERE.parent / d / "summary.json").read_text())["final_return"]
+                           for d in row["run_dirs"]]
+    claims = [{"claim": claim, "a": a, "b": b, "verdict": claim_verdict(rows.get(a), rows.get(b), kind)}
+              for claim, a, b, kind in PAPER_CLAIMS]
+    costs = cost_rows(results, jobs)
+
+    def fmt(x, digits=1):
+        return "" if x is None else f"{x:.{digits}f}"
+
+    lines = ["| algorithm | seeds | final return per seed | mean ± std | IQM [95 % CI] | best evaluation (mean) "
+             "| published (gym v2) |", "|---|---|---|---|---|---|---|"]
+    for label, row in rows.items():
+        anchor = PAPER_ANCHORS.get(label, ("", ""))[0]
+        std = row["final_return_std"]
+        lines.append(f"| {label} | {row['seeds']} | {' / '.join(fmt(x) for x in row['per_seed'])} | "
+                     f"{fmt(row['final_return_mean'])}{' ± ' + fmt(std) if std is not None else ''} | "
+                     f"{fmt(row['final_return_iqm'])} [{fmt(row['final_return_iqm_ci_low'])}, "
+                     f"{fmt(row['final_return_iqm_ci_high'])}] | {fmt(row['best_return_mean'])} | {anchor} |")
+    lines += ["", "Published figures: " + "; ".join(f"{algo}: {value}, {source}"
+                                                    for algo, (value, source) in PAPER_ANCHORS.items()) + ".",
+              "They come from gym's -v2 Hopper; these runs use Gymnasium's -v5, whose simulator and rewards differ, "
+              "so a level is a ballpark and the ordering of the algorithms is what compares.", "",
+              "| claim | verdict |", "|---|---|"]
+    lines += [f"| {c['claim']} | {c['verdict']} |" for c in claims]
+    lines += ["", f"A verdict needs {MIN_SEEDS_FOR_VERDICT} seeds on both sides; 'holds' for a ≫ claim means the "
+              "first group's IQM interval lies wholly above the second's; for a ≈ claim that the intervals overlap "
+              "(no difference shown, which is not proof of equality).", "",
+              "| job | wall time (s) | threads | updates | updates/s (evaluations included) | load at start → end "
+              "| recorded in |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {c['job']} | {c['wall_s']:.0f} | {c['threads'] if c['threads'] is not None else ''} | "
+              f"{c['updates'] if c['updates'] is not None else ''} | {fmt(c['updates_per_s'])} | "
+              f"{load_change(c)} | {c['recorded']} |" for c in costs]
+    lines += ["", "Load: the 1-minute load average as the job started and ended (a job on one thread alone on the "
+              "machine reads about 1)."]
+    text = "\n".join(lines) + "\n"
+    write_text_atomic(results / "cell.md", text)
+    write_json_atomic(results / "cell.json", {"groups": rows, "anchors": PAPER_ANCHORS, "claims": claims,
+                                              "costs": costs})
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
@@ -371,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
         return 0
     if args.status:
-        states = [(j.name, job_status(j, args.workdir, args.data_dir)) for j in jobs]
+        states = [(j.name, job_status(j, args.workdir, args.data_dir, args.results)) for j in jobs]
         print("\n".join(f"{state:<32} {name}" for name, state in states))
         counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")
@@ -385,13 +563,13 @@ def main(argv: list[str] | None = None) -> int:
         # one queue, batches first: training starts while the last batches are still being collected (a job
         # whose batch another job is collecting waits on the batch's lock, then reuses it)
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            futures = [pool.submit(run_job, j, args.workdir.resolve(), args.data_dir) for j in jobs]
+            futures = [pool.submit(run_job, j, args.workdir.resolve(), args.data_dir, args.results) for j in jobs]
             for done, future in enumerate(as_completed(futures), 1):
-                job, rc, seconds = future.result()
+                job, rc, seconds, record = future.result()
                 if rc is None:
                     continue  # finished in an earlier call
                 if rc == 0:  # a run resumed after an interruption records its last part (summary: wall_time_s)
-                    timings.setdefault(job.name, seconds)
+                    timings.setdefault(job.name, record)
                 print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
                       f"in {seconds:.0f} s", flush=True)
                 if rc != 0:
@@ -400,8 +578,10 @@ def main(argv: list[str] | None = None) -> int:
                 tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
                 tmp.replace(timings_path)
     copied = gather(args.workdir, args.results)
-    report(args.results)
+    report(args.results, ablations=args.study == "study")
     curve_check(args.results)
+    if args.study == "paper_hopper":
+        paper_cell_report(args.results, STUDIES[args.study]())
     print(f"{len(copied)} runs in {args.results / 'runs'}; reports: {args.results}/study.md, ablations.md")
     if failed:
         print("failed (see their logs in " f"{args.workdir / 'logs'}): " + ", ".join(failed), file=sys.stderr)

@@ -147,5 +147,71 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")  # written just now
     assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "running (2500/10000 updates)"
     assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path) == "done"
-    assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path)]) == 0
+    results = tmp_path / "results"
+    assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path),
+                           "--results", str(results)]) == 0
     assert "2 done, 1 running, 117 left of 120 jobs" in capsys.readouterr().out
+    # a run gathered into the results by an earlier call (its workdir gone) is done, and does not run again
+    kept = results / "runs" / "hopper_ddpg05_b1" / "bail" / "seed2"
+    kept.mkdir(parents=True)
+    (kept / "summary.json").write_text("{}")
+    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path, results=results) == "done"
+    assert run_study.landed(jobs["hopper_ddpg05/bail/seed2"], results)
+    assert not run_study.landed(jobs["hopper_ddpg05/bail/seed3"], results)
+    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed3"], tmp_path, results=results) == "left"
+
+
+def _kept(results: Path, algo: str, finals: list[float]) -> None:
+    for seed, final in enumerate(finals, 1):
+        run = results / "runs" / "hopper_ddpg05_b1" / algo / f"seed{seed}"
+        run.mkdir(parents=True)
+        (run / "summary.json").write_text(json.dumps({"final_return": final, "iterations": 50000,
+                                                      "wall_time_s": 500.0}))
+
+
+def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_run(run_study, tmp_path):
+    results = tmp_path / "results"
+    _kept(results, "bail", [2000.0, 2100.0, 1900.0])
+    _kept(results, "bc", [300.0, 350.0, 400.0])
+    _kept(results, "pbail", [1950.0, 2150.0])  # 2 seeds: no verdict yet
+
+    def row(algo, finals, low, high):
+        return {"algo": algo, "overrides": {}, "seeds": len(finals), "final_return_mean": sum(finals) / len(finals),
+                "final_return_std": 1.0, "final_return_iqm": sum(finals) / len(finals),
+                "final_return_iqm_ci_low": low, "final_return_iqm_ci_high": high, "best_return_mean": 3000.0,
+                "run_dirs": [str(results / "runs" / "hopper_ddpg05_b1" / algo / f"seed{s}")
+                             for s in range(1, len(finals) + 1)]}
+    groups = [row("bail", [2000.0, 2100.0, 1900.0], 1900.0, 2100.0), row("bc", [300.0, 350.0, 400.0], 300.0, 400.0),
+              row("pbail", [1950.0, 2150.0], 1950.0, 2150.0)]
+    (results / "study.json").write_text(json.dumps({"groups": groups}))
+    (results / "timings.json").write_text(json.dumps({
+        "hopper_ddpg05/bail/seed1": {"wall_s": 250.0, "threads": 1, "start": {"load": [1.0, 0.9, 0.5]},
+                                     "end": {"load": [1.1, 1.0, 0.8]}},
+        "hopper_ddpg05/bc/seed1": 1000.0}))  # an older entry: wall seconds alone
+    text = run_study.paper_cell_report(results, run_study.paper_hopper_jobs())
+    cell = json.loads((results / "cell.json").read_text())
+    verdicts = {c["claim"]: c["verdict"] for c in cell["claims"]}
+    assert verdicts["BAIL ≫ BC"] == "holds (above: the IQM intervals are disjoint)"
+    assert verdicts["Progressive BAIL ≈ BAIL"].startswith("pending (seeds so far: 2 and 3")
+    assert verdicts["MARWIL above BC"].startswith("pending (seeds so far: 0 and 3")
+    assert "| bail | 3 | 2000.0 / 2100.0 / 1900.0 | 2000.0 ± 1.0 | 2000.0 [1900.0, 2100.0] | 3000.0 | 2054 ± 158 |" \
+        in text
+    costs = {c["job"]: c for c in cell["costs"]}
+    assert costs["hopper_ddpg05/bail/seed1"]["updates_per_s"] == pytest.approx(200.0)  # 50000 updates in 250 s
+    assert "| hopper_ddpg05/bail/seed1 | 250 | 1 | 50000 | 200.0 | 1.0 → 1.1 | timings.json |" in text
+    assert costs["hopper_ddpg05/bc/seed1"]["wall_s"] == 1000.0 and costs["hopper_ddpg05/bc/seed2"]["wall_s"] == 500.0
+    assert costs["hopper_ddpg05/bc/seed2"]["recorded"] == "summary.json" and len(costs) == 8
+
+
+def test_claim_verdicts_read_the_iqm_intervals(run_study):
+    def row(seeds, low, high):
+        return {"seeds": seeds, "final_return_iqm_ci_low": low, "final_return_iqm_ci_high": high}
+    assert run_study.claim_verdict(row(5, 10, 20), row(5, 0, 9), "above").startswith("holds (above")
+    assert run_study.claim_verdict(row(5, 0, 9), row(5, 10, 20), "above").startswith("does not hold (below")
+    # a's interval starts above b's start but they overlap: no difference shown
+    assert run_study.claim_verdict(row(5, 12, 30), row(5, 10, 20), "above").startswith(
+        "does not hold (no difference")
+    assert run_study.claim_verdict(row(5, 0, 15), row(5, 10, 20), "above").startswith("does not hold (no difference")
+    assert run_study.claim_verdict(row(3, 0, 15), row(3, 10, 20), "similar").startswith("holds (no difference")
+    assert run_study.claim_verdict(row(3, 0, 9), row(3, 10, 20), "similar").startswith("does not hold (below")
+    assert run_study.claim_verdict(None, row(3, 10, 20), "above").startswith("pending (seeds so far: 0 and 3")
