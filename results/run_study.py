@@ -468,6 +468,25 @@ def cost_rows(results: Path, jobs: list[Job]) -> list[dict]:
     return rows
 
 
+def envelope_fits(results: Path) -> list[dict]:
+    """Every kept upper-envelope fit (a run whose summary has ``envelope_best_epoch``): its best validation epoch
+    against the fit's epoch cap, the share of returns left above the envelope (``envelope_fraction_below``: the
+    share with V < G) and the median of V - G, and its Fig. 13-style plot where the run kept one."""
+    fits = []
+    for summary_path in sorted((results / "runs").glob("*/*/*/summary.json")):
+        summary = json.loads(summary_path.read_text())
+        if summary.get("envelope_best_epoch") is None:
+            continue
+        run = summary_path.parent
+        cap = OmegaConf.load(run / "config.yaml").algo.envelope.epochs if (run / "config.yaml").is_file() else None
+        fits.append({"run": str(run.relative_to(results / "runs")), "best_epoch": summary["envelope_best_epoch"],
+                     "epochs": cap, "uncovered": summary.get("envelope_fraction_below"),
+                     "median_gap": summary.get("envelope_median_gap"),
+                     "plot": str((run / "envelope.png").relative_to(results)) if (run / "envelope.png").is_file()
+                     else None})
+    return fits
+
+
 def load_change(cost: dict) -> str:
     """``start → end`` of a cost row's 1-minute load average, or nothing where the job's record has none."""
     if cost["load_start"] is None or cost["load_end"] is None:
@@ -517,12 +536,17 @@ def paper_cell_report(results: Path, jobs: list[Job]) -> str:
     lines += [f"| {c['job']} | {c['wall_s']:.0f} | {c['threads'] if c['threads'] is not None else ''} | "
               f"{c['updates'] if c['updates'] is not None else ''} | {fmt(c['updates_per_s'])} | "
               f"{load_change(c)} | {c['recorded']} |" for c in costs]
+    fits = envelope_fits(results)
+    lines += ["", "| envelope fit | best epoch of cap | returns above the envelope (V < G) | median V - G | plot |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {f['run']} | {f['best_epoch']} of {f['epochs']} | {fmt(100 * f['uncovered'], 2)} % | "
+              f"{fmt(f['median_gap'])} | {f['plot'] or ''} |" for f in fits]
     lines += ["", "Load: the 1-minute load average as the job started and ended (a job on one thread alone on the "
               "machine reads about 1)."]
     text = "\n".join(lines) + "\n"
     write_text_atomic(results / "cell.md", text)
     write_json_atomic(results / "cell.json", {"groups": rows, "anchors": PAPER_ANCHORS, "claims": claims,
-                                              "costs": costs})
+                                              "costs": costs, "envelope_fits": fits})
     return text
 
 

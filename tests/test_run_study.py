@@ -165,8 +165,11 @@ def _kept(results: Path, algo: str, finals: list[float]) -> None:
     for seed, final in enumerate(finals, 1):
         run = results / "runs" / "hopper_ddpg05_b1" / algo / f"seed{seed}"
         run.mkdir(parents=True)
+        envelope = {"envelope_best_epoch": 40 + seed, "envelope_fraction_below": 0.0125,
+                    "envelope_median_gap": 48.0} if algo == "bail" else {}
         (run / "summary.json").write_text(json.dumps({"final_return": final, "iterations": 50000,
-                                                      "wall_time_s": 500.0}))
+                                                      "wall_time_s": 500.0, **envelope}))
+        (run / "config.yaml").write_text("threads: 1\nalgo:\n  envelope:\n    epochs: 50\n")
 
 
 def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_run(run_study, tmp_path):
@@ -201,6 +204,9 @@ def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_ru
     assert "| hopper_ddpg05/bail/seed1 | 250 | 1 | 50000 | 200.0 | 1.0 → 1.1 | timings.json |" in text
     assert costs["hopper_ddpg05/bc/seed1"]["wall_s"] == 1000.0 and costs["hopper_ddpg05/bc/seed2"]["wall_s"] == 500.0
     assert costs["hopper_ddpg05/bc/seed2"]["recorded"] == "summary.json" and len(costs) == 8
+    assert costs["hopper_ddpg05/bc/seed2"]["threads"] == 1  # read from the run's config where timings has none
+    assert [f["best_epoch"] for f in cell["envelope_fits"]] == [41, 42, 43]
+    assert "| hopper_ddpg05_b1/bail/seed2 | 42 of 50 | 1.25 % | 48.0 |  |" in text
 
 
 def test_claim_verdicts_read_the_iqm_intervals(run_study):
