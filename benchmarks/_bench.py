@@ -6,7 +6,8 @@ gymnasium loop, eager updates, sequential seeds) *in the same process, interleav
 over ``repeats`` alternating rounds, so a noisy neighbour hits both sides.
 
 Every run writes a JSON record (:class:`Record`, default ``results/benchmarks/<script stem>.json``): the command
-line, package versions, CPU model and affinity, threads, load average at start and end, timestamps, every round's
+line, package versions, CPU model and affinity, threads, load average at start and end, timestamps, wall and CPU
+seconds of the process, the git commit (and the uncommitted files of ``src/``, ``conf/``), every round's
 figure of every side, and the derived ratio rows (``table``). ``benchmarks/render_records.py`` renders the tables of
 ``docs/benchmarks.md`` from these records.
 """
@@ -19,6 +20,7 @@ import os
 import platform
 import shlex
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -160,6 +162,17 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def _git() -> dict | None:
+    """The checkout measured: ``HEAD`` and the files of ``src/`` and ``conf/`` that differ from it."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+        status = subprocess.run(["git", "status", "--porcelain", "--", "src", "conf"], cwd=ROOT, capture_output=True,
+                                text=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return {"commit": head.stdout.strip(), "uncommitted": [line[3:] for line in status.stdout.splitlines()]}
+
+
 def _now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
@@ -179,7 +192,8 @@ class Record:
         self.settings = dict(settings or {})
         self.started = _now()
         self.load_start = list(os.getloadavg())
-        self._t0 = time.perf_counter()
+        self._t0, self._cpu0 = time.perf_counter(), time.process_time()
+        self.git = _git()
 
     def snapshot(self, rows: Sequence[dict], **extra) -> dict:
         """The record as it stands: everything :meth:`write` writes."""
@@ -191,7 +205,10 @@ class Record:
             "started": self.started,
             "finished": _now(),
             "wall_s": time.perf_counter() - self._t0,
+            # CPU seconds this process got (all its threads): on a busy CPU well below wall_s x threads
+            "process_cpu_s": time.process_time() - self._cpu0,
             "versions": _versions(),
+            "git": self.git,
             "machine": {"cpu_model": _cpu_model(), "cpus": os.cpu_count(), "affinity": affinity,
                         "torch_threads": torch.get_num_threads(),
                         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},

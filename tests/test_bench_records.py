@@ -1,0 +1,113 @@
+"""The benchmark records and the tables of docs/benchmarks.md: every figure of those tables comes from a record.
+
+``benchmarks/render_records.py`` renders each table from the JSON records (``results/benchmarks/*.json``, written
+by the benchmark scripts, and ``results/d3rlpy/*.json``); the page includes the rendered files. These tests render
+them again and compare, check that each record's ratio rows follow from its rounds, and that the page's prose quotes
+only means that a rendered table holds.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import statistics
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import render_records  # noqa: E402
+from _bench import PACKAGES, Record, derive_table, summarise  # noqa: E402
+
+PAGE = ROOT / "docs" / "benchmarks.md"
+RECORDS = sorted((ROOT / "results" / "benchmarks").glob("*.json"))
+
+
+def test_every_rendered_table_matches_its_records():
+    rendered = render_records.render_all()
+    assert {p.name for p in rendered} >= {"ratios.md", "records.md", "collection_rates.md",
+                                          "d3rlpy_returns_hopper_sac_b1.md", "d3rlpy_returns_hopper_ddpg05_b1.md"}
+    for path, text in rendered.items():
+        assert path.is_file(), f"{path.relative_to(ROOT)} missing: python benchmarks/render_records.py"
+        assert path.read_text() == text, (f"{path.relative_to(ROOT)} differs from its records "
+                                          "(python benchmarks/render_records.py rewrites it)")
+
+
+def test_a_planted_wrong_number_is_found(tmp_path):
+    """A table with one figure changed (a ratio off by 0.01) is reported stale; so is a missing one."""
+    records, d3rlpy = tmp_path / "benchmarks", ROOT / "results" / "d3rlpy"
+    records.mkdir()
+    rows = [summarise("case", "updates/s", {"torchrl_bail": [10.0, 12.0, 11.0], "bare": [10.0, 10.0, 10.0]})]
+    record = Record("bench_x.py", records / "bench_x.json", reference="bare PyTorch").write(rows)
+    assert record["table"][0]["ratio"] == pytest.approx(1.1)
+    rendered = render_records.render_all(records, d3rlpy)
+    table = records / "ratios.md"
+    assert "| `bench_x.py` | case | 11.0 | bare PyTorch: 10.0 | updates/s | **1.10** | 3 |" in rendered[table]
+    assert render_records.stale(records, d3rlpy) == list(rendered)  # nothing written yet
+    for path, text in rendered.items():
+        path.write_text(text)
+    assert render_records.stale(records, d3rlpy) == []
+    table.write_text(rendered[table].replace("**1.10**", "**1.11**"))
+    assert render_records.stale(records, d3rlpy) == [table]
+
+
+@pytest.mark.parametrize("path", RECORDS, ids=[p.stem for p in RECORDS])
+def test_a_record_states_its_run_and_every_round(path):
+    record = json.loads(path.read_text())
+    assert record["script"] == f"{path.stem}.py"
+    assert record["command"].startswith(f"python benchmarks/{path.stem}.py")
+    assert set(record["versions"]) >= {"python", *PACKAGES} and all(record["versions"][k] for k in PACKAGES)
+    machine = record["machine"]
+    assert machine["cpu_model"] and machine["cpus"] >= 1 and machine["torch_threads"] >= 1
+    assert "OMP_NUM_THREADS" in machine and machine["affinity"]
+    assert len(record["load_average"]["start"]) == 3 and len(record["load_average"]["end"]) == 3
+    assert re.fullmatch(r"[0-9a-f]{40}", record["git"]["commit"]) and isinstance(record["git"]["uncommitted"], list)
+    assert record["started"] <= record["finished"] and record["wall_s"] > 0 and record["process_cpu_s"] > 0
+    for row in record["rows"]:
+        assert "rounds" in row, row["name"]
+        if "ratio_of" in row:  # every median and ratio follows from the rounds
+            numerator, denominator = row["ratio_of"]
+            for side, values in row["rounds"].items():
+                assert row[side] == pytest.approx(statistics.median(values)), (row["name"], side)
+            assert row["ratio"] == pytest.approx(row[numerator] / row[denominator]), row["name"]
+    assert record["table"] == derive_table(record["rows"])
+
+
+def test_derived_rows_are_medians_of_the_rounds():
+    row = summarise("x", "updates/s", {"ours": [1.0, 5.0, 3.0], "theirs": [2.0, 2.0, 4.0, 100.0]},
+                    ratio_of=("ours", "theirs"))
+    assert (row["ours"], row["theirs"], row["ratio"]) == (3.0, 3.0, 1.0)
+    assert derive_table([row, {"name": "no ratio", "rounds": {"a": [1.0]}}]) == [
+        {"case": "x", "unit": "updates/s", "torchrl_bail": 3.0, "reference": 3.0, "ratio": 1.0, "rounds": 3}]
+
+
+def test_d3rlpy_rows_copied_from_printed_output_are_marked():
+    rows = render_records.d3rlpy_rows(ROOT / "results" / "d3rlpy" / "hopper_ddpg05_b1.json")
+    copied = [r for r in rows if not render_records.recorded(r)]
+    assert {(r["algo"], r["seed"]) for r in copied} == {("bc", 1), ("bc", 2), ("bc", 3), ("bcq", 1), ("bcq", 2),
+                                                         ("bcq", 3)}
+    table = render_records.render_d3rlpy_returns(rows)
+    line = {cells[1]: cells for cells in (row.split(" | ") for row in table.splitlines()[2:5])}
+    assert line["bc"][4] == "40.2† / 39.5† / 48.5† / 47.8 / 73.9" and line["bc"][6] == "50.0 ± 14.0†"
+    assert line["bear"][4] == "311.7 / 355.4" and line["bear"][6] == "333.5 ± 30.9"  # all recorded: no mark
+    assert "bc seed 1, bc seed 2, bc seed 3, bcq seed 1, bcq seed 2, bcq seed 3 were copied" in table
+
+
+def test_the_page_includes_every_table_and_names_no_machine_path():
+    page = PAGE.read_text()
+    for path in render_records.render_all():
+        assert f'--8<-- "{path.relative_to(ROOT)}"' in page, path.name
+    assert not re.search(r"/work/|/tmp/|d3venv/bin", page.replace(".d3venv/bin", "")), "a machine's own path"
+    assert "passed in" not in page
+
+
+def test_every_mean_quoted_on_the_page_is_a_rendered_one():
+    """Prose quotes ``mean ± std`` figures only as a rendered d3rlpy table (of a record) states them."""
+    page = PAGE.read_text()
+    tables = "".join(render_records.render_all().values()).replace("†", "")
+    quoted = re.findall(r"\d+\.\d ± \d+\.\d", page)
+    assert quoted, "the page quotes no mean"
+    for figure in quoted:
+        assert figure in tables, figure
