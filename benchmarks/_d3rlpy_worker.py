@@ -17,6 +17,12 @@ Two modes, chosen by the JSON config in ``argv[1]`` (``"mode"``):
   printing the losses as JSON.
 
 ``quit`` ends either mode.
+
+``"decoder_tanh": true`` in the config (``bench_d3rlpy_returns.py --d3rlpy-decoder-tanh``) patches d3rlpy's
+``VAEDecoder.forward`` before anything is built, so that the decoder's output is ``tanh`` of its linear head, as in
+the authors' BCQ (sfujim/BCQ) and in d3rlpy before its commit 4abdbd3f (2.1.0): since then ``forward`` returns
+the linear head when ``with_squash`` is true, which every d3rlpy caller passes (the default), so its BCQ and
+BEAR candidate actions are bounded only by the later clamp to the action bounds.
 """
 
 from __future__ import annotations
@@ -36,6 +42,16 @@ import d3rlpy  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from d3rlpy.models.encoders import VectorEncoderFactory  # noqa: E402
+from d3rlpy.models.torch.imitators import VAEDecoder  # noqa: E402
+
+
+def restore_decoder_tanh() -> None:
+    """Makes every ``VAEDecoder`` output ``tanh(fc(encoder(x, latent)))``, whatever ``with_squash`` says (see the
+    module doc)."""
+    def forward(self, x, latent, with_squash):
+        return torch.tanh(self._fc(self._encoder(x, latent)))
+
+    VAEDecoder.forward = forward
 
 
 def dataset(n: int, obs: int, act: int) -> d3rlpy.dataset.MDPDataset:
@@ -154,6 +170,8 @@ def train_main(cfg: dict) -> None:
 def main() -> None:
     cfg = json.loads(sys.argv[1])
     torch.set_num_threads(cfg["threads"])
+    if cfg.get("decoder_tanh"):
+        restore_decoder_tanh()
     (train_main if cfg.get("mode") == "train" else throughput_main)(cfg)
 
 

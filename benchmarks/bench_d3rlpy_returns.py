@@ -169,10 +169,10 @@ def compose_run(batch_path: Path, env: str, algo: str, seed: int, preset: str, o
                                             "resume=false", *overrides])
 
 
-def d3rlpy_final_return(python: str, cfg, arrays: Path, threads: int) -> dict:
+def d3rlpy_final_return(python: str, cfg, arrays: Path, threads: int, decoder_tanh: bool = False) -> dict:
     updates, interval = schedule(cfg)
-    peer = D3rlpyRun(python, matched_constants(cfg), algo=cfg.algo.name, seed=int(cfg.seed), dataset=arrays,
-                     threads=threads)
+    constants = {**matched_constants(cfg), **({"decoder_tanh": True} if decoder_tanh else {})}
+    peer = D3rlpyRun(python, constants, algo=cfg.algo.name, seed=int(cfg.seed), dataset=arrays, threads=threads)
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=int(cfg.seed), max_steps=cfg.eval.max_steps,
                           max_episode_steps=cfg.env.get("max_episode_steps"))
     returns, done = [], 0
@@ -209,6 +209,10 @@ def main() -> None:
     parser.add_argument("--batch-overrides", nargs="*", default=[],
                         help="the collect overrides that name the cached batch (e.g. preset=quick)")
     parser.add_argument("--algos", default=",".join(ALGOS), help="comma-separated subset of bc,bcq,bear")
+    parser.add_argument("--d3rlpy-decoder-tanh", action="store_true",
+                        help="patch d3rlpy's VAE decoder to apply tanh to its output, as the authors' BCQ does "
+                             "(d3rlpy >= 2.1 leaves it linear; _d3rlpy_worker.restore_decoder_tanh); recorded in "
+                             "each row as d3rlpy_patch")
     add_run_arguments(parser, __file__)
     args = parser.parse_args()
     record = Record(__file__, args.json, reference="d3rlpy 2.8.1 (final returns)", settings=vars(args))
@@ -229,7 +233,7 @@ def main() -> None:
                 for seed in seeds:
                     cfg = compose_run(batch.path, env, algo, seed, args.preset, args.overrides)
                     (ours,) = run(cfg, Path(tmp) / f"{label}_{algo}_{seed}")
-                    peer = d3rlpy_final_return(args.python, cfg, arrays, args.threads)
+                    peer = d3rlpy_final_return(args.python, cfg, arrays, args.threads, args.d3rlpy_decoder_tanh)
                     if ours["iterations"] != peer["updates"] or peer["transitions"] != batch.num_transitions:
                         raise SystemExit(f"{label} {algo} seed {seed}: the two sides differ in updates "
                                          f"({ours['iterations']} vs {peer['updates']}) or transitions "
@@ -237,7 +241,8 @@ def main() -> None:
                     row = {"batch": label, "algo": algo, "seed": seed, "torchrl_bail": ours["final_return"],
                            "d3rlpy": peer["final_return"], "updates": peer["updates"],
                            "d3rlpy_evaluations": peer["evaluations"], "d3rlpy_versions": peer["versions"],
-                           "torchrl_bail_wall_s": ours["wall_time_s"], "d3rlpy_train_cpu_s": peer["train_cpu_s"]}
+                           "torchrl_bail_wall_s": ours["wall_time_s"], "d3rlpy_train_cpu_s": peer["train_cpu_s"],
+                           "d3rlpy_patch": "VAE decoder tanh restored" if args.d3rlpy_decoder_tanh else None}
                     rows.append(row)
                     record.write(rows)  # after every row: a long comparison stopped midway keeps its rows
                     print(f"{label:<24} {algo:<5} seed {seed}: torchrl_bail {row['torchrl_bail']:8.1f}   "
