@@ -336,6 +336,8 @@ def _plain(text: str) -> str:
 
 
 def _default_cell(row: Row, options: list[str]) -> str:
+    if row.option_of and all(str(row.defaults[o]) == o for o in options):  # env.name: hopper in env=hopper
+        return f"the option's name (`{options[0]}` in `{row.option_of}={options[0]}`)"
     values = [row.defaults[o] for o in options]
     if all(v == values[0] for v in values):
         parts = [_value(values[0])]

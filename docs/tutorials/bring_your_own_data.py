@@ -24,7 +24,7 @@ from torchrl_bail.data.importers import import_dataset
 
 
 def sh(*args: str) -> None:
-    print("$", " ".join(args), flush=True)
+    print("$", " ".join(args).replace(sys.executable, "python"), flush=True)
     subprocess.run(args, check=True)
 
 

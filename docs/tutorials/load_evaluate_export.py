@@ -23,7 +23,7 @@ from torchrl_bail.policy import export_policy, read_policy_file
 
 
 def sh(*args: str) -> None:
-    print("$", " ".join(args), flush=True)
+    print("$", " ".join(args).replace(sys.executable, "python"), flush=True)
     subprocess.run(args, check=True)
 
 

@@ -3,6 +3,9 @@
     python docs/tutorials/losses_in_a_torchrl_loop.py                          # random-policy Hopper data
     python docs/tutorials/losses_in_a_torchrl_loop.py --dataset ~/.d4rl/datasets/hopper_medium-v2.hdf5
 
+It trains no Hydra run, so it takes no overrides: its own options are its knobs. The trained envelope and actor
+weights go to ``--work-dir`` (``tutorial_losses/``).
+
 Everything but the two BAIL components is plain TorchRL: a ``GymEnv`` rollout makes the data (or a file you have is
 imported), replay buffers sample it, TorchRL's ``MLP``, ``ValueOperator`` and ``Actor`` are the networks, and the
 policy is evaluated by ``env.rollout``.
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import warnings
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
@@ -43,6 +47,7 @@ def main() -> None:
     parser.add_argument("--envelope-epochs", type=int, default=20)
     parser.add_argument("--updates", type=int, default=5_000, help="imitation updates")
     parser.add_argument("--eval-steps", type=int, default=1_000)
+    parser.add_argument("--work-dir", type=Path, default=Path("tutorial_losses"), help="where the weights go")
     args = parser.parse_args()
     torch.manual_seed(0)
     env = TransformedEnv(GymEnv("Hopper-v5"), DoubleToFloat())  # MuJoCo observations are float64
@@ -99,6 +104,12 @@ def main() -> None:
         episode = env.rollout(args.eval_steps, actor)
     print(f"evaluation: return {episode['next', 'reward'].sum().item():.1f} over {episode.shape[0]} steps "
           f"(the batch's transitions average {data['next', 'reward'].mean().item():.2f} reward per step)")
+
+    # 6. The weights, as plain state dicts: load them into the same TorchRL modules to reuse them.
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    torch.save(envelope.state_dict(), args.work_dir / "envelope.pt")
+    torch.save(actor.state_dict(), args.work_dir / "actor.pt")
+    print(f"weights: {args.work_dir / 'envelope.pt'}, {args.work_dir / 'actor.pt'}")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from pathlib import Path
 
 
 def sh(*args: str) -> None:
-    print("$", " ".join(args), flush=True)
+    print("$", " ".join(args).replace(sys.executable, "python"), flush=True)
     subprocess.run(args, check=True)
 
 

@@ -29,7 +29,8 @@ def main() -> None:
     killed, uninterrupted = args.work_dir / "killed", args.work_dir / "uninterrupted"
 
     # 1. Start the run and kill it (SIGKILL: no clean-up at all) once it has written its first checkpoint.
-    print("$", " ".join(command), f"hydra.run.dir={killed}", "   # killed below", flush=True)
+    print("$", " ".join(command).replace(sys.executable, "python"), f"hydra.run.dir={killed}", "   # killed below",
+          flush=True)
     proc = subprocess.Popen([*command, f"hydra.run.dir={killed}"])
     while not (killed / "checkpoint.pt").exists() and proc.poll() is None:
         time.sleep(0.05)

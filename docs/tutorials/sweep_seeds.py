@@ -17,7 +17,7 @@ from pathlib import Path
 
 
 def sh(*args: str) -> None:
-    print("$", shlex.join(args), flush=True)
+    print("$", shlex.join(args).replace(sys.executable, "python"), flush=True)
     subprocess.run(args, check=True)
 
 
@@ -47,13 +47,13 @@ def main() -> None:
     if args.jobs:
         sh(*joblib)
     else:
-        print("side by side:", shlex.join(joblib))
+        print("side by side:", shlex.join(joblib).replace(sys.executable, "python"))
 
     # 4. On a Slurm cluster: hydra-submitit-launcher (pip install -e ".[slurm]") submits one job per seed; a
     #    pre-empted or timed-out job is requeued and resumes from its checkpoint.
     slurm = [*train, "-m", "hydra/launcher=slurm", "hydra.launcher.partition=cpu", "+exp=hopper_ddpg05",
              "algo=bail,bc", "seed=1,2,3,4,5"]
-    print("on Slurm:", shlex.join(slurm))
+    print("on Slurm:", shlex.join(slurm).replace(sys.executable, "python"))
 
     # 5. One table over the sweep, and the stacked run beside it: seed for seed, the same scores.
     sh(sys.executable, "-m", "torchrl_bail.report", str(sweep), "--out", str(args.work_dir / "seeds"), "--reps", "200")
