@@ -31,8 +31,8 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 from torch import nn  # noqa: E402
 
-from torchrl_bail.behaviour.buffers import EpisodeStore  # noqa: E402
 from torchrl_bail import config_dir  # noqa: E402
+from torchrl_bail.behaviour.buffers import EpisodeStore  # noqa: E402
 from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg  # noqa: E402
 from torchrl_bail.behaviour.loop import BehaviourRun, make_collection_env  # noqa: E402
 from torchrl_bail.behaviour.sac import SACAgent  # noqa: E402

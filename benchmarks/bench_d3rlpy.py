@@ -65,12 +65,11 @@ import sys
 import time
 from pathlib import Path
 
-from _bench import Record, add_record_argument, machine, print_columns, summarise
-
 import torch  # noqa: E402
+from _bench import Record, add_record_argument, machine, print_columns, summarise
+from bench_bcq_bear import ACT, BATCH, N_MATCH, N_TARGET, OBS, synthetic_data  # noqa: E402
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  # noqa: E402
 
-from bench_bcq_bear import ACT, BATCH, N_MATCH, N_TARGET, OBS, synthetic_data  # noqa: E402
 from torchrl_bail.algorithms.bc import BehaviourCloning  # noqa: E402
 from torchrl_bail.algorithms.bcq import BCQ  # noqa: E402
 from torchrl_bail.algorithms.bear import BEAR  # noqa: E402

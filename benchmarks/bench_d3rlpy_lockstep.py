@@ -29,6 +29,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 from _bench import Record, machine
 from bench_d3rlpy_returns import (
     D3rlpyRun,
@@ -39,9 +41,6 @@ from bench_d3rlpy_returns import (
     matched_constants,
     schedule,
 )
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 from torchrl_bail.algorithms import build_algorithm  # noqa: E402

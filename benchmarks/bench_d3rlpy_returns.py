@@ -56,11 +56,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _bench import Record, add_record_argument, machine
-from bench_d3rlpy import start_worker
-
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _bench import Record, add_record_argument, machine
+from bench_d3rlpy import start_worker
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 from tensordict import TensorDict  # noqa: E402

@@ -10,8 +10,13 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from torchrl_bail.modules import make_sac_actor
-from torchrl_bail.modules import action_spec_from_bounds, make_perturbation_actor, make_qvalue_network, make_vae
+from torchrl_bail.modules import (
+    action_spec_from_bounds,
+    make_perturbation_actor,
+    make_qvalue_network,
+    make_sac_actor,
+    make_vae,
+)
 from torchrl_bail.objectives.bcq import BCQLoss
 from torchrl_bail.objectives.bear import BEARLoss
 

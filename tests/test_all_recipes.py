@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
-
 from test_catalogue import ENVS, TINY_DDPG, TINY_SAC, _paper_exps
+
 from torchrl_bail import config_dir
 from torchrl_bail.behaviour import ensure_batch
 

@@ -6,8 +6,17 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _batch_rl_testing import ACT, HIDDEN, OBS, SPEC, batch, bcq_loss, linear_critics, target_tensors
-from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
+from _batch_rl_testing import (
+    ACT,
+    HIDDEN,
+    OBS,
+    SPEC,
+    batch,
+    bcq_loss,
+    linear_critics,
+    one_thread,  # noqa: F401 (autouse fixture)
+    target_tensors,
+)
 from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 

@@ -8,13 +8,22 @@ import math
 
 import pytest
 import torch
-from _batch_rl_testing import ACT, HIDDEN, OBS, SPEC, batch, bear_loss, linear_critics
-from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
+from _batch_rl_testing import (
+    ACT,
+    HIDDEN,
+    OBS,
+    SPEC,
+    batch,
+    bear_loss,
+    linear_critics,
+    one_thread,  # noqa: F401 (autouse fixture)
+)
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bear import BEAR
 from torchrl_bail.config import algo_config
 from torchrl_bail.objectives.bear import laplacian_mmd
+
 
 def _algo(**overrides) -> BEAR:
     small = {"hidden": list(HIDDEN)}

@@ -19,8 +19,8 @@ from torchrl_bail import config_dir
 from torchrl_bail.behaviour import ensure_batch
 from torchrl_bail.config import ConfigError, collection_config
 from torchrl_bail.data.cache import batch_name, batch_path
-from torchrl_bail.data.locks import SCRATCH, clean_stale, host_name
 from torchrl_bail.data.listing import list_batches
+from torchrl_bail.data.locks import SCRATCH, clean_stale, host_name
 
 ENVS = ["hopper", "walker", "halfcheetah", "ant", "humanoid"]
 SAC_KINDS = ["sac", "med_det", "med_stoch", "opt_det", "opt_stoch"]

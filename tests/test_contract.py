@@ -14,7 +14,6 @@ through the config and ``torchrl_bail.train.run`` writes its artifacts.
 from __future__ import annotations
 
 import copy
-
 import functools
 import inspect
 import io
@@ -42,9 +41,9 @@ from torchrl.objectives import BCLoss, LossModule
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
+from torchrl_bail.config import ALGO_SCHEMAS, ConfigError, algo_config, validate_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.policy import load_policy
-from torchrl_bail.config import ALGO_SCHEMAS, ConfigError, algo_config, validate_config
 
 REDUCTIONS = ("none", "mean", "sum")
 loss_cases = pytest.mark.parametrize("case", LOSS_CASES, ids=repr)

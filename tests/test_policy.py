@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
-
 from test_cli import ALGO_TINY, _summary, _train
+
 from torchrl_bail import load_policy
 from torchrl_bail.evaluate import main as evaluate_main
 from torchrl_bail.policy import export_policy, policy_actions, save_policy

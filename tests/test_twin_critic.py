@@ -5,8 +5,16 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _batch_rl_testing import ACT, OBS, SPEC, batch, bcq_loss, bear_loss, linear_critics
-from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
+from _batch_rl_testing import (
+    ACT,
+    OBS,
+    SPEC,
+    batch,
+    bcq_loss,
+    bear_loss,
+    linear_critics,
+    one_thread,  # noqa: F401 (autouse fixture)
+)
 from tensordict import TensorDict
 
 twin_critic_losses = pytest.mark.parametrize("make_loss", [bcq_loss, bear_loss], ids=["bcq", "bear"])

@@ -27,10 +27,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import Bounded, TensorSpec
-from torchrl.envs.utils import ExplorationType
 from torch.distributions import ComposeTransform
 from torch.distributions.utils import _sum_rightmost
+from torchrl.data import Bounded, TensorSpec
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 

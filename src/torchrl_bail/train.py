@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl_bail import config_dir
 from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
 from torchrl_bail.config import ConfigError, validate_config
+
 if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported where a run starts
     from torchrl_bail.resume import Resumption
 
@@ -302,8 +303,8 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.policy import save_policy
-    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
     from torchrl_bail.resume import record_config
+    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
     from torchrl_bail.trainer import AlgorithmTrainee, train_seeds
 
     start = time.perf_counter()

@@ -24,8 +24,8 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fit_upper_envelopes, fraction_below
-from torchrl_bail.plots import plot_envelope
 from torchrl_bail.modules import make_value_network
+from torchrl_bail.plots import plot_envelope
 from torchrl_bail.stacking import stack_modules, unstack_modules
 from torchrl_bail.transforms.best_action import BestActionFilter
 

@@ -47,8 +47,15 @@ from torchrl.objectives.value.functional import td0_return_estimate
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
-from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
-                                         make_collection_env, seed_all)
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    agent_kwargs,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.data.cache import batch_name, behaviour_seed, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,

@@ -19,8 +19,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
-from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, collect_timed, env_bounds, make_collection_env,
-                                         seed_all)
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.behaviour.sac_run import ensure_sac_run
 from torchrl_bail.data.cache import (
     batch_name,

@@ -41,8 +41,15 @@ from torchrl.modules import ProbabilisticActor
 
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
-from torchrl_bail.behaviour.loop import (BehaviourRun, ReturnTracker, agent_kwargs, collect_timed, env_bounds,
-                                         make_collection_env, seed_all)
+from torchrl_bail.behaviour.loop import (
+    BehaviourRun,
+    ReturnTracker,
+    agent_kwargs,
+    collect_timed,
+    env_bounds,
+    make_collection_env,
+    seed_all,
+)
 from torchrl_bail.behaviour.sac import SACAgent
 from torchrl_bail.config import BatchConfig, SACBatchConfig
 from torchrl_bail.data.batch import save_batch
