@@ -112,13 +112,14 @@ def print_columns(title: str, rows: list[dict], columns: Sequence[tuple[str, str
     """``title``, then one line per row: its ``name`` and, per ``(header, key, format spec)`` column, ``row[key]``
     formatted (``">10.2f"``) under its header, aligned as the spec says (``<``: left, else right)."""
     cells = [[format(r[key], spec) for r in rows] for _, key, spec in columns]
-    widths = [max([len(header), *map(len, column)]) for (header, _, _), column in zip(columns, cells)]
+    widths = [max([len(header), *map(len, column)]) for (header, _, _), column in zip(columns, cells, strict=True)]
     aligns = ["<" if spec.startswith("<") else ">" for _, _, spec in columns]
     print(f"\n{title}")
-    print(f"{'case':<{name_width}}" + "".join(f" {h:{a}{w}}" for (h, _, _), a, w in zip(columns, aligns, widths)))
+    print(f"{'case':<{name_width}}"
+          + "".join(f" {h:{a}{w}}" for (h, _, _), a, w in zip(columns, aligns, widths, strict=True)))
     for i, r in enumerate(rows):
         print(f"{r['name']:<{name_width}}" + "".join(f" {column[i]:{a}{w}}"
-                                                     for column, a, w in zip(cells, aligns, widths)))
+                                                     for column, a, w in zip(cells, aligns, widths, strict=True)))
 
 
 def print_table(rows: list[dict], title: str) -> None:

@@ -286,7 +286,7 @@ def main(argv=None) -> int:
         rows = bench_updates(obs_dim, act_dim, args.updates, Path(d))
         loops = bench_loops(args.env, args.loop_steps, args.loop_start, args.loop_repeats, Path(d)) \
             if args.loop_steps > 0 else []
-    for algo, row in zip(("ddpg", "sac"), rows):
+    for algo, row in zip(("ddpg", "sac"), rows, strict=True):
         res[f"{algo}_updates_per_s"] = row["torchrl_bail"]
         res[f"{algo}_ratio_torchrl_bail_over_bare"] = row["ratio"]
         # one update per env step: the steady-state collection rate of the recipe

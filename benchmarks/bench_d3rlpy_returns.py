@@ -249,16 +249,16 @@ def main() -> None:
     print(f"\nfinal return, mean +- sample std over seeds {args.seeds} ({machine()}; d3rlpy "
           f"{rows[0]['d3rlpy_versions']['d3rlpy']} with torch {rows[0]['d3rlpy_versions']['torch']})")
     print(f"{'batch':<24} {'algo':<5} {'torchrl_bail':>20} {'d3rlpy':>20}")
+
+    def cell(group, key):
+        values = [r[key] for r in group]
+        spread = statistics.stdev(values) if len(values) > 1 else 0.0
+        return f"{statistics.mean(values):.1f} +- {spread:.1f}"
+
     for label in dict.fromkeys(r["batch"] for r in rows):
         for algo in dict.fromkeys(r["algo"] for r in rows):
             group = [r for r in rows if r["batch"] == label and r["algo"] == algo]
-
-            def cell(key):
-                values = [r[key] for r in group]
-                spread = statistics.stdev(values) if len(values) > 1 else 0.0
-                return f"{statistics.mean(values):.1f} +- {spread:.1f}"
-
-            print(f"{label:<24} {algo:<5} {cell('torchrl_bail'):>20} {cell('d3rlpy'):>20}")
+            print(f"{label:<24} {algo:<5} {cell(group, 'torchrl_bail'):>20} {cell(group, 'd3rlpy'):>20}")
     record.write(rows)
 
 

@@ -68,9 +68,10 @@ def interleaved(name: str, stacked, sequential, single, *, repeats: int, warmup:
             fn()
     rates: tuple[list[float], list[float], list[float]] = ([], [], [])
     for _ in range(repeats):
-        for fn, r in zip((stacked, sequential, single), rates):
+        for fn, r in zip((stacked, sequential, single), rates, strict=True):
             _one_round(fn, r)
-    row = summarise(name, "iterations/s", dict(zip(("stacked_per_s", "sequential_per_s", "single_per_s"), rates)),
+    keys = ("stacked_per_s", "sequential_per_s", "single_per_s")
+    row = summarise(name, "iterations/s", dict(zip(keys, rates, strict=True)),
                     ratio_of=("stacked_per_s", "sequential_per_s"))
     row.update(speedup=row["ratio"], vs_one_seed=row["single_per_s"] / row["stacked_per_s"])
     return row
@@ -94,14 +95,14 @@ def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int)
     # the sequential runs: each with its own replay buffer, as train() builds it
     singles = [build(s) for s in range(seeds)]
     buffers = [TensorDictReplayBuffer(storage=TensorStorage(d.to(device)), sampler=RandomSampler(),
-                                      batch_size=a.batch_size) for a, d in zip(singles, prepared)]
+                                      batch_size=a.batch_size) for a, d in zip(singles, prepared, strict=True)]
 
     def stacked() -> None:
         stack.update(sampler.sample())
         _sync(device)
 
     def sequential() -> None:
-        for algorithm, buffer in zip(singles, buffers):
+        for algorithm, buffer in zip(singles, buffers, strict=True):
             algorithm.update(buffer.sample())
         _sync(device)
 

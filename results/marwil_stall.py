@@ -117,7 +117,7 @@ def run_batch(batch_name: str, seed: int, updates: int, every: int, reset_at: in
         if step == updates:
             break
         index = torch.randint(0, n - held, (base.algo.batch_size,), generator=sampler)
-        for name, (algo, prepared) in trainees.items():
+        for algo, prepared in trainees.values():
             algo.update(prepared[index])
         if step + 1 == reset_at:
             trainees["marwil_adam_reset"][0].optimizers["actor"].state.clear()
@@ -137,12 +137,12 @@ def plot(records: list[dict], path: Path) -> None:
               ("ess_per_1000", "effective sample size per 1000", False)]
     fig, axes = plt.subplots(len(records), len(panels), figsize=(4.2 * len(panels), 3.2 * len(records)),
                              squeeze=False, constrained_layout=True)
-    for row, record in zip(axes, records):
-        for ax, (key, title, log) in zip(row, panels):
+    for row, record in zip(axes, records, strict=True):
+        for ax, (key, title, log) in zip(row, panels, strict=True):
             for name, curve in record["curves"].items():
                 points = [(p["update"], p[key]) for p in curve if key in p and p[key] == p[key]]
                 if points:
-                    ax.plot(*zip(*points), label=name)
+                    ax.plot(*zip(*points, strict=True), label=name)
             ax.axvline(record["reset_at"], color="grey", lw=0.8, ls=":")
             ax.set_title(f"{record['batch']} seed {record['seed']}: {title}", fontsize=9)
             ax.set_xlabel("updates")

@@ -68,7 +68,7 @@ class ObservationSlice(nn.Module):
 
 def linear_critics(k=(1.0, 2.0), b=(0.0, 0.0)) -> list[TensorDictModule]:
     return [TensorDictModule(LinearQ(ki, bi), in_keys=["observation", "action"], out_keys=["state_action_value"])
-            for ki, bi in zip(k, b)]
+            for ki, bi in zip(k, b, strict=True)]
 
 
 def critics() -> list[TensorDictModule]:

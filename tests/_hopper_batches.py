@@ -23,7 +23,7 @@ def hopper_rows(n: int = 160, seed: int = 0, limit: int = LIMIT) -> TensorDict:
     for _ in range(n):
         act = env.action_space.sample()
         nxt, rew, term, trunc, _ = env.step(act)
-        for key, value in zip(cols, (obs, act, rew, nxt, term, trunc, episode)):
+        for key, value in zip(cols, (obs, act, rew, nxt, term, trunc, episode), strict=True):
             cols[key].append(value)
         obs = nxt
         if term or trunc:

@@ -136,5 +136,5 @@ def test_pbail_imitates_only_the_pairs_it_selects_in_each_mini_batch():
     noise = torch.rand(64, 2, generator=torch.Generator().manual_seed(5)) * 2 - 1
     unselected_changed = imitation_gradient(_pbail_after_one_update(torch.where(selected, batch["action"], noise))[0])
     selected_changed = imitation_gradient(_pbail_after_one_update(torch.where(selected, noise, batch["action"]))[0])
-    assert all(torch.equal(g, h) for g, h in zip(unselected_changed, reference))
-    assert not any(torch.equal(g, h) for g, h in zip(selected_changed, reference))
+    assert all(torch.equal(g, h) for g, h in zip(unselected_changed, reference, strict=True))
+    assert not any(torch.equal(g, h) for g, h in zip(selected_changed, reference, strict=True))

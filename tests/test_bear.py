@@ -37,7 +37,7 @@ def test_laplacian_mmd_by_hand():
     sigma = 2.0
 
     def k(u, v):
-        return math.exp(-sum(abs(a - b) for a, b in zip(u, v)) / (2 * sigma))
+        return math.exp(-sum(abs(a - b) for a, b in zip(u, v, strict=True)) / (2 * sigma))
 
     xs, ys = x[0].tolist(), y[0].tolist()
     kxx = sum(k(u, v) for u in xs for v in xs) / 4

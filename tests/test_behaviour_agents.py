@@ -74,7 +74,7 @@ def test_bound_one_agent_gives_the_same_numbers_either_way():
         torch.manual_seed(3)
         outs.append([{k: float(v) for k, v in agent.update(_batch(1.0, seed=j)).items()} for j in range(3)])
     assert outs[0] == outs[1]
-    for (k, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items()):
+    for (k, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items(), strict=True):
         assert torch.equal(a, b), k
 
 
@@ -155,7 +155,7 @@ def test_fast_losses_are_sac_loss_numbers_and_gradients(bound):
         results.append(([out[k].detach() for k in ("loss_qvalue", "loss_actor", "loss_alpha", "alpha")], grads))
     (fast, fast_grads), (ref, ref_grads) = results
     assert len(fast_grads) == len(ref_grads) > 0
-    for a, b in zip(fast + fast_grads, ref + ref_grads):
+    for a, b in zip(fast + fast_grads, ref + ref_grads, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
@@ -169,7 +169,7 @@ def test_update_steps_match_a_sac_loss_update():
         for k in range(5):
             out = agent.update(_batch(0.4, seed=k))
         assert set(out) == {"loss_qvalue", "loss_actor", "alpha"} and all(v.dim() == 0 for v in out.values())
-    for (key, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items()):
+    for (key, a), (_, b) in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().items(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=key)
 
 
@@ -188,9 +188,9 @@ def test_ddpg_updates_are_ddpg_loss_updates(bound, arch):
     outs = []
     for a in (fast, reference):
         outs.append([a.update(_batch(bound, seed=k)) for k in range(4)])
-    for x, y in zip(outs[0], outs[1]):
+    for x, y in zip(outs[0], outs[1], strict=True):
         torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
-    for (key, a), (_, b) in zip(fast.loss.state_dict().items(), reference.loss.state_dict().items()):
+    for (key, a), (_, b) in zip(fast.loss.state_dict().items(), reference.loss.state_dict().items(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=key)
     assert not torch.equal(fast.loss.target_value_network_params["module", "l3" if arch == "late_action" else "4",
                                                                    "weight"],

@@ -275,7 +275,7 @@ def test_keyword_call_matches_the_tensordict_call(case):
     torch.manual_seed(1)
     got = loss(**kwargs)
     got = got if isinstance(got, tuple) else (got,)
-    for term, value in zip(terms, got):
+    for term, value in zip(terms, got, strict=True):
         torch.testing.assert_close(value, expected[term], msg=term)
 
 
@@ -339,7 +339,8 @@ def _act(algo, seed: int = 5) -> torch.Tensor:
 
 
 def _metrics_equal(a: list[dict], b: list[dict]) -> bool:
-    return all(x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x) for x, y in zip(a, b))
+    return len(a) == len(b) and all(x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x)
+                                    for x, y in zip(a, b, strict=True))
 
 
 @algo_cases
@@ -363,7 +364,8 @@ def test_optimizers_own_disjoint_parameters_and_every_one_steps(case):
     metrics = _updates(algo, data, 1, seed=1)[0]
     for name, optimizer in algo.optimizers.items():
         after = [p for g in optimizer.param_groups for p in g["params"]]
-        assert any(not torch.equal(x, y) for x, y in zip(before[name], after)), f"optimizer {name} did not step"
+        stepped = any(not torch.equal(x, y) for x, y in zip(before[name], after, strict=True))
+        assert stepped, f"optimizer {name} did not step"
     for key, value in metrics.items():
         assert isinstance(value, torch.Tensor) and not value.requires_grad and value.numel() == 1, key
         assert torch.isfinite(value), key
@@ -426,7 +428,7 @@ def test_a_deep_copy_trains_on_its_own(case):
     equal_trees(algo.state_dict(), before, "original")  # the copy's updates leave the original alone
     trained = [name for name in twin.modules if name not in case.not_updated]
     assert trained and all(not torch.equal(p, q) for name in trained for p, q in
-                           zip(twin.modules[name].parameters(), algo.modules[name].parameters()))
+                           zip(twin.modules[name].parameters(), algo.modules[name].parameters(), strict=True))
 
 
 @algo_cases

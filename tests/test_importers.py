@@ -35,7 +35,7 @@ def d4rl_arrays(lengths=(3, 2, 4), ends=("terminal", "timeout", None), obs_dim=H
     nxt = np.empty_like(obs)
     nxt[:-1] = obs[1:]
     start = 0
-    for length, end in zip(lengths, ends):
+    for length, end in zip(lengths, ends, strict=True):
         last = start + length - 1
         nxt[last] = 1000 + last + np.arange(obs_dim) / 100
         if end == "terminal":

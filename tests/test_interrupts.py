@@ -172,7 +172,7 @@ def test_an_interrupted_training_run_checkpoints_says_so_in_one_line_and_continu
     assert 0 < iteration < 1200, "stopped mid-training, after an update"
     assert not any((d / "summary.json").exists() for d in dirs)
     _run("train", args)  # the same command continues
-    for seed, run_dir in zip(seeds or [1], dirs):
+    for seed, run_dir in zip(seeds or [1], dirs, strict=True):
         summary = json.loads((run_dir / "summary.json").read_text())
         assert summary["resumed_from_iteration"] == [iteration]
         assert _outputs(run_dir) == reference[seeds, seed], "summary.json and every scalar log, as if never interrupted"

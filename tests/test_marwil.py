@@ -45,11 +45,11 @@ def _batch(values=VALUES, returns=RETURNS, predicted=PREDICTED, actions=ACTIONS)
 
 def _expected(beta: float, c2_init: float, rate: float, max_exponent: float = 20.0):
     """MARWIL's formulas in plain Python floats."""
-    adv = [g - v for g, v in zip(RETURNS, VALUES)]
+    adv = [g - v for g, v in zip(RETURNS, VALUES, strict=True)]
     c2 = c2_init + rate * (sum(a * a for a in adv) / len(adv) - c2_init)
     exponents = [beta * a / (math.sqrt(c2) + 1e-8) for a in adv]
     weights = [math.exp(min(e, max_exponent)) for e in exponents]
-    per_point = [w * se for w, se in zip(weights, SQUARED_ERRORS)]
+    per_point = [w * se for w, se in zip(weights, SQUARED_ERRORS, strict=True)]
     return adv, c2, weights, per_point, [e >= max_exponent for e in exponents]
 
 
@@ -91,7 +91,7 @@ def test_advantage_weights_are_the_next_updates_weights_and_move_nothing():
     beta, c2 = 1.0, 100.0
     loss = MARWILLoss(*_nets(), beta=beta, c2_init=c2, c2_rate=0.5, max_exponent=0.5, reduction="none")
     weight, advantage, clamped = loss.advantage_weights(_batch())
-    adv = [g - v for g, v in zip(RETURNS, VALUES)]
+    adv = [g - v for g, v in zip(RETURNS, VALUES, strict=True)]
     exponents = [beta * a / (math.sqrt(c2) + 1e-8) for a in adv]  # [1, 0, -1]: the first above max_exponent 0.5
     torch.testing.assert_close(advantage, torch.tensor(adv))
     torch.testing.assert_close(weight, torch.tensor([math.exp(min(e, 0.5)) for e in exponents]))
@@ -240,7 +240,7 @@ def test_beta_zero_is_behaviour_cloning():
     for _ in range(5):
         batch = _random_batch(scale=1000.0)
         torch.testing.assert_close(marwil.update(batch)["loss_actor"], bc.update(batch)["loss_bc"])
-    for p, q in zip(marwil.actor.parameters(), bc.actor.parameters()):
+    for p, q in zip(marwil.actor.parameters(), bc.actor.parameters(), strict=True):
         torch.testing.assert_close(p, q)
 
 
@@ -298,15 +298,15 @@ def test_value_warmup_fits_v_alone_then_starts_the_actor_with_a_fresh_adam():
     for batch in batches[:3]:
         out = algo.update(batch)
         assert "loss_actor" in out and "squared_error_mean" in out  # the same logged columns as a joint update
-    assert all(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before))
-    assert not any(torch.equal(p, q) for p, q in zip(algo.value_network.parameters(), value_before))
+    assert all(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before, strict=True))
+    assert not any(torch.equal(p, q) for p, q in zip(algo.value_network.parameters(), value_before, strict=True))
     assert algo.optimizers["actor"].state_dict()["state"] == {}, "the actor's Adam has seen no gradient yet"
     resumed = MARWIL(5, spec, config)
     resumed.load_state_dict(copy.deepcopy(algo.state_dict()))  # a copy, as a checkpoint on disk is
     assert resumed.updates_done == 3
     for batch in batches[3:]:
         torch.testing.assert_close(algo.update(batch)["loss_actor"], resumed.update(batch)["loss_actor"])
-    assert not any(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before))
+    assert not any(torch.equal(p, q) for p, q in zip(algo.actor.parameters(), actor_before, strict=True))
     # the actor's Adam has counted only the two joint updates: its bias correction starts afresh after the warm-up
     assert {int(state["step"]) for state in algo.optimizers["actor"].state_dict()["state"].values()} == {2}
     assert {int(state["step"]) for state in algo.optimizers["value"].state_dict()["state"].values()} == {5}

@@ -65,7 +65,7 @@ def _run(root: Path, name: str, returns: list[float], algo: str = "bail", envelo
         (run / "summary.json").write_text(json.dumps({"envelope_best_epoch": envelope_best_epoch}))
         (run / "config.yaml").write_text(f"algo:\n  envelope:\n    epochs: {envelope_epochs}\n    patience: 4\n")
     steps = [100 * (i + 1) for i in range(len(returns))]
-    (scalars / "return.csv").write_text("".join(f"{s},{r}\n" for s, r in zip(steps, returns)))
+    (scalars / "return.csv").write_text("".join(f"{s},{r}\n" for s, r in zip(steps, returns, strict=True)))
     (scalars / "epoch.csv").write_text("".join(f"{s},{0.2 * (i + 1)}\n" for i, s in enumerate(steps)))
 
 

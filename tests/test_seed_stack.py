@@ -54,7 +54,7 @@ def _assert_close_trees(got, expected, path: str) -> None:
             _assert_close_trees(got[key], expected[key], f"{path}[{key!r}]")
     elif isinstance(expected, (list, tuple)):
         assert len(got) == len(expected), path
-        for i, (g, e) in enumerate(zip(got, expected)):
+        for i, (g, e) in enumerate(zip(got, expected, strict=True)):
             _assert_close_trees(g, e, f"{path}[{i}]")
     elif torch.is_tensor(expected):
         torch.testing.assert_close(got, expected, **TOL, msg=lambda m: f"{path}: {m}")
@@ -68,7 +68,7 @@ def _assert_close_per_seed(singles, stack) -> None:
     """After :meth:`SeedStack.unstack`, each seed's algorithm holds its single-seed twin's whole state: weights,
     targets, buffers, optimizer moments and the algorithm's own attributes (early stopping...)."""
     stack.unstack()
-    for seed, single, stacked in zip(SEEDS, singles, stack.algorithms):
+    for seed, single, stacked in zip(SEEDS, singles, stack.algorithms, strict=True):
         _assert_close_trees(stacked.state_dict(), single.state_dict(), f"seed {seed}")
 
 
@@ -92,22 +92,24 @@ def test_stacked_seeds_start_and_update_as_their_single_seed_runs(case, monkeypa
     monkeypatch.setattr(torch, "randn_like", row_noise_like)
     data = loss_batch((120,), seed=0)
     singles = [_built(case, seed) for seed in SEEDS]
-    single_data = [a.prepare(data, _context(seed)) for a, seed in zip(singles, SEEDS)]
+    single_data = [a.prepare(data, _context(seed)) for a, seed in zip(singles, SEEDS, strict=True)]
     algorithms = [_built(case, seed) for seed in SEEDS]
     stack = SeedStack(algorithms)
-    for single, stacked in zip(singles, stack.algorithms):  # the stack leaves the seeds' own objects untouched
+    # the stack leaves the seeds' own objects untouched
+    for single, stacked in zip(singles, stack.algorithms, strict=True):
         assert _parameters(single).keys() == _parameters(stacked).keys()
     stacked_data = prepare_seeds(algorithms, data, [_context(seed) for seed in SEEDS])
     stack.restack()  # what prepare fitted (BAIL's envelope) into the stack
-    for single, stacked in zip(single_data, stacked_data):  # BAIL: each seed's envelope selected the same actions
+    # BAIL: each seed's envelope selected the same actions
+    for single, stacked in zip(single_data, stacked_data, strict=True):
         assert single.batch_size == stacked.batch_size
         torch.testing.assert_close(stacked["return"], single["return"])
     torch.testing.assert_close(_actions(stack, len(SEEDS)), torch.stack([_actions(a) for a in singles]), **TOL)
     draws = [torch.Generator().manual_seed(100 + seed) for seed in SEEDS]
     for _ in range(4):
-        index = [torch.randint(len(d), (ALGO_BATCH,), generator=g) for d, g in zip(single_data, draws)]
-        single_metrics = [a.update(d[i]) for a, d, i in zip(singles, single_data, index)]
-        metrics = stack.update(torch.stack([d[i] for d, i in zip(stacked_data, index)]))
+        index = [torch.randint(len(d), (ALGO_BATCH,), generator=g) for d, g in zip(single_data, draws, strict=True)]
+        single_metrics = [a.update(d[i]) for a, d, i in zip(singles, single_data, index, strict=True)]
+        metrics = stack.update(torch.stack([d[i] for d, i in zip(stacked_data, index, strict=True)]))
         for key, value in metrics.items():
             expected = torch.stack([torch.as_tensor(m[key], dtype=value.dtype) for m in single_metrics])
             # per-seed diagnostics come back [S]; the losses' values are their means over the seeds
@@ -214,23 +216,23 @@ def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
         fits = fit_upper_envelopes(stacked, observations, returns, **{**kwargs, **overrides},
                                    generators=[torch.Generator().manual_seed(seed) for seed in seeds])
         unstack_modules(stacked, networks)
-        return list(zip(fits, networks))
+        return list(zip(fits, networks, strict=True))
 
     mixed = stacked_fit(SEEDS)
     assert any(fit.revert_epochs for fit, _ in mixed) or early_stopping == "as_coded"
-    for seed, (fit, net) in zip(SEEDS, mixed):
+    for seed, (fit, net) in zip(SEEDS, mixed, strict=True):
         for alone, alone_net in stacked_fit([seed] * len(SEEDS)):
             assert torch.equal(fit.train_index, alone.train_index) and torch.equal(fit.val_index, alone.val_index)
             assert (fit.best_epoch, fit.revert_epochs, fit.returned) == \
                 (alone.best_epoch, alone.revert_epochs, alone.returned)
             assert fit.val_loss == alone.val_loss and fit.train_loss == alone.train_loss
-            for (name, p), q in zip(net.named_parameters(), alone_net.parameters()):
+            for (name, p), q in zip(net.named_parameters(), alone_net.parameters(), strict=True):
                 assert torch.equal(p, q), name
     # the stack against one plain network: the same split and, with the weights held still (lr=0), the same
     # validation losses to float32's rounding of three products of at most 16 terms and a mean over the
     # validation points (relative, about (3 * 16 + n) * 2^-24; 3x that is allowed)
     held = dict(epochs=2, lr=0.0)
-    for seed, (fit, _) in zip(SEEDS, stacked_fit(SEEDS, **held)):
+    for seed, (fit, _) in zip(SEEDS, stacked_fit(SEEDS, **held), strict=True):
         single = fit_upper_envelope(network(seed), observations, returns, generator=torch.Generator().manual_seed(seed),
                                     **{**kwargs, **held})
         assert torch.equal(fit.train_index, single.train_index) and torch.equal(fit.val_index, single.val_index)
@@ -277,7 +279,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
         if checkpoints is None:
             prepared = prepare_seeds(algorithms, data, [_context(seed) for seed in seeds])
         else:
-            prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, seeds)]
+            prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, seeds, strict=True)]
         stack = SeedStack(algorithms)
         return stack, SeedBatchSampler(prepared, ALGO_BATCH, streams)
 
@@ -306,7 +308,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     histories = train_seeds(StackedTrainee(resumed, sampler), checkpoint_paths=paths, resume_from=checkpoints, **kwargs)
     assert [h.evaluations for h in histories] == [h.evaluations for h in reference_histories]
     resumed.unstack()
-    for got, expected in zip(resumed.algorithms, reference.algorithms):
+    for got, expected in zip(resumed.algorithms, reference.algorithms, strict=True):
         equal_trees(got.state_dict(), expected.state_dict())
 
     evaluate.stacked = False  # the last seed's checkpoint, continued by its single-seed run
@@ -317,7 +319,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
     alone.load_state_dict(checkpoints[-1]["algorithm"])
     history = train(alone, alone.restore_prepared(data, _context(seeds[-1])), resume_from=checkpoints[-1], **kwargs)
     assert len(history.evaluations) == len(single_reference.evaluations)
-    for got, expected in zip(history.evaluations, single_reference.evaluations):
+    for got, expected in zip(history.evaluations, single_reference.evaluations, strict=True):
         assert math.isclose(got.mean_return, expected.mean_return, rel_tol=1e-4, abs_tol=1e-4)
     _assert_close_trees(alone.state_dict(), single.state_dict(), "alone")
 
@@ -356,8 +358,8 @@ def test_compiled_stack_updates_like_the_eager_stack():
     assert torch.allclose(got["loss_bc"], expected["loss_bc"], rtol=1e-5)
     eager.unstack()
     compiled.unstack()
-    for a, b in zip(eager.algorithms, compiled.algorithms):
-        for p, q in zip(a.modules["actor"].parameters(), b.modules["actor"].parameters()):
+    for a, b in zip(eager.algorithms, compiled.algorithms, strict=True):
+        for p, q in zip(a.modules["actor"].parameters(), b.modules["actor"].parameters(), strict=True):
             torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
     assert not torch.equal(next(eager.algorithms[0].modules["actor"].parameters()),
                            next(eager.algorithms[1].modules["actor"].parameters()))

@@ -174,7 +174,7 @@ def test_compiled_updates_agree_with_eager_across_the_delay():
         got = compiled.update(batch)
         for key in expected:
             torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5, msg=key)
-    for a, b in zip(compiled.loss.parameters(), eager.loss.parameters()):
+    for a, b in zip(compiled.loss.parameters(), eager.loss.parameters(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 

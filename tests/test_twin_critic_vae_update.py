@@ -46,9 +46,9 @@ def test_plain_tensor_critics_match_the_tensordict_path_bit_for_bit(make_loss):
     data = batch((5,))
     fast = _critic_values_and_grads(loss, data.clone(), plain=True)
     slow = _critic_values_and_grads(loss, data.clone(), plain=False)
-    for a, b in zip(fast[:4], slow[:4]):
+    for a, b in zip(fast[:4], slow[:4], strict=True):
         assert torch.equal(a, b)
-    assert all(torch.equal(a, b) for a, b in zip(fast[4], slow[4]))
+    assert all(torch.equal(a, b) for a, b in zip(fast[4], slow[4], strict=True))
     assert fast[0].shape == (2, 5) and not torch.equal(fast[0][0], fast[0][1])
 
 

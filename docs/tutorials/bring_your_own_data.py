@@ -38,7 +38,7 @@ def write_d4rl_file(path: Path, steps: int, seed: int = 0) -> Path:
     for _ in range(steps):
         action = env.action_space.sample()
         next_obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(rows, (obs, action, reward, terminated, truncated, next_obs)):
+        for key, value in zip(rows, (obs, action, reward, terminated, truncated, next_obs), strict=True):
             rows[key].append(value)
         obs = env.reset()[0] if terminated or truncated else next_obs
     with h5py.File(path, "w") as f:

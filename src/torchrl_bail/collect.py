@@ -124,7 +124,8 @@ def format_listing(rows: list[dict]) -> str:
     right = {1, 2, 3, 4, 5}
     lines = []
     for j, row in enumerate(table):
-        cells = [str(c).rjust(w) if i in right else str(c).ljust(w) for i, (c, w) in enumerate(zip(row, widths))]
+        cells = [str(c).rjust(w) if i in right else str(c).ljust(w)
+                 for i, (c, w) in enumerate(zip(row, widths, strict=True))]
         lines.append("  ".join(cells).rstrip())
         if j == 0:
             lines.append("  ".join("-" * w for w in widths))

@@ -542,7 +542,7 @@ def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, return
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
 
     splits = [envelope_split(returns.cpu(), val_fraction, generator=g) for g in generators]
-    train_index, val_index = (torch.stack(parts) if stacked else parts[0] for parts in zip(*splits))
+    train_index, val_index = (torch.stack(parts) if stacked else parts[0] for parts in zip(*splits, strict=True))
     networks = [SeedSlice(value_network, s) for s in range(len(generators))] if stacked else [value_network]
     if float(val_fraction) > 0 and val_index.shape[-1] == 0:
         warnings.warn(
@@ -552,7 +552,7 @@ def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, return
         )
     keys = (value_network.in_keys[0], loss_module.tensor_keys.value_target)
     data = TensorDict(dict(zip(keys, (observations.to(device=device, dtype=dtype),
-                                      returns.to(device=device, dtype=dtype)))), batch_size=[len(returns)])
+                                      returns.to(device=device, dtype=dtype)), strict=True)), batch_size=[len(returns)])
     validation = data[val_index.to(device)]
     has_validation = val_index.shape[-1] > 0
     train_on_device = train_index.to(device)
@@ -566,7 +566,7 @@ def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, return
     for epoch in bar:
         train = train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size, generators=generators)
         val = validation_loss(loss_module, validation)
-        for tracker, seed_train, seed_val, tr, va in zip(trackers, train_losses, val_losses, train, val):
+        for tracker, seed_train, seed_val, tr, va in zip(trackers, train_losses, val_losses, train, val, strict=True):
             seed_train.append(tr)
             seed_val.append(va)
             if has_validation:
@@ -584,7 +584,7 @@ def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, return
 
     fits = []
     for network, tracker, seed_train, seed_val, (seed_train_index, seed_val_index) in zip(
-            networks, trackers, train_losses, val_losses, splits):
+            networks, trackers, train_losses, val_losses, splits, strict=True):
         returned: Literal["best", "last"] = "last"
         if mode == "paper_best" and tracker.best.recorded:
             tracker.best.load_into(network)

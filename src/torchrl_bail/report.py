@@ -425,7 +425,7 @@ def _plot_curves(groups, path: Path) -> Path | None:
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax in axes[len(panels):]:
         ax.set_visible(False)
-    for ax, (batch, lines) in zip(axes, panels):
+    for ax, (batch, lines) in zip(axes, panels, strict=False):
         for label, n, x, mean, half in lines:
             ax.plot(x, mean, label=f"{label} ({n} seeds)")
             ax.fill_between(x, mean - half, mean + half, alpha=0.2)

@@ -284,7 +284,7 @@ class SeedStack:
         count = self.seeds_count
         with torch.no_grad():
             for s, seed_tensors in enumerate(self._seed_tensors):
-                for (_, tensor, dim), own in zip(self._entries, seed_tensors):
+                for (_, tensor, dim), own in zip(self._entries, seed_tensors, strict=True):
                     own.data.copy_(tensor.detach().select(dim, s))  # in place: cached views stay valid
             host_buffers = _other_buffers(self.host, self._stacked_ids)
             for s, algorithm in enumerate(self.algorithms):
@@ -369,7 +369,7 @@ class SeedStack:
         dims = {id(t): d for _, t, d in self._entries}
         own = [p for g in self.algorithms[s].optimizers[key].param_groups for p in g["params"]]
         host = [p for g in optimizer.param_groups for p in g["params"]]
-        return [(h, o, dims.get(id(h), 0)) for h, o in zip(host, own)]
+        return [(h, o, dims.get(id(h), 0)) for h, o in zip(host, own, strict=True)]
 
     def _stack_optimizer_state(self, key: str, optimizer: torch.optim.Optimizer) -> None:
         pairs = [self._optimizer_pairs(key, optimizer, s) for s in range(self.seeds_count)]
@@ -430,7 +430,7 @@ class SeedBatchSampler:
 
     def sample(self) -> TensorDictBase:
         index = torch.stack([torch.randint(0, n, (self.batch_size,), generator=g, device=self.device)
-                             for n, g in zip(self.sizes, self.generators)])
+                             for n, g in zip(self.sizes, self.generators, strict=True)])
         return self.storage[index + self.offsets]
 
     @property
@@ -445,7 +445,7 @@ class SeedBatchSampler:
                 "device_index": self.device.index or 0}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        for g, s in zip(self.generators, state["generators"]):
+        for g, s in zip(self.generators, state["generators"], strict=True):
             g.set_state(s)
 
 
@@ -500,7 +500,7 @@ def prepare_seeds(algorithms: Sequence[Any], data: TensorDictBase, contexts: Seq
     stacked = getattr(type(algorithms[0]), "prepare_stacked", None)
     if stacked is not None:
         return stacked(algorithms, data, contexts)
-    return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts)]
+    return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts, strict=True)]
 
 
 def _same_tensors(a: TensorDictBase, b: TensorDictBase) -> bool:

@@ -272,7 +272,7 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     summaries: dict[int, dict[str, Any]] = {}
     with contextlib.ExitStack() as stack:
         todo = []
-        for i, (seed_cfg, seed_dir) in enumerate(zip(configs, dirs)):
+        for i, (seed_cfg, seed_dir) in enumerate(zip(configs, dirs, strict=True)):
             resumption = stack.enter_context(Resumption(seed_cfg, seed_dir))
             if resumption.complete is not None:
                 summaries[i] = resumption.complete
@@ -285,7 +285,7 @@ def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
                               "by one (seed=<s>, without seeds=) or start over with resume=false")
         if todo:
             trained = _train_seeds([configs[i] for i, _ in todo], [dirs[i] for i, _ in todo], [r for _, r in todo])
-            summaries.update(zip([i for i, _ in todo], trained))
+            summaries.update(zip([i for i, _ in todo], trained, strict=True))
     return [summaries[i] for i in range(len(configs))]
 
 
@@ -309,7 +309,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
 
     start = time.perf_counter()
     cfg = configs[0]
-    for seed_cfg, seed_dir in zip(configs, dirs):
+    for seed_cfg, seed_dir in zip(configs, dirs, strict=True):
         record_config(seed_cfg, seed_dir / "config.yaml")
     device = _device(cfg.device)
     batch = load_training_batch(cfg)
@@ -327,9 +327,9 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
             resumption.check_data(data)
         checkpoints = [r.checkpoint for r in resumptions]
         resuming = checkpoints[0] is not None
-        loggers = [make_logger(c, d) for c, d in zip(configs, dirs)]
+        loggers = [make_logger(c, d) for c, d in zip(configs, dirs, strict=True)]
         algorithms, contexts, streams = [], [], []
-        for seed_cfg, seed_dir, logger, checkpoint in zip(configs, dirs, loggers, checkpoints):
+        for seed_cfg, seed_dir, logger, checkpoint in zip(configs, dirs, loggers, checkpoints, strict=True):
             # seeded after the batch is loaded: generating it (first run) or reading it from the cache (every later
             # run, resumed ones included) leaves the training streams the same
             generator = seed_everything(int(seed_cfg.seed))
@@ -342,7 +342,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
                 contexts.append(PrepareContext(run_dir=seed_dir, logger=logger, generator=generator,
                                                progress=cfg.progress))
         if resuming:
-            prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts)]
+            prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts, strict=True)]
         elif stacked:
             prepared = prepare_seeds(algorithms, data, contexts)
         else:
@@ -378,7 +378,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
         evaluator.close()
     wall_time_s = time.perf_counter() - start + (checkpoints[0] or {}).get("wall_time_s", 0.0)
     return [finish_run(c, d, batch, a, h, action_spec, obs_dim, r, wall_time_s=wall_time_s)
-            for c, d, a, h, r in zip(configs, dirs, algorithms, histories, resumptions)]
+            for c, d, a, h, r in zip(configs, dirs, algorithms, histories, resumptions, strict=True)]
 
 
 def _sampling_stream(seed: int, device):

@@ -83,7 +83,7 @@ class BAIL(BehaviourCloning):
         own :meth:`prepare`, to float rounding); then each seed selects its best actions under its envelope."""
         first = algorithms[0]
         if first.selection_by != "envelope":
-            return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts)]
+            return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts, strict=True)]
         networks = [algorithm.value_network for algorithm in algorithms]
         stacked = stack_modules(networks)
         observations = data["observation"].to(first.device)
@@ -93,14 +93,14 @@ class BAIL(BehaviourCloning):
         )
         unstack_modules(stacked, networks)
         return [algorithm._select_after_fit(data, dataclasses.replace(fit, value_network=network), ctx)
-                for algorithm, fit, network, ctx in zip(algorithms, fits, networks, contexts)]
+                for algorithm, fit, network, ctx in zip(algorithms, fits, networks, contexts, strict=True)]
 
     def _select_after_fit(self, data: TensorDictBase, fit, ctx: PrepareContext) -> TensorDictBase:
         """What :meth:`prepare` does after the envelope fit (``fit`` is ``None`` when ranking by return): log the
         fit, measure the envelope, plot it, select the best actions."""
         observations, returns = data["observation"], data["return"]
         if fit is not None:
-            for epoch, (tr, va) in enumerate(zip(fit.train_loss, fit.val_loss), start=1):
+            for epoch, (tr, va) in enumerate(zip(fit.train_loss, fit.val_loss, strict=True), start=1):
                 ctx.log("envelope/train_loss", tr, step=epoch)
                 ctx.log("envelope/val_loss", va, step=epoch)
             values = envelope_values(self.value_network, observations.to(self.device)).cpu()

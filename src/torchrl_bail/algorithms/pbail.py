@@ -115,7 +115,7 @@ class ProgressiveBAIL(DeterministicActorAlgorithm):
         if val is None or val.batch_size[-1] == 0:  # no validation set: no early stopping
             return
         losses = validation_loss(self.envelope_loss, val)
-        for (tracker, selection), loss in zip(self._seed_tracking, losses):
+        for (tracker, selection), loss in zip(self._seed_tracking, losses, strict=True):
             event = tracker.observe(loss)
             if self.best_envelope == "paper" and event == "improved":
                 tracker.best.load_into(selection)
@@ -174,7 +174,7 @@ class ProgressiveBAIL(DeterministicActorAlgorithm):
 
     def unstack_attributes(self, algorithms: list[ProgressiveBAIL]) -> None:
         """Each seed's update clock and early-stopping state back into its own algorithm."""
-        for algorithm, (tracker, _) in zip(algorithms, self._seed_tracking):
+        for algorithm, (tracker, _) in zip(algorithms, self._seed_tracking, strict=True):
             algorithm._iteration = self._iteration
             algorithm.early_stopping.load_state_dict(tracker.state_dict())
 

@@ -186,7 +186,7 @@ def minari_episodes(batch: OfflineBatch) -> tuple[list, bool]:
             "so this batch cannot be exported"
         )
     buffers = []
-    for k, (start, end) in enumerate(zip(starts, ends)):
+    for k, (start, end) in enumerate(zip(starts, ends, strict=True)):
         buffers.append(EpisodeBuffer(
             id=k,
             observations=np.concatenate([obs[start:end], nxt[end - 1:end]]),
