@@ -223,47 +223,79 @@ def collect(conf: Path | None = None) -> list[Section]:
     with initialize_config_dir(str(conf.resolve()), version_base="1.3"):
         for group in (None, *GROUPS):
             for option in ([None] if group is None else _options(conf, group)):
-                cfg = compose("config", overrides=[] if group is None else [f"{group}={option}"])
-                node = cfg if group is None else cfg[group]
-                schema = OmegaConf.get_type(node)
-                rows = _rows(node, OmegaConf.to_container(node, resolve=False), group)
-                comments = _option_comments(conf, group, option)
-                label = option or "default"
-                section = sections.setdefault((group, schema), Section(group, schema, [], rows))
-                section.options.append(label)
-                by_key = {r.key: r for r in section.rows}
-                for row in rows:
-                    kept = by_key[row.key]
-                    kept.defaults[label] = row.value
-                    if not kept.doc and comments.get(row.key):
-                        kept.doc = comments[row.key]
-        # presets: preset/<p>.yaml sets the same values whatever the env and batch, algo_preset/<algo>_<p>.yaml
-        # depends on the algorithm, so one composition per (algorithm, preset) shows every preset's values
+                _add_option(sections, conf, group, option)
         algos = _options(conf, "algo")
         plain = {a: _flat(OmegaConf.to_container(compose("config", [f"algo={a}"]), resolve=False)) for a in algos}
         for preset in PRESETS:
-            changed: dict[str, dict[str, Any]] = {}  # dotted key -> algo -> value under the preset
-            for algo in algos:
-                chosen = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}", f"preset={preset}"]),
-                                                      resolve=False))
-                for key, value in chosen.items():
-                    if plain[algo].get(key) != value:
-                        changed.setdefault(key, {})[algo] = value
-            for (group, _), section in sections.items():
-                for row in section.rows:
-                    by_algo = changed.get(row.key if group is None else f"{group}.{row.key}", {})
-                    if group == "algo":  # the algorithm's own section: its own preset file
-                        by_algo = {a: v for a, v in by_algo.items() if [a] == section.options}
-                    for label, value in _preset_labels(preset, by_algo, algos, group == "algo"):
-                        for option in section.options:
-                            row.presets.setdefault(option, {})[label] = value
-    # a key that names its option (env.name, batch.kind): the options shipped are its values
+            _add_preset(sections, preset, _preset_changes(preset, plain), algos)
+    _allow_option_names(sections)
+    _share_docs(sections)
+    return list(sections.values())
+
+
+def _add_option(sections: dict[tuple, Section], conf: Path, group: str | None, option: str | None) -> None:
+    """Composes ``group=option`` (the top level for ``None``) and adds its values, as that option's defaults, to
+    the section of its schema (created on its first option); a row's doc is the first yaml comment found."""
+    from hydra import compose
+
+    cfg = compose("config", overrides=[] if group is None else [f"{group}={option}"])
+    node = cfg if group is None else cfg[group]
+    schema = OmegaConf.get_type(node)
+    rows = _rows(node, OmegaConf.to_container(node, resolve=False), group)
+    comments = _option_comments(conf, group, option)
+    label = option or "default"
+    section = sections.setdefault((group, schema), Section(group, schema, [], rows))
+    section.options.append(label)
+    by_key = {r.key: r for r in section.rows}
+    for row in rows:
+        kept = by_key[row.key]
+        kept.defaults[label] = row.value
+        if not kept.doc and comments.get(row.key):
+            kept.doc = comments[row.key]
+
+
+def _preset_changes(preset: str, plain: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``{dotted key: {algo: value}}``: what ``preset`` changes in each algorithm's composition (``plain``: algo ->
+    its flat composition without a preset). preset/<p>.yaml sets the same values whatever the env and batch,
+    algo_preset/<algo>_<p>.yaml depends on the algorithm, so one composition per (algorithm, preset) shows every
+    preset's values."""
+    from hydra import compose
+
+    changed: dict[str, dict[str, Any]] = {}  # dotted key -> algo -> value under the preset
+    for algo in plain:
+        chosen = _flat(OmegaConf.to_container(compose("config", [f"algo={algo}", f"preset={preset}"]),
+                                              resolve=False))
+        for key, value in chosen.items():
+            if plain[algo].get(key) != value:
+                changed.setdefault(key, {})[algo] = value
+    return changed
+
+
+def _add_preset(sections: dict[tuple, Section], preset: str, changed: dict[str, dict[str, Any]],
+                algos: list[str]) -> None:
+    """Records ``preset``'s values (``changed``, from :func:`_preset_changes`) in every row they concern, for each
+    option of its section; the algorithm's own section shows only its own preset file's."""
+    for (group, _), section in sections.items():
+        for row in section.rows:
+            by_algo = changed.get(row.key if group is None else f"{group}.{row.key}", {})
+            if group == "algo":  # the algorithm's own section: its own preset file
+                by_algo = {a: v for a, v in by_algo.items() if [a] == section.options}
+            for label, value in _preset_labels(preset, by_algo, algos, group == "algo"):
+                for option in section.options:
+                    row.presets.setdefault(option, {})[label] = value
+
+
+def _allow_option_names(sections: dict[tuple, Section]) -> None:
+    """A key that names its option (env.name, batch.kind): the options shipped are its values."""
     for section in sections.values():
         for row in section.rows:
             if row.option_of:
                 names = sorted({str(v) for v in row.defaults.values()})
                 row.allowed = " · ".join(f"`{n}`" for n in names) + f" (or a conf/{row.option_of}/ file of your own)"
-    # a field documented in one option's yaml is documented for every option sharing that schema field
+
+
+def _share_docs(sections: dict[tuple, Section]) -> None:
+    """A field documented in one option's yaml is documented for every option sharing that schema field."""
     docs = {}
     for section in sections.values():
         for row in section.rows:
@@ -272,7 +304,6 @@ def collect(conf: Path | None = None) -> list[Section]:
     for section in sections.values():
         for row in section.rows:
             row.doc = row.doc or docs.get(row.home, "")
-    return list(sections.values())
 
 
 def _preset_labels(preset: str, by_algo: dict[str, Any], algos: list[str], own: bool) -> list[tuple[str, Any]]:
