@@ -99,78 +99,120 @@ def validate_batch(
     act_dim: int | None = None,
 ) -> None:
     """Raises :class:`BatchValidationError` at the first violation of the batch format (see module doc)."""
+    keys = _check_layout(td, source)
+    _check_shapes(td, source)
+    _check_dtypes(td, source)
+    _check_finite(td, keys, source)
+    _check_env_sizes(td, source, obs_dim, act_dim)
+    _check_episodes(td, source)
+    if metadata is not None:
+        _check_metadata(td, metadata, source)
 
-    def fail(key, expected: str, found: str) -> None:
-        where = f" key {_name(key)!r}" if key is not None else ""
-        raise BatchValidationError(f"{source}:{where} expected {expected}, found {found}")
 
+def _fail(source: str, key, expected: str, found: str) -> None:
+    """Raises the one-line :class:`BatchValidationError` of a violation: ``<source>: key '<key>' expected ...``."""
+    where = f" key {_name(key)!r}" if key is not None else ""
+    raise BatchValidationError(f"{source}:{where} expected {expected}, found {found}")
+
+
+def _check_layout(td: TensorDictBase, source: str) -> set:
+    """One batch dimension, at least one row, every required key; returns the batch's leaf keys."""
     if td.batch_dims != 1:
-        fail(None, "a TensorDict with one batch dimension [N]", f"batch size {tuple(td.batch_size)}")
-    n = td.batch_size[0]
-    if n == 0:
-        fail(None, "at least one transition", "an empty batch")
+        _fail(source, None, "a TensorDict with one batch dimension [N]", f"batch size {tuple(td.batch_size)}")
+    if td.batch_size[0] == 0:
+        _fail(source, None, "at least one transition", "an empty batch")
     keys = set(td.keys(include_nested=True, leaves_only=True))
     for key in REQUIRED_KEYS:
         if key not in keys:
-            fail(key, "this key to be present", f"keys {sorted(_name(k) for k in keys)}")
-    obs = td.get("observation")
-    act = td.get("action")
+            _fail(source, key, "this key to be present", f"keys {sorted(_name(k) for k in keys)}")
+    return keys
+
+
+def _check_shapes(td: TensorDictBase, source: str) -> None:
+    """Every required key's shape: ``[N, obs_dim]``, ``[N, act_dim]``, ``[N, 1]`` rewards and flags, ``[N]`` ids."""
+    n = td.batch_size[0]
+    obs_features, act_features = td.get("observation").shape[-1], td.get("action").shape[-1]
     expected_shapes = {
-        "observation": (n, obs.shape[-1]), ("next", "observation"): (n, obs.shape[-1]),
-        "action": (n, act.shape[-1]), ("next", "reward"): (n, 1), "episode": (n,),
+        "observation": (n, obs_features), ("next", "observation"): (n, obs_features),
+        "action": (n, act_features), ("next", "reward"): (n, 1), "episode": (n,),
         **{k: (n, 1) for k in BOOL_KEYS},
     }
     for key, shape in expected_shapes.items():
         value = td.get(key)
         if tuple(value.shape) != shape:
-            fail(key, f"shape {shape}", f"shape {tuple(value.shape)}")
+            _fail(source, key, f"shape {shape}", f"shape {tuple(value.shape)}")
+
+
+def _check_dtypes(td: TensorDictBase, source: str) -> None:
+    """float32 values, bool flags, int64 episode ids."""
     for key in FLOAT_KEYS:
         if td.get(key).dtype != torch.float32:
-            fail(key, "dtype float32", f"{td.get(key).dtype}")
+            _fail(source, key, "dtype float32", f"{td.get(key).dtype}")
     for key in BOOL_KEYS:
         if td.get(key).dtype != torch.bool:
-            fail(key, "dtype bool", f"{td.get(key).dtype}")
+            _fail(source, key, "dtype bool", f"{td.get(key).dtype}")
     if td.get("episode").dtype != torch.int64:
-        fail("episode", "dtype int64", f"{td.get('episode').dtype}")
+        _fail(source, "episode", "dtype int64", f"{td.get('episode').dtype}")
+
+
+def _check_finite(td: TensorDictBase, keys: set, source: str) -> None:
+    """No NaN or infinity in any floating-point key (the first bad row is named)."""
+    n = td.batch_size[0]
     for key in sorted(keys, key=_name):
         value = td.get(key)
         if value.is_floating_point():
             finite = torch.isfinite(value.reshape(n, -1)).all(-1)
             if not bool(finite.all()):
-                fail(key, "finite values", f"a non-finite value at index {int((~finite).nonzero()[0])}")
-    if obs_dim is not None and obs.shape[-1] != obs_dim:
-        fail("observation", f"{obs_dim} features (the env's observation size)", f"{obs.shape[-1]}")
-    if act_dim is not None and act.shape[-1] != act_dim:
-        fail("action", f"{act_dim} dimensions (the env's action size)", f"{act.shape[-1]}")
+                _fail(source, key, "finite values", f"a non-finite value at index {int((~finite).nonzero()[0])}")
+
+
+def _check_env_sizes(td: TensorDictBase, source: str, obs_dim: int | None, act_dim: int | None) -> None:
+    """The observation and action sizes are the env's, when they are given."""
+    obs_features, act_features = td.get("observation").shape[-1], td.get("action").shape[-1]
+    if obs_dim is not None and obs_features != obs_dim:
+        _fail(source, "observation", f"{obs_dim} features (the env's observation size)", f"{obs_features}")
+    if act_dim is not None and act_features != act_dim:
+        _fail(source, "action", f"{act_dim} dimensions (the env's action size)", f"{act_features}")
+
+
+def _check_episodes(td: TensorDictBase, source: str) -> None:
+    """``done == terminated | truncated``; contiguous episode ids; ``done`` on each episode's last row only, and
+    on every episode's but the batch's last."""
     done, term, trunc = (td.get(k).squeeze(-1) for k in BOOL_KEYS)
     bad = done != (term | trunc)
     if bool(bad.any()):
-        fail(("next", "done"), "done == terminated | truncated", f"a mismatch at index {int(bad.nonzero()[0])}")
+        _fail(source, ("next", "done"), "done == terminated | truncated",
+              f"a mismatch at index {int(bad.nonzero()[0])}")
     episode = td.get("episode")
     steps = episode[1:] - episode[:-1]
     bad = (steps != 0) & (steps != 1)
     if bool(bad.any()):
         i = int(bad.nonzero()[0])
-        fail("episode", "ids that stay or increase by exactly 1 (contiguous episodes)",
-             f"{int(episode[i])} followed by {int(episode[i + 1])} at index {i + 1}")
+        _fail(source, "episode", "ids that stay or increase by exactly 1 (contiguous episodes)",
+              f"{int(episode[i])} followed by {int(episode[i + 1])} at index {i + 1}")
     last = _episode_boundaries(episode)
     early = done & ~last
     if bool(early.any()):
-        fail(("next", "done"), "done only on the last transition of an episode",
-             f"done inside episode {int(episode[early.nonzero()[0]])} at index {int(early.nonzero()[0])}")
+        _fail(source, ("next", "done"), "done only on the last transition of an episode",
+              f"done inside episode {int(episode[early.nonzero()[0]])} at index {int(early.nonzero()[0])}")
     unfinished = last[:-1] & ~done[:-1]
     if bool(unfinished.any()):
         i = int(unfinished.nonzero()[0])
-        fail(("next", "done"), "every episode but the batch's last to end with done=True",
-             f"episode {int(episode[i])} ends at index {i} without done")
-    if metadata is not None:
-        if "env_id" not in metadata:
-            fail(None, "metadata with an 'env_id'", f"metadata keys {sorted(metadata)}")
-        if metadata.get("num_transitions", n) != n:
-            fail(None, f"metadata num_transitions == {n} rows", f"{metadata['num_transitions']}")
-        for key, size in (("observation_dim", obs.shape[-1]), ("action_dim", act.shape[-1])):
-            if metadata.get(key, size) != size:
-                fail(None, f"metadata {key} == {size} (the data's size)", f"{metadata[key]}")
+        _fail(source, ("next", "done"), "every episode but the batch's last to end with done=True",
+              f"episode {int(episode[i])} ends at index {i} without done")
+
+
+def _check_metadata(td: TensorDictBase, metadata: dict, source: str) -> None:
+    """The metadata names an env and agrees with the data on its row count and sizes."""
+    n = td.batch_size[0]
+    if "env_id" not in metadata:
+        _fail(source, None, "metadata with an 'env_id'", f"metadata keys {sorted(metadata)}")
+    if metadata.get("num_transitions", n) != n:
+        _fail(source, None, f"metadata num_transitions == {n} rows", f"{metadata['num_transitions']}")
+    sizes = (("observation_dim", td.get("observation").shape[-1]), ("action_dim", td.get("action").shape[-1]))
+    for key, size in sizes:
+        if metadata.get(key, size) != size:
+            _fail(source, None, f"metadata {key} == {size} (the data's size)", f"{metadata[key]}")
 
 
 def _episode_sums(td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
