@@ -535,43 +535,16 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
     export = meta.get(EXPORT_KEY) if isinstance(meta.get(EXPORT_KEY), Mapping) else {}
     rows = empty = unflagged = 0
     last_unflagged = False
-    obs_dim = act_dim = None
+    sizes: tuple[int, int] | None = None
     for name, ep in episodes:
-        for key in ("observations", "actions"):
-            if not isinstance(ep[key], np.ndarray):
-                check.fail(f"{name}/{key}", "a flat array (Box observation/action spaces only)",
-                           f"{type(ep[key]).__name__} (a Dict/Tuple space)")
-        obs = check.matrix(f"{name}/observations", np.asarray(ep["observations"]))
-        act = check.matrix(f"{name}/actions", np.asarray(ep["actions"]))
-        rew = check.vector(f"{name}/rewards", np.asarray(ep["rewards"]))
+        obs, act, rew, term, trunc = _minari_episode_arrays(name, ep, check)
+        sizes = _check_minari_sizes(name, obs, act, sizes, check)
         steps = rew.shape[0]
-        check.rows(f"{name}/observations", obs, steps + 1, f"{name}/rewards' plus the final observation")
-        for key, value in (("actions", act), ("terminations", ep["terminations"]),
-                           ("truncations", ep["truncations"])):
-            check.rows(f"{name}/{key}", np.asarray(value), steps, f"{name}/rewards")
-        term = check.flags(f"{name}/terminations", np.asarray(ep["terminations"]))
-        trunc = check.flags(f"{name}/truncations", np.asarray(ep["truncations"]))
-        if obs_dim is None:
-            obs_dim, act_dim = obs.shape[1], act.shape[1]
-            check.sizes(f"{name}/observations", obs_dim, f"{name}/actions", act_dim)
-        elif (obs.shape[1], act.shape[1]) != (obs_dim, act_dim):
-            check.fail(f"{name}/observations", f"the sizes of the first episode ({obs_dim} observation features, "
-                       f"{act_dim} action dimensions)", f"({obs.shape[1]}, {act.shape[1]})")
         if steps == 0:
             empty += 1
             continue
-        if not export:  # this package's own exports keep the batch's flags as recorded (gymnasium's, both may be set)
-            trunc, _ = _terminal_wins(term, trunc)
-        early = (term | trunc)[:-1]
-        if early.any():
-            key = f"{name}/terminations" if term[:-1].any() else f"{name}/truncations"
-            check.fail(key, "a flag only on an episode's last step", f"one at step {int(np.flatnonzero(early)[0])} "
-                       f"of {steps}")
-        last_unflagged = not (term[-1] or trunc[-1])
-        if last_unflagged:
-            trunc = trunc.copy()
-            trunc[-1] = True  # the recording stopped here: a truncation (the final observation is known)
-            unflagged += 1
+        trunc, last_unflagged = _minari_episode_end(name, term, trunc, bool(export), check)
+        unflagged += last_unflagged
         obs32 = check.finite32(f"{name}/observations", obs)
         parts["obs"].append(obs32[:-1])
         parts["next"].append(obs32[1:])
@@ -594,6 +567,65 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
         "episodes_without_end_flag": unflagged, "minari_data_format": fmt,
         "unfinished_final_episode": unfinished,
     }
+    info.update(_minari_info(meta))
+    return td, info
+
+
+def _minari_episode_arrays(name: str, ep: Mapping[str, Any], check: _Checker) -> tuple[np.ndarray, ...]:
+    """One Minari episode's ``(observations, actions, rewards, terminations, truncations)``, checked: flat arrays,
+    ``steps + 1`` observations and ``steps`` of everything else, boolean flags."""
+    for key in ("observations", "actions"):
+        if not isinstance(ep[key], np.ndarray):
+            check.fail(f"{name}/{key}", "a flat array (Box observation/action spaces only)",
+                       f"{type(ep[key]).__name__} (a Dict/Tuple space)")
+    obs = check.matrix(f"{name}/observations", np.asarray(ep["observations"]))
+    act = check.matrix(f"{name}/actions", np.asarray(ep["actions"]))
+    rew = check.vector(f"{name}/rewards", np.asarray(ep["rewards"]))
+    steps = rew.shape[0]
+    check.rows(f"{name}/observations", obs, steps + 1, f"{name}/rewards' plus the final observation")
+    for key, value in (("actions", act), ("terminations", ep["terminations"]),
+                       ("truncations", ep["truncations"])):
+        check.rows(f"{name}/{key}", np.asarray(value), steps, f"{name}/rewards")
+    term = check.flags(f"{name}/terminations", np.asarray(ep["terminations"]))
+    trunc = check.flags(f"{name}/truncations", np.asarray(ep["truncations"]))
+    return obs, act, rew, term, trunc
+
+
+def _check_minari_sizes(name: str, obs: np.ndarray, act: np.ndarray, sizes: tuple[int, int] | None,
+                        check: _Checker) -> tuple[int, int]:
+    """The first episode's observation and action sizes (checked against the env's, when given); every later
+    episode must have the same. Returns them."""
+    if sizes is None:
+        check.sizes(f"{name}/observations", obs.shape[1], f"{name}/actions", act.shape[1])
+        return obs.shape[1], act.shape[1]
+    if (obs.shape[1], act.shape[1]) != sizes:
+        check.fail(f"{name}/observations", f"the sizes of the first episode ({sizes[0]} observation features, "
+                   f"{sizes[1]} action dimensions)", f"({obs.shape[1]}, {act.shape[1]})")
+    return sizes
+
+
+def _minari_episode_end(name: str, term: np.ndarray, trunc: np.ndarray, exported: bool,
+                        check: _Checker) -> tuple[np.ndarray, bool]:
+    """A non-empty episode's end flags: a flag on its last step only; one recorded without any gets a truncation.
+    Returns ``(truncations, whether the last step had no flag)``."""
+    if not exported:  # this package's own exports keep the batch's flags as recorded (gymnasium's, both may be set)
+        trunc, _ = _terminal_wins(term, trunc)
+    early = (term | trunc)[:-1]
+    if early.any():
+        key = f"{name}/terminations" if term[:-1].any() else f"{name}/truncations"
+        check.fail(key, "a flag only on an episode's last step", f"one at step {int(np.flatnonzero(early)[0])} "
+                   f"of {term.shape[0]}")
+    unflagged = not (term[-1] or trunc[-1])
+    if unflagged:
+        trunc = trunc.copy()
+        trunc[-1] = True  # the recording stopped here: a truncation (the final observation is known)
+    return trunc, unflagged
+
+
+def _minari_info(meta: Mapping[str, Any]) -> dict[str, Any]:
+    """What the batch records of the Minari dataset's metadata: its id, reference scores, algorithm, version, env
+    and Box action bounds (the keys it has)."""
+    info: dict[str, Any] = {}
     for key in ("dataset_id", "ref_min_score", "ref_max_score", "algorithm_name", "minari_version"):
         if meta.get(key) is not None:
             info[key] = meta[key]
@@ -604,7 +636,7 @@ def _convert_minari(data_dir: Path, check: _Checker) -> tuple[TensorDict, dict[s
     if space and space.get("type") == "Box" and "low" in space and "high" in space:
         info["minari_action_low"] = [float(x) for x in np.ravel(space["low"])]
         info["minari_action_high"] = [float(x) for x in np.ravel(space["high"])]
-    return td, info
+    return info
 
 
 # --------------------------------------------------------------------------------------------------------------
