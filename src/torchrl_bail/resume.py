@@ -223,34 +223,49 @@ class Resumption:
         if mode is False or str(mode).lower() == "false":
             self._start_over("resume=false")
             return
-        source = self.run_dir
-        if mode not in (None, True, "auto") and str(mode).lower() not in ("auto", "true"):
-            source = Path(str(mode)).expanduser()
-            if not source.is_absolute():
-                from hydra.utils import to_absolute_path
-
-                source = Path(to_absolute_path(str(source)))
-            if source.resolve() == self.run_dir.resolve():
-                source = self.run_dir
-            elif not (source / CHECKPOINT).is_file():
-                raise ResumeError(f"resume={mode}: no {CHECKPOINT} in {source} to continue from")
-            elif (self.run_dir / CHECKPOINT).exists():
-                raise ResumeError(f"resume={mode}: {self.run_dir} already holds a checkpoint of its own; continue it "
-                                  "with resume=auto or pick another hydra.run.dir")
+        source = self._source(mode)
         ckpt_path = source / CHECKPOINT
         if not ckpt_path.is_file():
             if mode is True or str(mode).lower() == "true":
                 raise ResumeError(f"resume=true: no {CHECKPOINT} in {self.run_dir} to continue from")
-            if self._report_if_complete(None):
-                return
-            self._start_over(None)
+            self._complete_or_start_over()
             return
         checkpoint = self._load_checkpoint(ckpt_path, source, mode)
         if checkpoint is None:  # damaged, and set aside: as if there were none
-            if self._report_if_complete(None):
-                return
-            self._start_over(None)
+            self._complete_or_start_over()
             return
+        self._check_config(checkpoint, ckpt_path)
+        finished = checkpoint["iteration"] >= checkpoint["iterations"]
+        if source == self.run_dir and finished and self._report_if_complete(checkpoint):
+            return
+        self._resume(checkpoint, source)
+
+    def _source(self, mode) -> Path:
+        """The directory whose checkpoint the run continues: this run directory, or ``resume=<dir>``'s (which
+        must hold a checkpoint, while this run directory holds none of its own)."""
+        if mode in (None, True, "auto") or str(mode).lower() in ("auto", "true"):
+            return self.run_dir
+        source = Path(str(mode)).expanduser()
+        if not source.is_absolute():
+            from hydra.utils import to_absolute_path
+
+            source = Path(to_absolute_path(str(source)))
+        if source.resolve() == self.run_dir.resolve():
+            return self.run_dir
+        if not (source / CHECKPOINT).is_file():
+            raise ResumeError(f"resume={mode}: no {CHECKPOINT} in {source} to continue from")
+        if (self.run_dir / CHECKPOINT).exists():
+            raise ResumeError(f"resume={mode}: {self.run_dir} already holds a checkpoint of its own; continue it "
+                              "with resume=auto or pick another hydra.run.dir")
+        return source
+
+    def _complete_or_start_over(self) -> None:
+        """No checkpoint to continue: the run is complete when its summary is there, else it starts over."""
+        if not self._report_if_complete(None):
+            self._start_over(None)
+
+    def _check_config(self, checkpoint: dict, ckpt_path: Path) -> None:
+        """Refuses a checkpoint without a config or written by another config than this run's."""
         if checkpoint.get("config") is None:
             raise ResumeError(f"{ckpt_path} carries no config (written by an older torchrl_bail): it cannot be "
                               "resumed safely; start over with resume=false or choose another hydra.run.dir")
@@ -259,9 +274,9 @@ class Resumption:
             shown = "; ".join(diffs[:4]) + (f"; ... ({len(diffs)} keys in all)" if len(diffs) > 4 else "")
             raise ResumeError(f"{ckpt_path} was written by another config ({shown}); rerun with the checkpoint's "
                               "config, start over with resume=false, or choose another hydra.run.dir")
-        finished = checkpoint["iteration"] >= checkpoint["iterations"]
-        if source == self.run_dir and finished and self._report_if_complete(checkpoint):
-            return
+
+    def _resume(self, checkpoint: dict, source: Path) -> None:
+        """Takes the checkpoint on: adopts ``source``'s files, cuts the logs back to it, records where it stopped."""
         if source != self.run_dir:
             self._adopt(source)
         self._truncate_logs(checkpoint.get("log_sizes"))
