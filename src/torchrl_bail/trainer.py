@@ -295,21 +295,8 @@ def train_seeds(
 
     def checkpoint(it: int) -> None:
         with interrupts.saving():  # every seed's file whole before a signal may stop the process
-            write_checkpoint(it)
-
-    def write_checkpoint(it: int) -> None:
-        state = {
-            "format": CHECKPOINT_FORMAT,
-            "iteration": it,
-            "iterations": iterations,
-            "evaluations": [[asdict(e) for e in h.evaluations] for h in histories],
-            "metric_sums": {k: v.clone() if torch.is_tensor(v) else v for k, v in sums.items()},
-            "rng": rng_state(),
-            "evaluator": evaluation_state.state_dict() if hasattr(evaluation_state, "state_dict") else None,
-            "wall_time_s": prior_wall_time + time.perf_counter() - start,
-        }
-        for path, seed_state, extra in zip(checkpoint_paths, trainee.checkpoints(state), extras):
-            save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
+            state = _loop_state(it, iterations, histories, sums, evaluation_state, prior_wall_time, start)
+            _save_checkpoints(trainee, state, checkpoint_paths, extras)
 
     bar = tqdm(total=iterations, initial=done, desc=f"{trainee.name}", unit="it", disable=not progress,
                dynamic_ncols=True)
@@ -323,22 +310,12 @@ def train_seeds(
             for k, v in metrics.items():
                 sums[k] = sums.get(k, 0.0) + v
             if it % log_every == 0:
-                for seed_logger, seed_sums in zip(loggers, trainee.seed_metrics(sums)):
-                    for k, v in seed_sums.items() if seed_logger is not None else ():
-                        seed_logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
+                _log_training(trainee, sums, loggers, log_every, it)
                 sums.clear()
             evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
             if evaluated:
                 points = _evaluate(evaluate, trainee, it, it * per_update / samples_per_epoch)
-                for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks):
-                    is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
-                    seed_history.evaluations.append(point)
-                    if callback is not None and is_best:
-                        callback(point, len(seed_history.evaluations) - 1)
-                    if seed_logger is not None:
-                        seed_logger.log_scalar("eval/return", point.mean_return, step=it)
-                        seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
-                        seed_logger.log_scalar("eval/failures", point.failures, step=it)
+                _record_evaluation(points, histories, loggers, best_callbacks, it)
                 mean_return = sum(p.mean_return for p in points) / len(points)
                 bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
             saved = checkpoint_paths is not None and (
@@ -350,16 +327,67 @@ def train_seeds(
                 last_checkpoint = time.monotonic()
             bar.update(1)
             if interrupts.requested() is not None:  # Ctrl-C/SIGTERM: the checkpoint at this iteration, then stop
-                if checkpoint_paths is None:
-                    interrupts.stop("nothing (checkpoint.enabled=false: a rerun starts over)")
-                if not saved:
-                    checkpoint(it)
-                interrupts.stop(f"the checkpoint at iteration {it} of {iterations} in "
-                                f"{', '.join(str(p) for p in checkpoint_paths)}")
+                _stop_on_interrupt(checkpoint, checkpoint_paths, saved, it, iterations)
     for seed_history in histories:
         seed_history.iterations = iterations
         seed_history.wall_time_s = prior_wall_time + time.perf_counter() - start
     return histories
+
+
+def _loop_state(it: int, iterations: int, histories: list[TrainHistory], sums: dict, evaluation_state,
+                prior_wall_time: float, start: float) -> dict[str, Any]:
+    """The loop's side of a checkpoint at iteration ``it``: schedule, evaluations, metric sums, random streams and
+    the wall time so far (``prior_wall_time`` of earlier processes + this one's since ``start``)."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "iteration": it,
+        "iterations": iterations,
+        "evaluations": [[asdict(e) for e in h.evaluations] for h in histories],
+        "metric_sums": {k: v.clone() if torch.is_tensor(v) else v for k, v in sums.items()},
+        "rng": rng_state(),
+        "evaluator": evaluation_state.state_dict() if hasattr(evaluation_state, "state_dict") else None,
+        "wall_time_s": prior_wall_time + time.perf_counter() - start,
+    }
+
+
+def _save_checkpoints(trainee: Trainee, state: dict[str, Any], paths: Sequence[Path],
+                      extras: Sequence[Callable[[], dict] | None]) -> None:
+    """Writes each seed's checkpoint: the trainee's seed state with the loop's ``state`` and the seed's extras."""
+    for path, seed_state, extra in zip(paths, trainee.checkpoints(state), extras, strict=True):
+        save_checkpoint(path, {**seed_state, **(extra() if extra is not None else {})})
+
+
+def _log_training(trainee: Trainee, sums: dict, loggers: Sequence, log_every: int, it: int) -> None:
+    """Logs each seed's training scalars, averaged over the last ``log_every`` updates."""
+    for seed_logger, seed_sums in zip(loggers, trainee.seed_metrics(sums), strict=True):
+        for k, v in seed_sums.items() if seed_logger is not None else ():
+            seed_logger.log_scalar(f"train/{k}", float(v) / log_every, step=it)
+
+
+def _record_evaluation(points: list[EvalPoint], histories: list[TrainHistory], loggers: Sequence,
+                       best_callbacks: Sequence, it: int) -> None:
+    """Appends each seed's evaluation to its history, calls its ``on_new_best`` on a new best, logs it."""
+    for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks, strict=True):
+        is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
+        seed_history.evaluations.append(point)
+        if callback is not None and is_best:
+            callback(point, len(seed_history.evaluations) - 1)
+        if seed_logger is not None:
+            seed_logger.log_scalar("eval/return", point.mean_return, step=it)
+            seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
+            seed_logger.log_scalar("eval/failures", point.failures, step=it)
+
+
+def _stop_on_interrupt(checkpoint: Callable[[int], None], checkpoint_paths: Sequence[Path] | None, saved: bool,
+                       it: int, iterations: int) -> None:
+    """Stops the run on a requested interrupt, with the checkpoint at iteration ``it`` written first (when
+    checkpoints are on)."""
+    if checkpoint_paths is None:
+        interrupts.stop("nothing (checkpoint.enabled=false: a rerun starts over)")
+    if not saved:
+        checkpoint(it)
+    interrupts.stop(f"the checkpoint at iteration {it} of {iterations} in "
+                    f"{', '.join(str(p) for p in checkpoint_paths)}")
 
 
 def _restore(trainee: Trainee, checkpoints: list[dict], iterations: int, histories: list[TrainHistory], sums: dict,
@@ -374,7 +402,7 @@ def _restore(trainee: Trainee, checkpoints: list[dict], iterations: int, histori
             raise ValueError(f"the checkpoint's schedule has {checkpoint['iterations']} iterations but this run has "
                              f"{iterations}: the algorithm's epochs/batch size or samples_per_epoch changed")
     state = trainee.restore(checkpoints)
-    for history, evaluations in zip(histories, state["evaluations"]):
+    for history, evaluations in zip(histories, state["evaluations"], strict=True):
         history.evaluations.extend(EvalPoint(**e) for e in evaluations)
     sums.update(state["metric_sums"])
     if state.get("evaluator") is not None and hasattr(evaluation_state, "load_state_dict"):

@@ -223,23 +223,12 @@ class BehaviourRun:
                     finishing = True
                 else:
                     break
-            action = self.act(observation, self.t)
-            next_observation, reward, terminated, truncated, _ = env.step(action.detach().numpy())
-            next_observation = _observation(next_observation)
-            reward = np.float32(reward)
-            done = bool(terminated or truncated)
-            rows.append(observation, action, next_observation, reward, bool(terminated), bool(truncated))
+            next_observation, reward, done = self._step(env, observation, rows)
             ep_ret += float(reward)
-            self.t += 1
-            if self.tracker is not None:
-                self.tracker.step()
             if done:
                 length = len(rows)
-                self._flush(rows.episode(), sinks)
+                self._end_episode(rows, ep_ret, sinks)
                 rows = _EpisodeRows()
-                self.episodes += 1
-                if self.tracker is not None:
-                    self.tracker.episode(ep_ret, length)
                 if finishing:
                     break
                 if self.on_episode_end is not None and not until(0):  # no learning once the batch is full
@@ -255,6 +244,28 @@ class BehaviourRun:
                 observation = next_observation
         if rows:
             self._flush(rows.episode(), sinks)
+
+    def _step(self, env, observation: torch.Tensor, rows: _EpisodeRows) -> tuple[torch.Tensor, np.float32, bool]:
+        """One env step: acts on ``observation``, records the transition in ``rows``, counts it; returns
+        ``(next observation, reward, done)``."""
+        action = self.act(observation, self.t)
+        next_observation, reward, terminated, truncated, _ = env.step(action.detach().numpy())
+        next_observation = _observation(next_observation)
+        reward = np.float32(reward)
+        done = bool(terminated or truncated)
+        rows.append(observation, action, next_observation, reward, bool(terminated), bool(truncated))
+        self.t += 1
+        if self.tracker is not None:
+            self.tracker.step()
+        return next_observation, reward, done
+
+    def _end_episode(self, rows: _EpisodeRows, ep_ret: float, sinks) -> None:
+        """Hands the ended episode to the sinks and counts it (episodes, the tracker's returns)."""
+        length = len(rows)
+        self._flush(rows.episode(), sinks)
+        self.episodes += 1
+        if self.tracker is not None:
+            self.tracker.episode(ep_ret, length)
 
     @staticmethod
     def _flush(episode: TensorDictBase, sinks) -> None:

@@ -237,29 +237,46 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, on_step=on_step, tracker=tracker)
         resumable = None
         if checkpoint is not None:
-            def state() -> dict:
-                for fname, weights in snapshots.items():  # each policy snapshot is written once, before state.pt
-                    if not (checkpoint.directory / fname).is_file():
-                        with atomic_path(checkpoint.directory / fname) as tmp:
-                            torch.save(weights, tmp)
-                return {"agent": agent.state_dict(), "evaluations": copy.deepcopy(evaluations),
-                        "timers": dict(timers)}
-
-            def load(saved: dict) -> None:
-                agent.load_state_dict(saved["agent"])
-                evaluations[:] = saved["evaluations"]
-                timers.update(saved["timers"])
-                for ev in evaluations:
-                    snapshots[ev["file"]] = torch.load(checkpoint.directory / ev["file"], map_location="cpu",
-                                                       weights_only=True)
-                evaluator.evaluations = len(evaluations)  # the k-th evaluation's reset seeds depend on k
-
-            resumable = Resumable(checkpoint, runner, buffers, state=state, load=load)
+            resumable = _sac_resumable(checkpoint, runner, buffers, agent, evaluator, evaluations, snapshots, timers)
         data, wall = collect_timed(buffers, runner, after=evaluate_final, resumable=resumable)
     finally:
         env.close()
         evaluator.close()
-    record = {
+    record = _sac_record(cfg, identity, obs_dim, low, high, agent, runner, evaluations, wall, timers, resumable)
+    return data, record, snapshots
+
+
+def _sac_resumable(checkpoint: CollectionCheckpoint, runner: BehaviourRun, buffers: BehaviourBuffers,
+                   agent: SACAgent, evaluator: Evaluator, evaluations: list[dict],
+                   snapshots: dict[str, dict[str, torch.Tensor]], timers: dict[str, float]) -> Resumable:
+    """The run's :class:`~torchrl_bail.behaviour.checkpoint.Resumable`: beside the loop's state, the agent, the
+    evaluations so far, the timers and each evaluation's policy snapshot (``evals/``, written once each)."""
+
+    def state() -> dict:
+        for fname, weights in snapshots.items():  # each policy snapshot is written once, before state.pt
+            if not (checkpoint.directory / fname).is_file():
+                with atomic_path(checkpoint.directory / fname) as tmp:
+                    torch.save(weights, tmp)
+        return {"agent": agent.state_dict(), "evaluations": copy.deepcopy(evaluations),
+                "timers": dict(timers)}
+
+    def load(saved: dict) -> None:
+        agent.load_state_dict(saved["agent"])
+        evaluations[:] = saved["evaluations"]
+        timers.update(saved["timers"])
+        for ev in evaluations:
+            snapshots[ev["file"]] = torch.load(checkpoint.directory / ev["file"], map_location="cpu",
+                                               weights_only=True)
+        evaluator.evaluations = len(evaluations)  # the k-th evaluation's reset seeds depend on k
+
+    return Resumable(checkpoint, runner, buffers, state=state, load=load)
+
+
+def _sac_record(cfg, identity: dict, obs_dim: int, low: torch.Tensor, high: torch.Tensor, agent: SACAgent,
+                runner: BehaviourRun, evaluations: list[dict], wall: float, timers: dict[str, float],
+                resumable: Resumable | None) -> dict[str, Any]:
+    """The run record (``run.json``): identity, sizes, bounds, evaluations, speed, final temperature."""
+    return {
         "identity": identity,
         "name": sac_run_dir(cfg, "/").name,
         "obs_dim": int(obs_dim),
@@ -280,7 +297,6 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
         "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    return data, record, snapshots
 
 
 def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
