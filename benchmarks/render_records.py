@@ -33,7 +33,7 @@ D3RLPY = ROOT / "results" / "d3rlpy"
 # the order of the ratio table; a record of any other script follows, by name
 ORDER = ("bench_bail", "bench_marwil", "bench_bcq_bear", "bench_collection", "bench_evaluation", "bench_seed_stack",
          "bench_compile", "bench_d3rlpy", "bench_sweep", "bench_memory")
-D3RLPY_BATCHES = ("hopper_sac_b1", "hopper_ddpg05_b1")
+D3RLPY_BATCHES = ("hopper_sac_b1", "hopper_ddpg05_b1", "hopper_ddpg05_b1_bcq_decoder_tanh")
 COPIED = "†"
 
 
