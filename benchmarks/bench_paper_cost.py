@@ -28,7 +28,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _bench import Record, add_record_argument, print_table
+from _bench import Record, add_record_argument
 
 #: algorithm -> (the override the probe lengthens, its short value, updates per unit of it); the long run is 3x, so
 #: the extra 4000 updates (or 4 envelope epochs) take tens of seconds, well above the ~1 s spread of the fixed part
@@ -88,20 +88,21 @@ def main(argv: list[str] | None = None) -> int:
             for t in threads:
                 for r in range(args.repeats):
                     short_s = probe_run(algo, t, short, Path(tmp) / f"r{r}")
-                    long_s = probe_run(algo, t, short * 3, Path(tmp) / f"r{r}")
+                    long_s = probe_run(algo, t, round(short * 3, 6), Path(tmp) / f"r{r}")
                     rate = 2 * short * per_unit / (long_s - short_s)
                     rounds.setdefault(f"threads={t}", []).append(rate)
                     runs.append({"threads": t, "repeat": r, "short_s": short_s, "long_s": long_s, "rate": rate})
                     print(f"{algo} threads={t}: {short_s:.1f} s / {long_s:.1f} s -> {rate:.1f} "
                           f"{'epochs' if algo == 'envelope' else 'updates'}/s", flush=True)
-            row = {"name": f"{algo} ({key} {short} vs {short * 3})",
+            row = {"name": f"{algo} ({key} {short} vs {round(short * 3, 6)})",
                    "unit": "envelope epochs/s" if algo == "envelope" else "updates/s", "rounds": rounds, "runs": runs}
             if len(threads) > 1:
                 row["ratio_of"] = [f"threads={threads[-1]}", f"threads={threads[0]}"]
             rows.append(row)
             record.write(rows)  # after every algorithm: a long probe keeps what it measured
-    final = record.write(rows)
-    print_table(final["table"], f"threads={threads[-1]} / threads={threads[0]}")
+    for row in record.write(rows)["table"]:
+        print(f"{row['case']}: threads={threads[-1]} / threads={threads[0]} = {row['ratio']:.2f} "
+              f"({row['torchrl_bail']:.1f} vs {row['reference']:.1f} {row['unit']})")
     return 0
 
 
