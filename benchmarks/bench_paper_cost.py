@@ -28,7 +28,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _bench import Record, add_record_argument
+from _bench import Record, add_record_argument, summarise
 
 #: algorithm -> (the override the probe lengthens, its short value, updates per unit of it); the long run is 3x, so
 #: the extra 4000 updates (or 4 envelope epochs) take tens of seconds, well above the ~1 s spread of the fixed part
@@ -94,11 +94,10 @@ def main(argv: list[str] | None = None) -> int:
                     runs.append({"threads": t, "repeat": r, "short_s": short_s, "long_s": long_s, "rate": rate})
                     print(f"{algo} threads={t}: {short_s:.1f} s / {long_s:.1f} s -> {rate:.1f} "
                           f"{'epochs' if algo == 'envelope' else 'updates'}/s", flush=True)
-            row = {"name": f"{algo} ({key} {short} vs {round(short * 3, 6)})",
-                   "unit": "envelope epochs/s" if algo == "envelope" else "updates/s", "rounds": rounds, "runs": runs}
-            if len(threads) > 1:
-                row["ratio_of"] = [f"threads={threads[-1]}", f"threads={threads[0]}"]
-            rows.append(row)
+            name = f"{algo} ({key} {short} vs {round(short * 3, 6)})"
+            unit = "envelope epochs/s" if algo == "envelope" else "updates/s"
+            first, last = f"threads={threads[0]}", f"threads={threads[-1]}"
+            rows.append(summarise(name, unit, rounds, ratio_of=(last, first), runs=runs))
             record.write(rows)  # after every algorithm: a long probe keeps what it measured
     for row in record.write(rows)["table"]:
         print(f"{row['case']}: threads={threads[-1]} / threads={threads[0]} = {row['ratio']:.2f} "
