@@ -333,7 +333,6 @@ def curve_check(results: Path) -> list[dict]:
     epochs before the cap (the validation loss then stopped improving for that long), not when a fit was still
     improving as the cap stopped it. Written to ``results/curves.{md,json}``."""
     import numpy as np
-    from omegaconf import OmegaConf
 
     from torchrl_bail.io import write_json_atomic, write_text_atomic
     from torchrl_bail.plots import read_eval_curve
