@@ -17,6 +17,8 @@ import pytest
 import torch
 
 from torchrl_bail.data import BatchValidationError, importers, load_batch, save_batch
+from torchrl_bail.data.formats import FORMATS, Conversion, DatasetFormat, register_format, transitions
+from torchrl_bail.data.formats.d4rl import D4RLFormat
 from torchrl_bail.data.importers import DatasetImportError, import_cache_path, import_dataset
 from torchrl_bail.data.scores import D4RL_REF_SCORES, normalized_score
 
@@ -241,7 +243,7 @@ def test_second_import_is_a_cache_hit_and_a_changed_file_is_converted_again(tmp_
         raise AssertionError("converted again although the file did not change")
 
     with monkeypatch.context() as m:
-        m.setattr(importers, "_convert_d4rl", no_conversion)
+        m.setattr(D4RLFormat, "convert", no_conversion)
         second = import_dataset(path, env_id="Hopper-v5", data_dir=data_dir)
         assert second.path == first.path and second.num_transitions == 9
         # relative and absolute spellings of the same file share the cache entry
@@ -378,6 +380,86 @@ def test_native_batch_directory_is_used_in_place(tmp_path):
     assert batch.path == native.path and imported_dirs(tmp_path / "data") == []
     with pytest.raises(DatasetImportError, match=r"mine: key 'observations': expected 17 observation features"):
         import_dataset(native.path, env_id="HalfCheetah-v5")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the format registry
+# ----------------------------------------------------------------------------------------------------------------
+
+KNOWN_FORMATS = (r"expected a D4RL-layout HDF5 file \(\*\.hdf5 or \*\.h5\), a Minari dataset directory "
+                 r"\(data/metadata\.json \+ data/main_data\.hdf5\) or a native batch directory "
+                 r"\(metadata\.json \+ data/\)")
+
+
+def test_a_path_no_format_claims_is_one_error_naming_every_format(tmp_path):
+    """No fallback: an unknown file or folder is never handed to the Minari (or any) reader."""
+    (tmp_path / "data.csv").write_text("a,b\n")
+    with pytest.raises(DatasetImportError, match=rf"data.csv: {KNOWN_FORMATS}, found a file with suffix '.csv'$"):
+        import_dataset(tmp_path / "data.csv", data_dir=tmp_path / "data")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    (folder / "metadata.json").write_text("{}")  # neither Minari's (no main_data.hdf5 / data_format) nor a batch
+    for path in (folder, tmp_path / "data.csv"):
+        with pytest.raises(DatasetImportError, match=KNOWN_FORMATS):
+            import_cache_path(path, tmp_path / "data")
+    found = r"found a directory with \['metadata.json'\]"
+    with pytest.raises(DatasetImportError, match=rf"folder: {KNOWN_FORMATS}, {found}"):
+        import_dataset(folder, data_dir=tmp_path / "data")
+    assert not (tmp_path / "data").exists()  # nothing converted, nothing cached
+
+
+class NpzFormat(DatasetFormat):
+    """A format registered by a test: ``*.npz`` with ``obs [N+1, d]``, ``act [N, a]``, ``rew [N]`` (one episode that
+    ends in a terminal). The dispatcher is not edited to read it."""
+
+    name = "test_npz"
+    expects = "a test .npz file (obs, act, rew)"
+
+    def locate(self, path):
+        return path if path.is_file() and path.suffix == ".npz" else None
+
+    def convert(self, location, check):
+        with np.load(location) as f:
+            obs, act, rew = (np.asarray(f[k], dtype=np.float32) for k in ("obs", "act", "rew"))
+        check.sizes("obs", obs.shape[1], "act", act.shape[1])
+        term = np.zeros(rew.shape[0], dtype=bool)
+        term[-1] = True
+        data = transitions(obs[:-1], act, obs[1:], rew, term, np.zeros_like(term))
+        return Conversion(data, {"rows_in_file": int(rew.shape[0])}, env_id="Pendulum-v1", action_low=[-2.0],
+                          action_high=[2.0])
+
+
+@pytest.fixture
+def npz_format():
+    fmt = register_format(NpzFormat())
+    try:
+        yield fmt
+    finally:
+        FORMATS.pop(fmt.name)
+
+
+def test_a_format_registered_elsewhere_is_read_cached_and_listed(tmp_path, npz_format):
+    path = tmp_path / "pendulum.npz"
+    np.savez(path, obs=np.arange(12, dtype=np.float64).reshape(4, 3), act=np.zeros((3, 1)), rew=np.ones(3))
+    batch = import_dataset(path, data_dir=tmp_path / "data")
+    assert importers.detect_format(path) == ("test_npz", path)
+    assert batch.path == import_cache_path(path, tmp_path / "data")
+    assert batch.path.name.startswith("import_pendulum-") and batch.num_transitions == 3
+    assert batch.data["next", "observation"][0].tolist() == [3.0, 4.0, 5.0]
+    assert batch.data["next", "terminated"].flatten().tolist() == [False, False, True]
+    meta = batch.metadata
+    assert meta["env_id"] == "Pendulum-v1" and meta["action_low"] == [-2.0] and meta["source"]["format"] == "test_npz"
+    assert importers.describe_import(meta).startswith("import test_npz ")
+    assert import_dataset(path, data_dir=tmp_path / "data").path == batch.path  # a cache hit
+    with pytest.raises(DatasetImportError, match=r"pendulum.npz: key 'obs': expected 11 observation features"):
+        import_dataset(path, env_id="Hopper-v5", data_dir=tmp_path / "other")
+    # the unknown-format error now names it too, after the built-in ones
+    (tmp_path / "data.csv").write_text("a,b\n")
+    listed = r"a native batch directory \(metadata\.json \+ data/\) or a test \.npz file \(obs, act, rew\), found"
+    with pytest.raises(DatasetImportError, match=rf"HDF5 file .*, {listed}"):
+        import_dataset(tmp_path / "data.csv")
+    with pytest.raises(ValueError, match="'test_npz' is already registered"):
+        register_format(NpzFormat())
 
 
 # ----------------------------------------------------------------------------------------------------------------
