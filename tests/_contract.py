@@ -197,6 +197,10 @@ ALGO_CASES = {case.name: case for case in [
     # the actor steps at every update here, so that every optimizer steps in one (tests/test_td3bc.py: the delay)
     AlgoCase("td3bc", {"actor": _NET, "critic": _NET, "policy_delay": 1},
              ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")),
+    # the contract's batches are one episode, whose returns have no spread to scale by (tests/test_iql.py: the scale)
+    AlgoCase("iql", {"actor": _NET, "critic": _NET, "value": _NET, "reward_scale": "none"},
+             ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]",
+              "algo.value.hidden=[16,16]")),
 ]}
 
 #: transitions in the tiny batch every tiny end-to-end run shares

@@ -9,7 +9,7 @@ BC alone), so inductor itself is exercised on BC (BAIL's update is BC's method) 
 kernels. Even so a compile costs 15-70 s per algorithm on the shared 2-core machine (Dynamo tracing the TensorDict
 code dominates), so the default suite compares BC (inductor), MARWIL (aot_eager: its float64 running normaliser is
 the in-place buffer update torch 2.13 loses in compiled graphs) and BEAR (aot_eager: the most involved update, with
-all of BCQ's VAE/critic machinery); ``TORCHRL_BAIL_FULL_COMPILE_TESTS=1`` adds Progressive BAIL and BCQ.
+all of BCQ's VAE/critic machinery); ``TORCHRL_BAIL_FULL_COMPILE_TESTS=1`` adds Progressive BAIL, BCQ and IQL.
 ``benchmarks/bench_compile.py`` runs every algorithm under inductor.
 
 ``device=cuda`` (checked on the CPU here, and on a GPU by ``benchmarks/gpu_check.sh`` with
@@ -43,12 +43,12 @@ DEVICE = torch.empty(0, device=os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu")
 #: switches
 SWITCHES = {"pbail": {"envelope.patience": 1}}
 #: inductor where it is affordable on 2 cores, aot_eager elsewhere (module docstring); BAIL updates with BC's method.
-#: Progressive BAIL and BCQ run with TORCHRL_BAIL_FULL_COMPILE_TESTS=1 only (see the module docstring)
+#: Progressive BAIL, BCQ and IQL run with TORCHRL_BAIL_FULL_COMPILE_TESTS=1 only (see the module docstring)
 #: (a machine without a C++ compiler, which inductor needs on CPU, runs BC through aot_eager too)
 _CXX = any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "c++", "clang++"))
 BACKENDS = {"bc": "inductor" if _CXX else "aot_eager", "marwil": "aot_eager", "bear": "aot_eager"}
 if os.environ.get("TORCHRL_BAIL_FULL_COMPILE_TESTS") == "1":
-    BACKENDS.update(pbail="aot_eager", bcq="aot_eager")
+    BACKENDS.update(pbail="aot_eager", bcq="aot_eager", iql="aot_eager")
 
 
 def _data(n: int = 200, seed: int = 0) -> TensorDict:

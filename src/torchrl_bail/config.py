@@ -414,6 +414,30 @@ class TD3BCConfig(AlgoConfig):
     critic: CriticConfig = MISSING
 
 
+@dataclass
+class IQLActorConfig(NetConfig):
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+    lr_schedule: str = one_of("cosine", "constant")
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@dataclass
+class IQLConfig(AlgoConfig):
+    expectile: float = _rule(lambda v: 0 < v < 1, "an expectile in (0, 1) (0.5: mean regression)")
+    beta: float = non_negative("a non-negative inverse temperature of the advantage weights")
+    # TorchRL's IQLLoss clips the advantage weights at 100 (a constant of its code): the one value it can train
+    max_weight: float = _rule(lambda v: v == 100, "100, the clip of exp(beta A) that TorchRL's IQLLoss hard-codes")
+    gamma: float = discount()
+    tau: float = _rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    reward_scale: str = one_of("locomotion", "none")
+    actor: IQLActorConfig = MISSING
+    critic: CriticConfig = MISSING
+    value: NetConfig = MISSING
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # the top level (conf/config.yaml)
 # ---------------------------------------------------------------------------------------------------------------
@@ -612,7 +636,7 @@ def batch_label(env: str, kind: str, index: int, dataset: str | None) -> str:
 
 
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
-                "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig}
+                "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig, "iql": IQLConfig}
 BATCH_SCHEMAS = {"ddpg": DDPGBatchConfig, "sac": SACBatchConfig, "sac_exec": SACExecBatchConfig}
 
 

@@ -473,6 +473,10 @@ class StackedTrainee:
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         return self.stack.update(batch)
 
+    def plan_updates(self, updates: int) -> None:
+        for algorithm in (self.stack.host, *self.stack.algorithms):
+            algorithm.plan_updates(updates)
+
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         def per_seed(value) -> bool:
             return torch.is_tensor(value) and bool(value.ndim)

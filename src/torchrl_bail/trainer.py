@@ -132,6 +132,10 @@ class Trainee(Protocol):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One update step; returns its training scalars."""
 
+    def plan_updates(self, updates: int) -> None:
+        """Tells every seed's algorithm the run's number of updates
+        (:meth:`~torchrl_bail.algorithms.base.Algorithm.plan_updates`)."""
+
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         """The accumulated training scalars as each seed logs them (one dict per seed)."""
 
@@ -172,6 +176,9 @@ class AlgorithmTrainee:
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         return self.algorithm.update(batch)
+
+    def plan_updates(self, updates: int) -> None:
+        self.algorithm.plan_updates(updates)
 
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         return [sums]
@@ -283,6 +290,7 @@ def train_seeds(
     per_update = trainee.samples_per_update
     iterations = max(1, math.ceil(trainee.epochs * samples_per_epoch / per_update))
     eval_interval = max(1, round(eval_every_epochs * samples_per_epoch / per_update))
+    trainee.plan_updates(iterations)
     loggers = list(loggers or [None] * count)
     best_callbacks = list(on_new_best or [None] * count)
     extras = list(checkpoint_extras or [None] * count)

@@ -119,6 +119,11 @@ class Algorithm(ABC):
         """
         return self.prepare(data, ctx)
 
+    def plan_updates(self, updates: int) -> None:
+        """Told by the training loop, before its first update (and again when it resumes), how many updates the
+        whole run makes: for a schedule over the run (IQL's cosine learning rate). The default ignores it."""
+        return None
+
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One update on a mini-batch; returns detached scalars to log.
