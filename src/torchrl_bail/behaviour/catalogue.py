@@ -1,9 +1,10 @@
 """``ensure_batch``: the cached batch for ``cfg.env`` x ``cfg.batch``, collected first when it is not there yet.
 
-The cache layout, names and hashes are :mod:`torchrl_bail.data.cache`'s; the recipes are listed in
-:mod:`torchrl_bail.behaviour.recipes`. Interruption: the agent's replay buffer lives in a scratch directory removed
-on exit; the run checkpoints in ``<data_dir>/.partial/`` (:mod:`~torchrl_bail.behaviour.checkpoint`) and a
-killed collection resumes from its last checkpoint, producing the same batch; nothing half-written ever loads.
+The cache layout, names and hashes are :mod:`torchrl_bail.data.cache`'s; the recipes register themselves in
+:mod:`torchrl_bail.behaviour.recipes`, and :func:`collect_batch` runs them through it. Interruption: the agent's
+replay buffer lives in a scratch directory removed on exit; the run checkpoints in ``<data_dir>/.partial/``
+(:mod:`~torchrl_bail.behaviour.checkpoint`) and a killed collection resumes from its last checkpoint, producing the
+same batch; nothing half-written ever loads.
 """
 
 from __future__ import annotations
@@ -14,10 +15,8 @@ import time
 from pathlib import Path
 
 from torchrl_bail import interrupts
-from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
-from torchrl_bail.behaviour.ddpg import collect_ddpg
-from torchrl_bail.behaviour.execution import collect_sac_exec
-from torchrl_bail.behaviour.sac_run import collect_sac, run_checkpoint, sac_run_lock
+from torchrl_bail.behaviour import ddpg, execution, sac_run  # noqa: F401  (each registers its recipe)
+from torchrl_bail.behaviour.recipes import recipe_of
 from torchrl_bail.config import collection_config
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import batch_metadata, batch_name, batch_path, load_cached_batch
@@ -70,31 +69,21 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
     cfg = collection_config(cfg)
     path = Path(path)
     root = path.parent
-    recipe = cfg.batch.recipe
+    recipe = recipe_of(cfg)
     start = time.perf_counter()
-    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe, cfg.batch.steps,
+    log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe.name, cfg.batch.steps,
              path)
     beat = liveness_settings(cfg)[1]
-    checkpoint = run_checkpoint(cfg, root) if recipe == "sac" else CollectionCheckpoint.for_config(cfg, root, path.name)
+    checkpoint = recipe.checkpoint(cfg, root, path.name)
     # Ctrl-C/SIGTERM (interrupts): the loop checkpoints at its next episode end and stops; a signal that comes after
     # the last one waits for the batch to be saved
     with interrupts.safe_points():
         with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
-            if recipe == "ddpg":
-                data, extra = collect_ddpg(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
-            elif recipe == "sac":
-                data, extra = collect_sac(cfg, scratch=scratch, progress=progress, data_dir=root,
-                                          checkpoint=checkpoint)
-            else:
-                data, extra = collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=root,
-                                               checkpoint=checkpoint)
+            data, extra = recipe.collect(cfg, scratch=scratch, progress=progress, data_dir=root,
+                                         checkpoint=checkpoint)
             metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
             HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
             batch = save_batch(data, path, metadata)
-        if recipe == "sac":  # the run's checkpoint is shared with whoever needs the same SAC run; under its lock
-            with sac_run_lock(cfg, root):
-                checkpoint.remove()
-        else:
-            checkpoint.remove()
+        recipe.remove_checkpoint(cfg, root, checkpoint)  # the shared SAC run's: under its lock
         interrupts.stop_if_requested(f"the finished batch {path}")
     return batch

@@ -56,6 +56,7 @@ from torchrl_bail.behaviour.loop import (
     make_collection_env,
     seed_all,
 )
+from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.data.cache import batch_name, behaviour_seed, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
@@ -289,3 +290,15 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
     log.info("DDPG collection done: %d env steps, %d gradient steps, %.1f env steps/s", runner.t, agent.updates,
              extra["env_steps_per_s"])
     return data, extra
+
+
+class DDPGRecipe(Recipe):
+    """``batch.recipe=ddpg``: :func:`collect_ddpg`."""
+
+    name = "ddpg"
+
+    def collect(self, cfg, *, scratch, progress, data_dir, checkpoint):
+        return collect_ddpg(cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
+
+
+register_recipe(DDPGRecipe())

@@ -27,6 +27,7 @@ from torchrl_bail.behaviour.loop import (
     make_collection_env,
     seed_all,
 )
+from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac_run import ensure_sac_run
 from torchrl_bail.data.cache import (
     batch_name,
@@ -105,3 +106,15 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None
         "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
     }
     return data, extra
+
+
+class SACExecRecipe(Recipe):
+    """``batch.recipe=sac_exec``: :func:`collect_sac_exec` (the SAC run behind it is shared, under its own lock)."""
+
+    name = "sac_exec"
+
+    def collect(self, cfg, *, scratch, progress, data_dir, checkpoint):
+        return collect_sac_exec(cfg, scratch=scratch, progress=progress, data_dir=data_dir, checkpoint=checkpoint)
+
+
+register_recipe(SACExecRecipe())

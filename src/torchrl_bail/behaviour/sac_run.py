@@ -50,6 +50,7 @@ from torchrl_bail.behaviour.loop import (
     make_collection_env,
     seed_all,
 )
+from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac import SACAgent
 from torchrl_bail.config import BatchConfig, SACBatchConfig
 from torchrl_bail.data.batch import save_batch
@@ -87,6 +88,11 @@ EVAL_SEED_OFFSET = 20_000  # evaluation envs too
 
 
 
+def _is_run_batch(cfg) -> bool:
+    """Whether ``cfg`` is the ``sac`` batch (the run's own first transitions), not an execution batch of the run."""
+    return cfg.batch.recipe == SACRecipe.name
+
+
 def _sac_block(cfg) -> dict:
     return dict(plain(cfg.batch.sac))
 
@@ -97,7 +103,7 @@ def sac_run_identity(cfg) -> dict:
     A ``sac`` batch in oracle mode trains its own run on 2000-step episodes; execution batches always use the run
     on the env's normal time limit (oracle mode only changes how they are executed).
     """
-    if cfg.batch.recipe == "sac":
+    if _is_run_batch(cfg):
         limit = episode_limit(cfg)
     else:
         limit = cfg.env.max_episode_steps
@@ -161,7 +167,7 @@ def run_checkpoint(cfg, data_dir=None) -> CollectionCheckpoint:
     """Where the SAC run of ``cfg`` checkpoints: ``<data_dir>/.partial/<run name>[_oracle]`` (shared by the
     ``sac``, ``med_*`` and ``opt_*`` batches that need the same run; written under the run's lock)."""
     root = data_dir_of(cfg, data_dir)
-    oracle = cfg.batch.recipe == "sac" and oracle_settings(cfg) is not None
+    oracle = _is_run_batch(cfg) and oracle_settings(cfg) is not None
     return CollectionCheckpoint.for_config(cfg, root, sac_run_dir(cfg, root).name + ("_oracle" if oracle else ""))
 
 
@@ -182,7 +188,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
     train_steps = int(sac["train_steps"])
     start_steps = int(sac["start_steps"])
     eval_every = int(sac["eval_every"])
-    oracle = oracle_settings(cfg) if cfg.batch.recipe == "sac" else None
+    oracle = oracle_settings(cfg) if _is_run_batch(cfg) else None
     seed_all(seed)
     env = make_collection_env(cfg.env.id, max_episode_steps=identity["max_episode_steps"], seed=seed)
     eval_limit = cfg.env.max_episode_steps
@@ -420,3 +426,23 @@ def collect_sac(cfg, *, scratch: Path, progress: bool = True, data_dir=None,
     if steps < data.shape[0]:
         data = data[:steps]
     return data, _sac_batch_extra(SACRun(run.path, record), steps)
+
+
+class SACRecipe(Recipe):
+    """``batch.recipe=sac``: :func:`collect_sac`. It checkpoints as the SAC run (shared with every batch that needs
+    the same run) and removes that checkpoint under the run's lock."""
+
+    name = "sac"
+
+    def collect(self, cfg, *, scratch, progress, data_dir, checkpoint):
+        return collect_sac(cfg, scratch=scratch, progress=progress, data_dir=data_dir, checkpoint=checkpoint)
+
+    def checkpoint(self, cfg, data_dir, name):
+        return run_checkpoint(cfg, data_dir)
+
+    def remove_checkpoint(self, cfg, data_dir, checkpoint):
+        with sac_run_lock(cfg, data_dir):
+            checkpoint.remove()
+
+
+register_recipe(SACRecipe())

@@ -132,7 +132,7 @@ def recipe_identity(cfg) -> dict:
     if isinstance(batch.get("sac"), Mapping):
         batch["sac"] = sac_identity(batch["sac"], cfg.env.id)
     identity = {"env_id": cfg.env.id, "max_episode_steps": episode_limit(cfg), "batch": batch}
-    if batch.get("recipe") == "sac_exec" and batch.get("policy") == "mediocre":
+    if batch.get("policy") == "mediocre":  # a batch of the env's mediocre policy (sac_exec): its threshold counts
         identity["mediocre_threshold"] = cfg.env.mediocre_threshold
     return identity
 

@@ -28,9 +28,10 @@ def _recipe_summary(meta: Mapping[str, Any]) -> str:
     recipe = meta.get("recipe") or {}
     kind = recipe.get("recipe", "?")
     parts = [f"{kind}", f"steps={recipe.get('steps')}", f"seed={meta.get('seed')}"]
-    if kind == "ddpg":
+    # by the keys a recipe has, never its name (this layer does not know the recipes): DDPG's noise, a frozen policy
+    if "sigma" in recipe:
         parts.append(f"sigma={recipe.get('sigma')}")
-    elif kind == "sac_exec":
+    if "policy" in recipe:
         parts.append(f"{recipe.get('policy')}/{'stoch' if recipe.get('stochastic') else 'det'}")
         if meta.get("behaviour_return") is not None:
             parts.append(f"policy_return={meta['behaviour_return']:.0f}")
