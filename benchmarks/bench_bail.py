@@ -28,7 +28,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.data import monte_carlo_returns
 from torchrl_bail.envelope import envelope_step
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network

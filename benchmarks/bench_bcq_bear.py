@@ -31,7 +31,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT, BATCH, N_TARGET, N_MATCH = 11, 3, 100, 10, 5

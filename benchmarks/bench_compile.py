@@ -30,7 +30,7 @@ from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT, ROWS = 11, 3, 20_000

@@ -73,7 +73,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  #
 from torchrl_bail.algorithms.bc import BehaviourCloning  # noqa: E402
 from torchrl_bail.algorithms.bcq import BCQ  # noqa: E402
 from torchrl_bail.algorithms.bear import BEAR  # noqa: E402
-from torchrl_bail.config import algo_config  # noqa: E402
+from torchrl_bail.config_builders import algo_config  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 BC_BATCH = 1000

@@ -29,7 +29,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.marwil import MARWIL
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT = 11, 3  # Hopper-v5

@@ -29,7 +29,7 @@ from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.envelope import fit_upper_envelope, fit_upper_envelopes
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds, stack_modules

@@ -1,8 +1,9 @@
 """Generates the configuration reference (``docs/reference/configuration.md`` of the site) from the typed schemas and
 the yaml files, so that it cannot drift from either.
 
-* **type and allowed range** come from the schemas, the dataclasses of :mod:`torchrl_bail.config`, read through
-  :func:`dataclasses.fields`: a field's annotation is its type, its ``metadata["expected"]`` the allowed range;
+* **type and allowed range** come from the schemas, the dataclasses of :mod:`torchrl_bail.config` and its schema
+  modules, read through :func:`dataclasses.fields`: a field's annotation is its type, its ``metadata["expected"]``
+  the allowed range;
 * **default and one-line meaning** come from ``conf/``: every group option is composed by Hydra exactly as the
   command line composes it (the paper preset, then ``preset=quick`` and ``preset=study`` for their overrides), and
   the comment on a key's line in the yaml file that sets it is its meaning. A key documented once is documented for
@@ -164,11 +165,13 @@ def _allowed(f: dataclasses.Field, schema: type) -> str:
     """The allowed cell's text (markdown, code spans for values): a field's choices each in code, the name of
     ``schema`` in the registry a key names (``algo.name``), else its rule's ``expected`` text; a key naming its group
     option is filled in by :func:`collect`, which knows the options."""
-    from torchrl_bail import config
+    from torchrl_bail import algo_schemas, batch_schemas
 
     if f.metadata.get("registry"):
-        names = [n for n, s in getattr(config, f.metadata["registry"]).items() if s is schema]
-        return " · ".join(f"`{n}`" for n in names) + f" (this schema's name in `config.{f.metadata['registry']}`)"
+        module = next(m for m in (algo_schemas, batch_schemas) if hasattr(m, f.metadata["registry"]))
+        names = [n for n, s in getattr(module, f.metadata["registry"]).items() if s is schema]
+        where = f"{module.__name__.rsplit('.', 1)[-1]}.{f.metadata['registry']}"
+        return " · ".join(f"`{n}`" for n in names) + f" (this schema's name in `{where}`)"
     choices = f.metadata.get("choices")
     if choices:
         return " · ".join(f"`{c}`" for c in choices) + (f" · {f.metadata['or']}" if f.metadata.get("or") else "")
@@ -214,7 +217,7 @@ def collect(conf: Path | None = None) -> list[Section]:
     """Every section of the reference: the top level, then one per (group, schema), rows in schema order."""
     from hydra import compose, initialize_config_dir
 
-    from torchrl_bail.config import config_dir
+    from torchrl_bail.hydra_setup import config_dir
 
     conf = Path(conf) if conf is not None else config_dir()
     config_dir()  # registers the schemas with Hydra's ConfigStore

@@ -22,7 +22,7 @@ at its start and end; older entries hold the wall seconds alone) and the two rep
 over the second half of training (:func:`curve_check`).
 
 The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
-opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.config.ALGO_SCHEMAS`: BAIL,
+opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`: BAIL,
 Progressive BAIL, BC, MARWIL, ...) with seeds 1-3 on each (BAIL and BC on Hopper's DDPG batches,
 :data:`FIVE_SEED_CELLS`: seeds 1-5), except BCQ and BEAR (:data:`DDPG_ONLY`), with seeds 1-3 on
 the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
@@ -54,7 +54,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from torchrl_bail.config import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)

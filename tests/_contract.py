@@ -25,7 +25,7 @@ from tensordict.nn import EnsembleModule
 
 from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
 from torchrl_bail.transforms import BestActionFilter
@@ -152,7 +152,7 @@ class AlgoCase:
 
     Attributes:
         name: the registry name (``algo.name``).
-        overrides: :func:`~torchrl_bail.config.algo_config` overrides for tiny networks (:meth:`build` adds
+        overrides: :func:`~torchrl_bail.config_builders.algo_config` overrides for tiny networks (:meth:`build` adds
             mini-batches of :data:`ALGO_BATCH`).
         cli: the config overrides that make a run through the config and ``run`` take seconds.
         not_updated: modules outside the optimizers of :meth:`update` (BAIL's envelope is fitted in ``prepare``,

@@ -21,7 +21,7 @@ from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bcq import BCQ
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.objectives.common import soft_clipped_double_q_target
 from torchrl_bail.trainer import train
 

@@ -21,7 +21,7 @@ from _batch_rl_testing import (
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bear import BEAR
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.objectives.bear import laplacian_mmd
 
 

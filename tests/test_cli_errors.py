@@ -54,7 +54,7 @@ CASES = [
     ("key_of_another_recipe", [EXP, "batch.sac.polyak=0.9"], ["batch.sac", "no such key", "sigma"]),
     # wrong group options
     ("mistyped_exp", ["+exp=hopper_ddpg5"], ["exp=hopper_ddpg5", "hopper_ddpg05", "walker_sac"]),
-    ("mistyped_algo", [EXP, "algo=bal"], ["algo=bal", "bail, bc, bcq, bear, marwil, pbail"]),
+    ("mistyped_algo", [EXP, "algo=bal"], ["algo=bal", "expected one of bail, bc, bcq, "]),
     ("mistyped_env", [EXP, "env=hoper"], ["env=hoper", "halfcheetah, hopper"]),
     ("mistyped_batch", [EXP, "batch=ddpg5"], ["batch=ddpg5", "ddpg01, ddpg05, med_det"]),
     ("mistyped_preset", [EXP, "preset=fast"], ["preset=fast", "paper, quick"]),
@@ -176,7 +176,8 @@ def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
 
 def test_help_lists_each_groups_real_options(tmp_path):
     """``--help`` names the options of conf/'s groups, not the schemas or included parts Hydra's ConfigStore holds."""
-    from torchrl_bail.config import ALGO_SCHEMAS, group_options
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.hydra_setup import group_options
 
     proc = _run("torchrl_bail.train", ["--help"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]

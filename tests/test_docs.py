@@ -48,7 +48,9 @@ def test_every_schema_field_has_a_one_line_doc(sections):
     assert gen.missing_docs(sections) == []
     documented = {(s.group, r.key) for s in sections for r in s.rows}
     # every schema of both registries appears, with all of its fields
-    from torchrl_bail.config import ALGO_SCHEMAS, BATCH_SCHEMAS, Config
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.batch_schemas import BATCH_SCHEMAS
+    from torchrl_bail.config import Config
     schemas = {s.schema for s in sections}
     assert set(ALGO_SCHEMAS.values()) | set(BATCH_SCHEMAS.values()) | {Config} <= schemas
     assert ("algo", "envelope.early_stopping") in documented and ("batch", "sac.log_prob_on") in documented
@@ -113,7 +115,8 @@ def test_the_page_shows_underscores_and_asterisks_as_written(sections):
 
 
 def test_enumerated_strings_show_their_values(sections):
-    from torchrl_bail.config import ALGO_SCHEMAS, RESUME_MODES
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.config import RESUME_MODES
 
     resume = _row(sections, None, "resume")
     assert resume.type == "enum or path"

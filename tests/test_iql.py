@@ -24,7 +24,8 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.iql import IQL, episode_returns
-from torchrl_bail.config import ConfigError, algo_config
+from torchrl_bail.config import ConfigError
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.trainer import train
 
 SMALL = {"actor": {"hidden": [8]}, "critic": {"hidden": [8]}, "value": {"hidden": [8]}, "batch_size": 16}

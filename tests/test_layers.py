@@ -175,7 +175,8 @@ def test_the_loss_layer_loads_no_config_no_resume_and_no_behaviour():
     import sys
 
     code = ("import sys, torchrl_bail.objectives; print(sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('hydra', 'omegaconf') or m in ('torchrl_bail.config', 'torchrl_bail.resume') or "
+            "('hydra', 'omegaconf') or m in ('torchrl_bail.config', 'torchrl_bail.algo_schemas', "
+            "'torchrl_bail.batch_schemas', 'torchrl_bail.resume') or "
             "m.startswith('torchrl_bail.behaviour')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**__import__("os").environ, "PYTHONPATH": str(PACKAGE.parent)})

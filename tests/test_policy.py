@@ -112,7 +112,7 @@ def test_export_runs_without_this_package(bc_run, tmp_path, fmt):
 
 def _tiny_bc(tmp_path):
     from torchrl_bail.algorithms.bc import BehaviourCloning
-    from torchrl_bail.config import algo_config
+    from torchrl_bail.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)
@@ -169,7 +169,7 @@ def _tiny_bcq(tmp_path):
     from omegaconf import OmegaConf
 
     from torchrl_bail.algorithms.bcq import BCQ
-    from torchrl_bail.config import algo_config
+    from torchrl_bail.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)

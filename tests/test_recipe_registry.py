@@ -10,10 +10,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
+from torchrl_bail.batch_schemas import BATCH_SCHEMAS
 from torchrl_bail.behaviour import ddpg, execution, sac_run
 from torchrl_bail.behaviour.catalogue import ensure_batch
 from torchrl_bail.behaviour.recipes import RECIPES, Recipe, recipe_of, register_recipe
-from torchrl_bail.config import BATCH_SCHEMAS
 from torchrl_bail.data.cache import batch_path, recipe_hash
 from torchrl_bail.data.formats import transitions
 from torchrl_bail.errors import ConfigError

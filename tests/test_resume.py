@@ -28,7 +28,7 @@ import torchrl_bail.resume as resume_module
 import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import BehaviourCloning, PrepareContext
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.data.locks import host_name
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.resume import RUN_LOCK, ResumeError, Resumption

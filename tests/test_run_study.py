@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from torchrl_bail.config import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS
 
 SCRIPT = Path(__file__).resolve().parents[1] / "results" / "run_study.py"
 

@@ -12,7 +12,7 @@ from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
 from torchrl_bail.trainer import train, train_seeds
 
@@ -338,7 +338,7 @@ def test_compiled_stack_updates_like_the_eager_stack():
     from tensordict import TensorDict
 
     from torchrl_bail.algorithms.bc import BehaviourCloning
-    from torchrl_bail.config import algo_config
+    from torchrl_bail.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     config = algo_config("bc", batch_size=8, policy={"hidden": [16]})

@@ -22,7 +22,7 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.td3bc import TD3BC
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 #: bounds +-2: the target policy's noise is 0.2 * 2 with a clip of 0.5 * 2

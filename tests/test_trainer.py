@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail.algorithms.bc import BehaviourCloning
-from torchrl_bail.config import algo_config
+from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.trainer import EvalPoint, TrainHistory, train
 

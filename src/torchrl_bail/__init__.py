@@ -1,6 +1,6 @@
 """torchrl_bail: BAIL, Progressive BAIL and the batch-RL baselines (BC, BCQ, BEAR, MARWIL) on TorchRL.
 
-The package face defines nothing: ``torchrl_bail.config_dir`` (:func:`torchrl_bail.config.config_dir`),
+The package face defines nothing: ``torchrl_bail.config_dir`` (:func:`torchrl_bail.hydra_setup.config_dir`),
 ``torchrl_bail.load_policy`` (:func:`torchrl_bail.policy.load_policy`) and ``torchrl_bail.fast_tensordict_outputs``
 (:func:`torchrl_bail.modules.fast_tensordict_outputs`) load their modules on first use, so that importing the package
 or one of its layers (``torchrl_bail.objectives``) imports nothing else.
@@ -13,7 +13,7 @@ import importlib
 __version__ = "0.1.0"
 
 #: what the package re-exports, each from the module that defines it, imported on first use
-_EXPORTS = {"config_dir": "torchrl_bail.config", "load_policy": "torchrl_bail.policy",
+_EXPORTS = {"config_dir": "torchrl_bail.hydra_setup", "load_policy": "torchrl_bail.policy",
             "fast_tensordict_outputs": "torchrl_bail.modules"}
 
 

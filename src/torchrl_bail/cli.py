@@ -1,12 +1,13 @@
 """The command-line front of ``train`` and ``collect``: every job's config composed and checked before anything
 is written or imported, and a bad command line, config or batch reported in one line (exit status 2).
 
-This module loads Hydra, OmegaConf and the schemas (:mod:`torchrl_bail.config`) only, so a bad command line ends in
-about a second, before torch loads. What it reports in one line: the errors of :mod:`torchrl_bail.errors`
+This module loads Hydra, OmegaConf and the schemas (:mod:`torchrl_bail.config`, :mod:`torchrl_bail.algo_schemas`,
+...) only, so a bad command line ends in about a second, before torch loads. What it reports in one line: the
+errors of :mod:`torchrl_bail.errors`
 (:data:`~torchrl_bail.errors.USER_ERRORS`) and Hydra's and OmegaConf's own; anything else keeps its traceback.
 
 ``--help`` lists the options of each config group as the files of ``conf/`` name them
-(:func:`torchrl_bail.config.group_options`).
+(:func:`torchrl_bail.hydra_setup.group_options`).
 
 Ctrl-C and SIGTERM (:mod:`torchrl_bail.interrupts`, installed here for the whole command): the running loop writes
 its checkpoint at its next safe point, and the command ends with one line on stderr naming what was saved and the
@@ -24,8 +25,9 @@ import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from torchrl_bail.config import config_dir, group_options, validate_config
+from torchrl_bail.config import validate_config
 from torchrl_bail.errors import USER_ERRORS, CommandLineError
+from torchrl_bail.hydra_setup import config_dir, group_options
 from torchrl_bail.interrupts import Interrupted, handled, signal_name
 from torchrl_bail.io import describe_file_error
 

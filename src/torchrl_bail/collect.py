@@ -40,7 +40,9 @@ from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
 from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
-from torchrl_bail.config import CommandLineError, collection_config, validate_config
+from torchrl_bail.config import validate_config
+from torchrl_bail.config_builders import collection_config
+from torchrl_bail.errors import CommandLineError
 
 __all__ = ["collect", "export_main", "format_listing", "import_main", "install_main", "main"]
 

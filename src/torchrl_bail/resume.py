@@ -11,7 +11,7 @@ the remaining command-line overrides; see ``conf/config.yaml``), so the same com
 * ``<run_dir>``: continue another directory's checkpoint (its scalar logs come along) into this run directory.
 
 A checkpoint whose config differs from the command's in anything but the run-only keys
-(:data:`~torchrl_bail.config.RUN_ONLY_KEYS`, marked in the schema)
+(:data:`~torchrl_bail.run_dirs.RUN_ONLY_KEYS`, marked in the schema)
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
 directory is locked while a run uses it, with the batches' owner-file lock (:data:`RUN_LOCK`): a second process on
@@ -44,10 +44,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_bail.config import RUN_ONLY_KEYS
 from torchrl_bail.data.locks import HEARTBEAT, LockHeld, LockLost, file_lock
 from torchrl_bail.errors import ResumeError
 from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
+from torchrl_bail.run_dirs import RUN_ONLY_KEYS
 
 __all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs",
            "record_config"]

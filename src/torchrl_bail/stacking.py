@@ -32,7 +32,7 @@ Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-    >>> from torchrl_bail.config import algo_config
+    >>> from torchrl_bail.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("bc", batch_size=8, policy={"hidden": [16]})
     >>> def build(seed):

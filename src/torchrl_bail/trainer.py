@@ -17,7 +17,7 @@ Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-    >>> from torchrl_bail.config import algo_config
+    >>> from torchrl_bail.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("bc", batch_size=10, epochs=100 / 1e6, policy={"hidden": [8]})
     >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)

@@ -5,7 +5,7 @@ An algorithm owns its networks, losses and optimizers and contributes three thin
 into the data the loop samples from (BAIL fits its envelope and keeps the best actions there), an
 :meth:`~Algorithm.update` step on one mini-batch, and a deterministic :attr:`~Algorithm.policy` to evaluate.
 Every algorithm is built from its config group, ``Algorithm(obs_dim, action_spec, config, device)``: ``config``
-is the ``algo`` node of the command line, :func:`torchrl_bail.config.algo_config` (the defaults of
+is the ``algo`` node of the command line, :func:`torchrl_bail.config_builders.algo_config` (the defaults of
 ``conf/algo/<name>.yaml`` with overrides) or a plain nested mapping (the keys it leaves out take the yaml's
 values). The yaml files are the one place an algorithm's default values live; the constructors hold none. The
 schedule (mini-batch size and length in epochs of 10^6 samples) comes from the config too.
@@ -24,7 +24,8 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import TensorSpec
 
-from torchrl_bail.config import COMPILE_MODES, checked_algo_config, is_compile_setting
+from torchrl_bail.config import COMPILE_MODES, is_compile_setting
+from torchrl_bail.config_builders import checked_algo_config
 
 __all__ = ["REGISTRY", "Algorithm", "PrepareContext"]
 
@@ -68,7 +69,7 @@ class Algorithm(ABC):
         obs_dim (int): observation size.
         action_spec (TensorSpec): the bounded action spec.
         config (DictConfig | Mapping): the algorithm's config group (see the module docstring); checked against its
-            schema (:data:`torchrl_bail.config.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
+            schema (:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
         device: training device. Defaults to ``"cpu"``.
     """
 
@@ -159,7 +160,7 @@ class Algorithm(ABC):
 
         Examples:
             >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-            >>> from torchrl_bail.config import algo_config
+            >>> from torchrl_bail.config_builders import algo_config
             >>> from torchrl_bail.modules import action_spec_from_bounds
             >>> config = algo_config("bc", policy={"hidden": [8]})
             >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
@@ -240,7 +241,7 @@ class Algorithm(ABC):
             >>> import copy
             >>> from tensordict import TensorDict
             >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-            >>> from torchrl_bail.config import algo_config
+            >>> from torchrl_bail.config_builders import algo_config
             >>> from torchrl_bail.modules import action_spec_from_bounds
             >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]),
             ...                         algo_config("bc", batch_size=8, policy={"hidden": [8]}))

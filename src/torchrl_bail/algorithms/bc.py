@@ -6,7 +6,7 @@ It is also BAIL's imitation step: :class:`~torchrl_bail.algorithms.bail.BAIL` is
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config import algo_config
+    >>> from torchrl_bail.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> algo = BehaviourCloning(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2),
     ...                         algo_config("bc", batch_size=8, epochs=1, policy={"hidden": [16]}))

@@ -6,7 +6,7 @@ plays the one the first critic values most. With batch 100, one epoch (10^6 samp
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config import algo_config
+    >>> from torchrl_bail.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> small = {"hidden": [16, 16]}
     >>> config = algo_config("bcq", vae=small, actor=small, critic=small, batch_size=8)

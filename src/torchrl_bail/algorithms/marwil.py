@@ -9,7 +9,7 @@ default init x 0.1, bias 0); the running normaliser ``c^2`` is saved in :meth:`M
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config import algo_config
+    >>> from torchrl_bail.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("marwil", batch_size=8, policy={"hidden": [16]}, value={"hidden": [16]})
     >>> algo = MARWIL(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)

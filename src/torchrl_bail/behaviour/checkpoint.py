@@ -126,7 +126,7 @@ class CollectionCheckpoint:
     def for_config(cls, cfg, data_dir: Path, key: str) -> CollectionCheckpoint:
         """The checkpoint ``<data_dir>/.partial/<key>`` every ``batch.checkpoint_every_s`` seconds and
         ``batch.checkpoint_every_steps`` env steps (``null``: never) of ``cfg``, a
-        :class:`~torchrl_bail.config.CollectionConfig`."""
+        :class:`~torchrl_bail.config_builders.CollectionConfig`."""
         return cls(partial_directory(data_dir, key), every_s=cfg.batch.checkpoint_every_s,
                    every_steps=cfg.batch.checkpoint_every_steps)
 

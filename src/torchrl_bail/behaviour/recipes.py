@@ -12,15 +12,16 @@ Recipes (``cfg.batch.recipe``), each a :class:`Recipe` registered at the end of 
 :func:`~torchrl_bail.behaviour.catalogue.collect_batch` asks :func:`recipe_of` for the recipe of ``cfg.batch`` and
 calls its :meth:`Recipe.collect`, :meth:`Recipe.checkpoint` and :meth:`Recipe.remove_checkpoint`; it never names one.
 Adding a recipe is one module with a :class:`Recipe` subclass ending with ``register_recipe(MyRecipe())``, its
-batch schema (:data:`torchrl_bail.config.BATCH_SCHEMAS`, kept equal to :data:`RECIPES` by a test) and its yamls;
+batch schema (:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS`, kept equal to :data:`RECIPES` by a test) and its yamls;
 :mod:`torchrl_bail.behaviour` imports the recipe modules.
 
 Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, supp. D.1): see
 :class:`~torchrl_bail.behaviour.buffers.BatchSink`. Names, hashes and cache paths are those of
 :mod:`torchrl_bail.data.cache`.
 
-A recipe's values are checked by its schema (:data:`torchrl_bail.config.BATCH_SCHEMAS`) when
-:func:`~torchrl_bail.config.collection_config` types a config, which every entry point of this package calls first.
+A recipe's values are checked by its schema (:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS`)
+when :func:`~torchrl_bail.config_builders.collection_config` types a config, which every entry point of this package
+calls first.
 
 Examples:
     >>> tuple(RECIPES)

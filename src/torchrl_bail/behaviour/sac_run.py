@@ -39,6 +39,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.modules import ProbabilisticActor
 
+from torchrl_bail.batch_schemas import BatchConfig, SACBatchConfig
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -52,7 +53,6 @@ from torchrl_bail.behaviour.loop import (
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac import SACAgent
-from torchrl_bail.config import BatchConfig, SACBatchConfig
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     batch_metadata,

@@ -1,0 +1,81 @@
+"""Hydra registration: the schemas in Hydra's ConfigStore (:func:`register_schemas`), the config directory with the
+resolvers ``conf/config.yaml`` uses (:func:`config_dir`) and the config groups' options (:func:`group_options`, the
+``--help`` list). Torch-free.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.batch_schemas import BATCH_SCHEMAS
+from torchrl_bail.config import Config
+from torchrl_bail.run_dirs import batch_label, run_dir_suffix
+
+__all__ = ["config_dir", "group_options", "register_schemas"]
+
+
+
+def register_schemas() -> None:
+    """Stores the schemas in Hydra's ConfigStore: ``base_config_schema``, ``algo/base_<name>_schema`` and
+    ``batch/base_<recipe>_schema`` (idempotent; :func:`torchrl_bail.config_dir` calls it)."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="base_config_schema", node=Config)
+    for name, schema in ALGO_SCHEMAS.items():
+        cs.store(group="algo", name=f"base_{name}_schema", node=schema)
+    for recipe, schema in BATCH_SCHEMAS.items():
+        cs.store(group="batch", name=f"base_{recipe}_schema", node=schema)
+
+
+def group_options(conf: Path | None = None) -> dict[str, list[str]]:
+    """The options of each config group: ``{group: [option, ...]}`` from the yaml files under ``conf/`` (default:
+    :func:`config_dir`), without Hydra's own groups (``hydra/...``) and the files named
+    ``_<name>`` (parts other files include).
+
+    Examples:
+        >>> group_options()["algo"][:3]
+        ['bail', 'bc', 'bcq']
+    """
+    conf = Path(conf) if conf is not None else config_dir()
+    groups: dict[str, list[str]] = {}
+    for path in sorted(conf.rglob("*.yaml")):
+        group = path.parent.relative_to(conf).as_posix()
+        if group != "." and not group.startswith("hydra") and not path.stem.startswith("_"):
+            groups.setdefault(group, []).append(path.stem)
+    return groups
+
+
+def _groups_help() -> str:
+    """The ``--help`` lines of :func:`group_options`: the ``config_groups`` resolver of ``conf/config.yaml``'s
+    ``hydra.help.template`` (Hydra's own list also shows the schemas, ``base_<name>_schema``, and the parts)."""
+    return "\n".join(f"{group}: {', '.join(options)}" for group, options in sorted(group_options().items()))
+
+
+def config_dir() -> Path:
+    """Directory holding the Hydra configs.
+
+    An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
+    them at the repository's top-level ``conf/``. The typed schemas the yaml files name
+    (:mod:`torchrl_bail.algo_schemas`,
+    :mod:`torchrl_bail.batch_schemas`) are registered with Hydra's ConfigStore on the way, and the resolvers
+    ``conf/config.yaml`` uses (:func:`run_dir_suffix`, :func:`batch_label`; ``config_groups``, :func:`group_options`
+    for ``--help``).
+    """
+    register_schemas()
+    for name, resolver in (("run_dir_suffix", run_dir_suffix), ("batch_label", batch_label),
+                           ("config_groups", _groups_help)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
+    packaged = Path(__file__).resolve().parent / "conf"
+    if packaged.is_dir():
+        return packaged
+    repo = Path(__file__).resolve().parents[2] / "conf"
+    if repo.is_dir():
+        return repo
+    raise FileNotFoundError(
+        f"torchrl_bail configs not found: looked in {packaged} and {repo}. Reinstall the package."
+    )
