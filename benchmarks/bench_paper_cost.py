@@ -30,18 +30,26 @@ from pathlib import Path
 
 from _bench import Record, add_record_argument, summarise
 
-#: algorithm -> (the override the probe lengthens, its short value, updates per unit of it); the long run is 3x, so
-#: the extra 4000 updates (or 4 envelope epochs) take tens of seconds, well above the ~1 s spread of the fixed part
-#: (start-up, loading the batch, its returns, the one evaluation: ~45 s)
-SCHEDULES = {
-    "bc": ("algo.epochs", 2, 1000),              # batch 1000: 1000 updates per epoch of 10^6 samples
-    "marwil": ("algo.epochs", 2, 1000),
-    "bail": ("algo.epochs", 2, 1000),            # the imitation step (the envelope at 1 epoch on both sides)
-    "pbail": ("algo.epochs", 2, 1000),
-    "bcq": ("algo.epochs", 0.2, 10000),          # batch 100: 10^4 updates per epoch
-    "bear": ("algo.epochs", 0.2, 10000),
-    "envelope": ("algo.envelope.epochs", 2, 1),  # BAIL's envelope: passes over the training split
-}
+from torchrl_bail.config_builders import algo_config
+
+#: the probe's short number of epochs per cost class (the registry's ``cost``, :mod:`torchrl_bail.algo_schemas`):
+#: 2000 updates at batch 1000, 2000 at batch 100
+SHORT_EPOCHS = {"imitation": 2, "offline_rl": 0.2}
+
+
+def _schedules() -> dict[str, tuple[str, float, int]]:
+    """algorithm -> (the override the probe lengthens, its short value, updates per unit of it), for every registered
+    algorithm (updates per epoch of 10^6 samples: 10^6 / its batch size) and BAIL's envelope (passes over the training
+    split); the long run is 3x, so the extra updates take tens of seconds, well above the ~1 s spread of the fixed
+    part (start-up, loading the batch, its returns, the one evaluation: ~45 s)."""
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+
+    schedules = {name: ("algo.epochs", SHORT_EPOCHS[schema.cost], 10**6 // algo_config(name).batch_size)
+                 for name, schema in ALGO_SCHEMAS.items()}
+    return {**schedules, "envelope": ("algo.envelope.epochs", 2, 1)}
+
+
+SCHEDULES = _schedules()
 #: what every probe run shares: one evaluation, at the end, no checkpoints, no progress bars
 COMMON = ["+exp=hopper_ddpg05", "progress=false", "checkpoint.enabled=false", "eval.final_window=1"]
 
@@ -55,7 +63,7 @@ def probe_run(algo: str, threads: int, length: float, workdir: Path) -> float:
     overrides = [f"algo={name}", f"threads={threads}", f"{key}={length}", f"hydra.run.dir={run_dir}", *COMMON]
     if algo == "envelope":
         overrides += ["algo.epochs=0.1", "eval.every_epochs=0.1"]
-    elif algo in ("bail", "pbail"):
+    elif "envelope" in algo_config(name):  # BAIL's and Progressive BAIL's envelope at 1 epoch on both sides
         overrides += ["algo.envelope.epochs=1", f"eval.every_epochs={length * 3}"]
     else:
         overrides.append(f"eval.every_epochs={length * 3}")

@@ -46,19 +46,17 @@ TINY = [
     "batch.agent.actor_hidden=[32,32]", "batch.agent.critic_hidden=[32,32]", "env.max_episode_steps=200",
     "eval.episodes=2", "eval.max_steps=200", "returns.horizon=200", "progress=false",
 ]
-#: per algorithm: a few hundred updates with an evaluation every few dozen
-ALGO_TINY = {
-    "bail": ["algo.epochs=0.2", "eval.every_epochs=0.02", "algo.envelope.epochs=10", "algo.envelope.batch_size=100"],
-    "pbail": ["algo.epochs=0.3", "eval.every_epochs=0.02", "algo.envelope.validate_every=20"],
-    "bc": ["algo.epochs=0.4", "eval.every_epochs=0.02"],
-    "marwil": ["algo.epochs=0.4", "eval.every_epochs=0.02"],
-    "bcq": ["algo.epochs=0.02", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-            "algo.critic.hidden=[32,32]"],
-    "bear": ["algo.epochs=0.03", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-             "algo.critic.hidden=[32,32]", "algo.warm_start_updates=100"],
-}
 #: summary entries that legitimately differ between an interrupted and an uninterrupted run
 VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
+
+
+def _drill(algo: str) -> list[str]:
+    """An algorithm's overrides for a few hundred updates with an evaluation every few dozen: its registry entry
+    (the schema's ``drill``, :mod:`torchrl_bail.algo_schemas`)."""
+    sys.path.insert(0, str(ROOT / "src"))
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+
+    return list(ALGO_SCHEMAS[algo].drill) if algo in ALGO_SCHEMAS else []
 
 
 def _env() -> dict:
@@ -81,7 +79,7 @@ class TrainingTarget:
 
     def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
         self.algo = algo
-        self.overrides = [*TINY, f"algo={algo}", *ALGO_TINY.get(algo, []), *overrides, f"data_dir={data_dir}"]
+        self.overrides = [*TINY, f"algo={algo}", *_drill(algo), *overrides, f"data_dir={data_dir}"]
         self.data_dir = data_dir
 
     def setup(self) -> None:

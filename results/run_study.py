@@ -54,16 +54,17 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
 ENVS = ("hopper", "walker")
 KINDS = ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det")
-#: the study's cost rule: a BCQ or BEAR run costs ~10x an imitation run on a 2-core CPU, so these two run on the
-#: two DDPG batches of each env only; every other registered algorithm runs on every batch
-DDPG_ONLY = ("bcq", "bear")
-EVERY_BATCH = tuple(name for name in ALGO_SCHEMAS if name not in DDPG_ONLY)
+#: the study's cost rule, read from the registry (each schema's ``study`` line, :mod:`torchrl_bail.algo_schemas`): a
+#: BCQ or BEAR run costs ~10x an imitation run on a 2-core CPU, so these run on the two DDPG batches of each env only;
+#: the algorithms registered for every batch run on every batch, and the others not at all
+DDPG_ONLY = tuple(study_algorithms("ddpg"))
+EVERY_BATCH = tuple(study_algorithms("all"))
 #: supp. D.1-D.3 on Hopper ddpg05: name -> overrides (D.1 runs on the oracle batch, with both kinds of returns)
 ABLATIONS = {
     "D1_oracle": ["batch.oracle.enabled=true", "returns.augment=oracle"],
@@ -130,6 +131,14 @@ PAPER_SCHEDULE = {
     "imitation": [],
     "offline_rl": ["algo.epochs=10", "eval.every_epochs=0.5"],
 }
+#: the paper-scale study's design (which algorithms: each schema's ``paper_study`` line): BAIL and BC, the paper's
+#: headline pair, run first on each batch, with 5 seeds on the DDPG sigma=0.5 and SAC batches, every other algorithm
+#: 3; MARWIL also runs with V fitted first; BCQ also runs on opt_det. A newly registered algorithm lands after the
+#: pair with 3 seeds
+PAPER_FIRST = ("bail", "bc")
+PAPER_FIVE_SEED_KINDS = ("ddpg05", "sac")
+PAPER_VARIANTS = {"marwil": (["algo.value_warmup_updates=1000"], "/value_warmup")}
+PAPER_EXTRA_CELLS = [("opt_det", "bcq", 3)]
 
 
 def paper_hopper_jobs() -> list[Job]:
@@ -141,23 +150,28 @@ def paper_hopper_jobs() -> list[Job]:
         return Job(f"collect/hopper_{kind}", [f"+exp=hopper_{kind}"], "torchrl_bail.collect")
 
     def train(kind, algo, seeds, extra=(), tag=""):
-        schedule = PAPER_SCHEDULE["offline_rl" if algo in ("bcq", "bear") else "imitation"]
+        schedule = PAPER_SCHEDULE[ALGO_SCHEMAS[algo].cost]
         return [Job(f"hopper_{kind}/{algo}{tag}/seed{s}", [f"+exp=hopper_{kind}", f"algo={algo}", f"seed={s}",
                                                             *schedule, *extra]) for s in range(1, seeds + 1)]
 
-    warmup = (["algo.value_warmup_updates=1000"], "/value_warmup")
-    jobs = [collect("ddpg05")]
-    jobs += train("ddpg05", "bail", 5) + train("ddpg05", "bc", 5) + train("ddpg05", "pbail", 3)
-    jobs += train("ddpg05", "marwil", 3) + train("ddpg05", "marwil", 3, *warmup)
-    jobs += train("ddpg05", "bcq", 3) + train("ddpg05", "bear", 3)
+    def cells(kind, batches, variants=True):
+        paper = [name for name, schema in ALGO_SCHEMAS.items() if schema.paper_study and schema.study in batches]
+        if variants:  # the priority order of phases (a) and (b)
+            paper.sort(key=lambda name: name not in PAPER_FIRST)
+        jobs = []
+        for algo in paper:
+            jobs += train(kind, algo, 5 if algo in PAPER_FIRST and kind in PAPER_FIVE_SEED_KINDS else 3)
+            if variants and algo in PAPER_VARIANTS:
+                jobs += train(kind, algo, 3, *PAPER_VARIANTS[algo])
+        return jobs
+
+    jobs = [collect("ddpg05"), *cells("ddpg05", ("all", "ddpg"))]
     jobs += [collect("sac"), collect("opt_det"), collect("med_stoch")]
     for kind in ("sac", "opt_det", "med_stoch"):
-        seeds = 5 if kind == "sac" else 3
-        jobs += train(kind, "bail", seeds) + train(kind, "bc", seeds) + train(kind, "pbail", 3)
-        jobs += train(kind, "marwil", 3) + train(kind, "marwil", 3, *warmup)
+        jobs += cells(kind, ("all",))
     for kind in ("med_det", "opt_stoch", "ddpg01"):
-        jobs += [collect(kind)] + [j for algo in ("bail", "pbail", "bc", "marwil") for j in train(kind, algo, 3)]
-    return jobs + train("opt_det", "bcq", 3)
+        jobs += [collect(kind), *cells(kind, ("all",), variants=False)]
+    return jobs + [j for kind, algo, seeds in PAPER_EXTRA_CELLS for j in train(kind, algo, seeds)]
 
 
 STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
 
 SCRIPT = Path(__file__).resolve().parents[1] / "results" / "run_study.py"
 
@@ -28,7 +28,7 @@ def run_study():
 def test_the_study_covers_every_cell_the_readme_lists(run_study):
     jobs = run_study.study_jobs()
     names = [j.name for j in jobs]
-    every_batch = [name for name in ALGO_SCHEMAS if name not in ("bcq", "bear")]
+    every_batch = study_algorithms("all")
     # 11 batches; 3 seeds of: 2 envs x 5 batches x every_batch, 4 ablations, MARWIL with V fitted first on 3 Hopper
     # batches, 2 envs x 2 DDPG batches x BCQ/BEAR; then seeds 4 and 5 of BAIL and BC on Hopper's 2 DDPG batches
     assert len(names) == len(set(names)) == 11 + 3 * (2 * 5 * len(every_batch) + 4 + 3 + 2 * 2 * 2) + 2 * 2 * 2
@@ -54,6 +54,23 @@ def test_the_study_covers_every_cell_the_readme_lists(run_study):
         "+exp=hopper_ddpg05", "algo=bail", "seed=2", "preset=study", "batch.oracle.enabled=true",
         "returns.augment=oracle"]
     assert by_name["hopper_ddpg05/bail/D3_regression/seed1"].args[-1] == "algo.envelope.penalty=1"
+
+
+def test_one_registry_line_puts_an_algorithm_in_the_study_or_keeps_it_out(run_study, monkeypatch):
+    """The study's job lists read each schema's registry entry (``study``, ``paper_study``, ``cost``): IQL is out,
+    TD3+BC is in on every batch, BCQ/BEAR on the DDPG batches; flipping one class variable moves the jobs."""
+    names = {j.name for j in run_study.study_jobs()}
+    assert not any("/iql/" in n for n in names) and "walker_opt_det/td3bc/seed3" in names
+    assert study_algorithms("ddpg") == ["bcq", "bear"] and "iql" not in study_algorithms("all")
+    monkeypatch.setattr(ALGO_SCHEMAS["iql"], "study", "ddpg")
+    monkeypatch.setattr(run_study, "DDPG_ONLY", tuple(study_algorithms("ddpg")))
+    names = {j.name for j in run_study.study_jobs()}
+    assert {f"{env}_{kind}/iql/seed{s}" for env in ("hopper", "walker") for kind in ("ddpg01", "ddpg05")
+            for s in (1, 2, 3)} == {n for n in names if "/iql/" in n}
+    monkeypatch.setattr(ALGO_SCHEMAS["iql"], "paper_study", True)
+    paper = [j for j in run_study.paper_hopper_jobs() if "/iql/" in j.name]
+    assert [j.name for j in paper] == [f"hopper_ddpg05/iql/seed{s}" for s in (1, 2, 3)]  # DDPG batches only, 3 seeds
+    assert "algo.epochs=10" in paper[0].args  # its cost class: the offline-RL schedule
 
 
 def _run(root: Path, name: str, returns: list[float], algo: str = "bail", envelope_best_epoch: int | None = None,

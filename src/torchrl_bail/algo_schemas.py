@@ -6,7 +6,7 @@ schema, so a bad command line fails before torch loads; the rules come from :mod
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
+from typing import Any, ClassVar, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
 from omegaconf import MISSING
 
@@ -24,7 +24,7 @@ from torchrl_bail.config import (
     rule,
 )
 
-__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "NetConfig"]
+__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "NetConfig", "study_algorithms"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -40,6 +40,21 @@ class NetConfig(Checked):
 
 @dataclass
 class AlgoConfig(Checked):
+    """The keys every algorithm has, and its registry entry: class variables (not config keys, torch-free) that the
+    study (``results/run_study.py``), the drills (``benchmarks/kill_drill.py``) and the docs read, so that no list of
+    algorithm names is kept anywhere else. A schema sets the ones that differ from these defaults."""
+
+    #: which paper-scale schedule it takes (``results/run_study.PAPER_SCHEDULE``): ``"imitation"`` (the paper's own
+    #: epochs) or ``"offline_rl"`` (an actor-critic at 10 % of its paper's 10^6 updates: ~10x an imitation run)
+    cost: ClassVar[str] = "imitation"
+    #: the batch kinds the study runs it on: ``"all"``, ``"ddpg"`` (the two DDPG batches of each env only, for
+    #: cost) or ``"none"`` (not in the study); whether an algorithm joins the study is this one line
+    study: ClassVar[str] = "none"
+    #: whether the paper-scale Hopper study (``--study paper_hopper``) runs it: the paper's six algorithms
+    paper_study: ClassVar[bool] = False
+    #: command-line overrides for a run of a few hundred updates (the kill drills)
+    drill: ClassVar[tuple[str, ...]] = ()
+
     name: str = registry_name("ALGO_SCHEMAS")
     batch_size: int = at_least(1, "a positive mini-batch size")
     epochs: float = positive("a positive number of epochs (10^6 samples each)")
@@ -79,6 +94,10 @@ class BAILSelectionConfig(SelectionConfig):
 
 @dataclass
 class BAILConfig(AlgoConfig):
+    study = "all"
+    paper_study = True
+    drill = ("algo.epochs=0.2", "eval.every_epochs=0.02", "algo.envelope.epochs=10", "algo.envelope.batch_size=100")
+
     envelope: BAILEnvelopeConfig = MISSING
     selection: BAILSelectionConfig = MISSING
     policy: NetConfig = MISSING
@@ -91,6 +110,10 @@ class PBAILEnvelopeConfig(EnvelopeConfig):
 
 @dataclass
 class PBAILConfig(AlgoConfig):
+    study = "all"
+    paper_study = True
+    drill = ("algo.epochs=0.3", "eval.every_epochs=0.02", "algo.envelope.validate_every=20")
+
     envelope: PBAILEnvelopeConfig = MISSING
     selection: SelectionConfig = MISSING
     best_envelope: str = one_of("paper", "as_coded")
@@ -102,11 +125,19 @@ class PBAILConfig(AlgoConfig):
 
 @dataclass
 class BCConfig(AlgoConfig):
+    study = "all"
+    paper_study = True
+    drill = ("algo.epochs=0.4", "eval.every_epochs=0.02")
+
     policy: NetConfig = MISSING
 
 
 @dataclass
 class MARWILConfig(AlgoConfig):
+    study = "all"
+    paper_study = True
+    drill = ("algo.epochs=0.4", "eval.every_epochs=0.02")
+
     beta: float = non_negative()
     c2_init: float = positive()
     c2_rate: float = fraction()
@@ -147,6 +178,12 @@ class TwinCriticVAEConfig(AlgoConfig):
 
 @dataclass
 class BCQConfig(TwinCriticVAEConfig):
+    cost = "offline_rl"
+    study = "ddpg"
+    paper_study = True
+    drill = ("algo.epochs=0.02", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
+             "algo.critic.hidden=[32,32]")
+
     phi: float = non_negative()
     actor: NetConfig = MISSING
 
@@ -160,6 +197,12 @@ class BEARActorConfig(NetConfig):
 
 @dataclass
 class BEARConfig(TwinCriticVAEConfig):
+    cost = "offline_rl"
+    study = "ddpg"
+    paper_study = True
+    drill = ("algo.epochs=0.03", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
+             "algo.critic.hidden=[32,32]", "algo.warm_start_updates=100")
+
     kernel_sigma: float = positive()
     num_samples_match: int = at_least(1)
     mmd_stabilizer: float = non_negative()
@@ -178,6 +221,9 @@ class BEARConfig(TwinCriticVAEConfig):
 
 @dataclass
 class TD3BCConfig(AlgoConfig):
+    cost = "offline_rl"
+    study = "all"  # in the study since it landed (30 jobs): kept, now stated
+
     alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
     policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
     noise_clip: float = non_negative("a non-negative clip of the target policy's noise, times max_action")
@@ -202,6 +248,9 @@ class IQLActorConfig(NetConfig):
 
 @dataclass
 class IQLConfig(AlgoConfig):
+    cost = "offline_rl"
+    study = "none"
+
     expectile: float = rule(lambda v: 0 < v < 1, "an expectile in (0, 1) (0.5: mean regression)")
     beta: float = non_negative("a non-negative inverse temperature of the advantage weights")
     # TorchRL's IQLLoss clips the advantage weights at 100 (a constant of its code): the one value it can train
@@ -214,5 +263,18 @@ class IQLConfig(AlgoConfig):
     value: NetConfig = MISSING
 
 
+#: algorithm name -> its schema, in the report's column order (kept equal to the algorithm classes' registry,
+#: :data:`torchrl_bail.algorithms.ALGORITHMS`, by a test); each schema's class variables are its registry entry
 ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
                 "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig, "iql": IQLConfig}
+
+
+def study_algorithms(batches: str) -> list[str]:
+    """The registered algorithms the study runs on ``batches`` (``"all"`` or ``"ddpg"``: :attr:`AlgoConfig.study`),
+    in registry order.
+
+    Examples:
+        >>> study_algorithms("ddpg")
+        ['bcq', 'bear']
+    """
+    return [name for name, schema in ALGO_SCHEMAS.items() if schema.study == batches]
