@@ -166,6 +166,13 @@ class CriticConfig(NetConfig):
 
 @dataclass
 class TwinCriticVAEConfig(AlgoConfig):
+    """BCQ's and BEAR's shared keys; both are actor-critics the study runs on DDPG batches only (for cost), and
+    both are in the paper-scale study."""
+
+    cost = "offline_rl"
+    study = "ddpg"
+    paper_study = True
+
     lmbda: float = rule(lambda v: 0 <= v <= 1, "a weight in [0, 1]")
     num_samples: int = at_least(1)
     kl_weight: float = non_negative()
@@ -178,9 +185,6 @@ class TwinCriticVAEConfig(AlgoConfig):
 
 @dataclass
 class BCQConfig(TwinCriticVAEConfig):
-    cost = "offline_rl"
-    study = "ddpg"
-    paper_study = True
     drill = ("algo.epochs=0.02", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
              "algo.critic.hidden=[32,32]")
 
@@ -197,9 +201,6 @@ class BEARActorConfig(NetConfig):
 
 @dataclass
 class BEARConfig(TwinCriticVAEConfig):
-    cost = "offline_rl"
-    study = "ddpg"
-    paper_study = True
     drill = ("algo.epochs=0.03", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
              "algo.critic.hidden=[32,32]", "algo.warm_start_updates=100")
 
