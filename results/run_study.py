@@ -594,7 +594,6 @@ def main(argv: list[str] | None = None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)
     timings_path = args.results / "timings.json"
-    timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
     failed = []
     if not args.report_only:
         # one queue, batches first: training starts while the last batches are still being collected (a job
@@ -605,13 +604,15 @@ def main(argv: list[str] | None = None) -> int:
                 job, rc, seconds, record = future.result()
                 if rc is None:
                     continue  # finished in an earlier call
+                # read again before each write: another runner (another CPU's job) may have recorded since
+                timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
                 if rc == 0:  # a run resumed after an interruption records its last part (summary: wall_time_s)
                     timings.setdefault(job.name, record)
                 print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
                       f"in {seconds:.0f} s", flush=True)
                 if rc != 0:
                     failed.append(job.name)
-                tmp = timings_path.with_suffix(".tmp")
+                tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
                 tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
                 tmp.replace(timings_path)
     copied = gather(args.workdir, args.results)
@@ -619,7 +620,8 @@ def main(argv: list[str] | None = None) -> int:
     curve_check(args.results)
     if args.study == "paper_hopper":
         paper_cell_report(args.results, STUDIES[args.study]())
-    print(f"{len(copied)} runs in {args.results / 'runs'}; reports: {args.results}/study.md, ablations.md")
+    reports = "study.md, ablations.md" if args.study == "study" else "study.md, cell.md"
+    print(f"{len(copied)} runs in {args.results / 'runs'}; reports in {args.results}: {reports}")
     if failed:
         print("failed (see their logs in " f"{args.workdir / 'logs'}): " + ", ".join(failed), file=sys.stderr)
     return 1 if failed else 0
