@@ -30,6 +30,7 @@ Examples:
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -41,7 +42,7 @@ from torchrl_bail.errors import ConfigError
 __all__ = ["RECIPES", "Recipe", "recipe_of", "register_recipe"]
 
 
-class Recipe:
+class Recipe(ABC):
     """One behaviour recipe: how a batch of ``cfg.batch.recipe == name`` is collected.
 
     Attributes:
@@ -50,11 +51,11 @@ class Recipe:
 
     name: ClassVar[str]
 
+    @abstractmethod
     def collect(self, cfg, *, scratch: Path, progress: bool, data_dir: Path,
                 checkpoint: CollectionCheckpoint) -> tuple[TensorDictBase, dict[str, Any]]:
         """Runs the recipe: ``(transitions [batch.steps], metadata extras)``; resumes from / saves to
         ``checkpoint``; ``data_dir`` is the batch cache (for what the recipe shares there)."""
-        raise NotImplementedError
 
     def checkpoint(self, cfg, data_dir: Path, name: str) -> CollectionCheckpoint:
         """Where the collection of the batch ``name`` checkpoints. Default: its own ``.partial/<name>``."""

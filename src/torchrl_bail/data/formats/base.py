@@ -11,6 +11,7 @@ and checked with a :class:`Checker`; the importer caches it. An ``in_place`` for
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -56,7 +57,7 @@ class Conversion:
     action_high: list[float] | None = None
 
 
-class DatasetFormat:
+class DatasetFormat(ABC):
     """One on-disk dataset format. Subclass it, set the class attributes, implement :meth:`locate` and either
     :meth:`convert` or (``in_place = True``) :meth:`load`, and call :func:`register_format` on an instance.
 
@@ -75,14 +76,15 @@ class DatasetFormat:
     priority: ClassVar[int] = 50
     in_place: ClassVar[bool] = False
 
+    @abstractmethod
     def locate(self, path: Path) -> Path | None:
         """Where the data of ``path`` (existing, absolute) is if it is of this format (the location the cache key
         and :meth:`convert` use), else ``None``. Cheap: no reading beyond a small metadata file."""
-        raise NotImplementedError
 
     def check(self, location: Path) -> None:
         """Raises :class:`DatasetImportError` when ``location`` cannot be of this format after all, before anything
         else is done with it (no env is made, no cache looked at). Default: nothing."""
+        return None
 
     def source_name(self, location: Path) -> str:
         """The name of the converted batch (and of its cache folder). Default: the file or folder's stem."""
@@ -90,11 +92,11 @@ class DatasetFormat:
 
     def convert(self, location: Path, check: Checker) -> Conversion:
         """The source as a :class:`Conversion`, every value checked (``check.fail`` for what breaks the format)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"the {self.name} format sets in_place = {self.in_place} but defines no convert()")
 
     def load(self, location: Path) -> OfflineBatch:
         """An ``in_place`` format's batch, as it is."""
-        raise NotImplementedError
+        raise NotImplementedError(f"the {self.name} format sets in_place = {self.in_place} but defines no load()")
 
 
 #: the registered formats by name, in registration order (the unknown-format error lists them in this order)
