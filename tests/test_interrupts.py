@@ -195,7 +195,16 @@ def test_a_signal_outside_a_loop_stops_at_once_and_an_ignored_signal_stays_ignor
         signal.signal(signal.SIGTERM, previous)
 
 
-def test_a_second_signal_stops_at_once_except_while_a_checkpoint_is_written():
+@pytest.fixture
+def sigint_not_ignored():
+    """Python's own SIGINT handler for the test: a suite started as a background job runs with SIGINT ignored,
+    which :func:`interrupts.handled` keeps ignored, so a raised SIGINT would never reach it."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_second_signal_stops_at_once_except_while_a_checkpoint_is_written(sigint_not_ignored):
     with interrupts.handled():
         with pytest.raises(interrupts.Interrupted) as raised:
             with interrupts.safe_points():

@@ -20,14 +20,16 @@ way up never swallows it. The entry point turns it into one line on stderr and e
 Examples:
     >>> with handled():
     ...     with safe_points():
-    ...         signal.raise_signal(signal.SIGINT)  # recorded, not raised: the loop checkpoints first
+    ...         signal.raise_signal(signal.SIGTERM)  # recorded, not raised: the loop checkpoints first
     ...         pending = requested()
     ...         try:
     ...             stop("checkpoint at step 7")
     ...         except Interrupted as err:
     ...             caught = err
-    >>> pending == signal.SIGINT, caught.exit_status, caught.saved
-    (True, 130, 'checkpoint at step 7')
+    >>> pending == signal.SIGTERM, caught.exit_status, caught.saved
+    (True, 143, 'checkpoint at step 7')
+
+    (SIGTERM here: a shell starts a background job with SIGINT ignored, and :func:`handled` keeps it so.)
 """
 
 from __future__ import annotations
