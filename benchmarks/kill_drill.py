@@ -50,13 +50,24 @@ TINY = [
 VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 
 
-def _drill(algo: str) -> list[str]:
-    """An algorithm's overrides for a few hundred updates with an evaluation every few dozen: its registry entry
-    (the schema's ``drill``, :mod:`torchrl_bail.algo_schemas`)."""
-    sys.path.insert(0, str(ROOT / "src"))
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+#: the drilled run's length and evaluations, and its networks' width: a few hundred updates with an evaluation (and
+#: checkpoint) every tenth of them, so that kills land before, between and after checkpoints
+DRILL_UPDATES, DRILL_EVALUATIONS, DRILL_HIDDEN = 300, 10, (32, 32)
 
-    return list(ALGO_SCHEMAS[algo].drill) if algo in ALGO_SCHEMAS else []
+
+def _registry():
+    """This checkout's :mod:`torchrl_bail.algo_schemas` (torch-free): the algorithm registry."""
+    if str(ROOT / "src") not in sys.path:
+        sys.path.insert(0, str(ROOT / "src"))
+    from torchrl_bail import algo_schemas
+
+    return algo_schemas
+
+
+def _drill(algo: str) -> list[str]:
+    """An algorithm's overrides for the drilled run: its tiny run (its registry entry's, the contract suite's,
+    :func:`torchrl_bail.algo_schemas.tiny_run_overrides`) at the drill's length."""
+    return _registry().tiny_run_overrides(algo, DRILL_UPDATES, DRILL_HIDDEN, evaluations=DRILL_EVALUATIONS)
 
 
 def _env() -> dict:
@@ -256,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--target", choices=sorted(TARGETS), default="training")
-    parser.add_argument("--algo", default="bail", help="training target: algo config name (default bail)")
+    parser.add_argument("--algo", default="bail", choices=list(_registry().ALGO_SCHEMAS),
+                        help="training target: the algorithm (default bail)")
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--max-kills", type=int, default=2, help="kills per trial: 1..N, drawn at random")
     parser.add_argument("--seed", type=int, default=0, help="seeds the kill delays")

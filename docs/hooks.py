@@ -43,3 +43,6 @@ def on_files(files, config):
         for figure in sorted((ROOT / "results" / study).glob("*.png")):
             files.append(File.generated(config, f"assets/{study}/{figure.name}", abs_src_path=str(figure)))
     return files
+
+
+on_page_markdown = _load("gen_algorithm_table").on_page_markdown  # the Algorithms page's table, from the registry

@@ -3,9 +3,10 @@
 A new loss: add a :class:`LossCase` to :data:`LOSS_CASES` (a builder taking ``reduction``, the loss terms and the
 parameter groups each must reach, the keys ``set_keys`` may rename); a new replay-buffer transform: a
 :class:`TransformCase` to :data:`TRANSFORM_CASES`. Both also get TorchRL's generic loss and transform checks
-(tests/test_torchrl_checks.py). A new algorithm: add an :class:`AlgoCase` to
-:data:`ALGO_CASES` under its registry name (its config overrides for tiny networks and the tiny CLI overrides). The
-suite then checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round
+(tests/test_torchrl_checks.py). A new algorithm needs nothing here: its :class:`AlgoCase` in :data:`ALGO_CASES`
+derives from its registry entry (:func:`algo_case`: the networks of its schema, its ``tiny`` overrides), and only
+what the contract's own checks need of it beyond that goes in :data:`CONTRACT_OVERRIDES` and :data:`NOT_UPDATED`.
+The suite then checks gradients, target networks, ``set_keys``, reductions, ``[S, B]`` batches, ``state_dict`` round
 trips, seeds and a tiny end-to-end run; the per-algorithm test files keep only what is specific to each.
 
 The tiny inputs come from :mod:`_batch_rl_testing` (4-d observations, 2-d actions with unequal bounds, 8-8 nets).
@@ -14,15 +15,20 @@ The tiny inputs come from :mod:`_batch_rl_testing` (4-d observations, 2-d action
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from _batch_rl_testing import HIDDEN, OBS, SPEC, batch, bcq_loss, bear_loss, vae
+from omegaconf import OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule
 
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, tiny_run_overrides
 from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
 from torchrl_bail.config_builders import algo_config
@@ -148,7 +154,7 @@ TRANSFORM_CASES = [
 
 @dataclass(frozen=True)
 class AlgoCase:
-    """How the contract suite builds one algorithm of the registry ``ALGORITHMS``.
+    """How the contract suite builds one algorithm of the registry ``ALGORITHMS`` (:func:`algo_case` derives it).
 
     Attributes:
         name: the registry name (``algo.name``).
@@ -175,33 +181,39 @@ class AlgoCase:
 
 
 ALGO_BATCH = 16
-_NET = {"hidden": list(HIDDEN)}
-_POLICY = {"policy": _NET}
-_NETS = {"vae": _NET, "actor": _NET, "critic": _NET}
-_SMALL_POLICY = "algo.policy.hidden=[16,16]"
-_TWIN_CRITIC_NETS = ("algo.vae.hidden=[16,16]", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")
-
-ALGO_CASES = {case.name: case for case in [
-    AlgoCase("bc", _POLICY, ("algo.epochs=0.005", _SMALL_POLICY)),
-    AlgoCase("bail", {**_POLICY, "envelope": {**_NET, "epochs": 3, "batch_size": 16}},
-             ("algo.epochs=0.005", "algo.envelope.epochs=3", "algo.envelope.batch_size=200", _SMALL_POLICY),
-             not_updated=frozenset({"envelope"})),
-    AlgoCase("pbail", {**_POLICY, "envelope": {**_NET, "validate_every": 2}},
-             ("algo.epochs=0.004", "algo.envelope.validate_every=2", _SMALL_POLICY),
-             not_updated=frozenset({"selection_envelope"})),
-    AlgoCase("marwil", {**_POLICY, "value": _NET, "c2_rate": 0.01},
-             ("algo.epochs=0.005", _SMALL_POLICY)),
-    AlgoCase("bcq", _NETS, ("algo.epochs=0.0005", *_TWIN_CRITIC_NETS)),
-    AlgoCase("bear", {**_NETS, "warm_start_updates": 2},
-             ("algo.epochs=0.0005", "algo.warm_start_updates=3", *_TWIN_CRITIC_NETS)),
+#: the updates of every tiny run through the config, and its networks' width
+TINY_UPDATES, TINY_HIDDEN = 5, (16, 16)
+#: what the contract's own checks need beyond an algorithm's tiny run (its registry entry), each for its reason
+CONTRACT_OVERRIDES = {
+    "marwil": {"c2_rate": 0.01},  # c2 moves visibly in a few updates: a checkpoint that lost it would show
     # the actor steps at every update here, so that every optimizer steps in one (tests/test_td3bc.py: the delay)
-    AlgoCase("td3bc", {"actor": _NET, "critic": _NET, "policy_delay": 1},
-             ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]")),
+    "td3bc": {"policy_delay": 1},
     # the contract's batches are one episode, whose returns have no spread to scale by (tests/test_iql.py: the scale)
-    AlgoCase("iql", {"actor": _NET, "critic": _NET, "value": _NET, "reward_scale": "none"},
-             ("algo.epochs=0.001", "algo.actor.hidden=[16,16]", "algo.critic.hidden=[16,16]",
-              "algo.value.hidden=[16,16]")),
-]}
+    "iql": {"reward_scale": "none"},
+}
+#: modules that no optimizer of ``update`` steps (:attr:`AlgoCase.not_updated`); every other algorithm has none
+NOT_UPDATED = {"bail": frozenset({"envelope"}), "pbail": frozenset({"selection_envelope"})}
+
+
+def algo_case(name: str) -> AlgoCase:
+    """The contract case of a registered algorithm, from its registry entry (:mod:`torchrl_bail.algo_schemas`): its
+    ``tiny`` overrides, every network of its schema :data:`HIDDEN` wide, every block's mini-batch :data:`ALGO_BATCH`,
+    then :data:`CONTRACT_OVERRIDES`; its tiny run through the config is
+    :func:`~torchrl_bail.algo_schemas.tiny_run_overrides` at :data:`TINY_UPDATES`."""
+    overrides = OmegaConf.from_dotlist(list(ALGO_SCHEMAS[name].tiny))
+    for key, value in [*((f"{block}.hidden", list(HIDDEN)) for block in blocks_with(name, "hidden")),
+                       *((f"{block}.batch_size", ALGO_BATCH) for block in blocks_with(name, "batch_size")),
+                       *CONTRACT_OVERRIDES.get(name, {}).items()]:
+        OmegaConf.update(overrides, key, value)
+    return AlgoCase(name, OmegaConf.to_container(overrides), tuple(tiny_run_overrides(name, TINY_UPDATES, TINY_HIDDEN)),
+                    NOT_UPDATED.get(name, frozenset()))
+
+
+#: every registered algorithm's case (:func:`algo_case`); one without a schema or without its entry's ``tiny`` has
+#: none, and tests/test_contract.py says what it lacks
+ALGO_CASES = {name: algo_case(name) for name in ALGORITHMS if getattr(ALGO_SCHEMAS.get(name), "tiny", None) is not None}
+#: BC's tiny policy, for the tutorials' tiny runs (tests/test_docs.py)
+_SMALL_POLICY = next(o for o in ALGO_CASES["bc"].cli if o.startswith("algo.policy.hidden="))
 
 #: transitions in the tiny batch every tiny end-to-end run shares
 TINY_STEPS = 600
@@ -213,6 +225,19 @@ TINY_RUN = (
     "returns.horizon=100", "eval.episodes=1", "eval.max_steps=100", "eval.every_epochs=0.002",
 )
 
+
+
+def refusal_line(*overrides: str) -> str:
+    """The one stderr line with which ``python -m torchrl_bail.train +exp=hopper_ddpg05 <overrides>`` refuses to start,
+    after asserting how it ends: exit status 2, that one line, no traceback (its run directory cannot be written)."""
+    cmd = [sys.executable, "-m", "torchrl_bail.train", "+exp=hopper_ddpg05", *overrides,
+           "hydra.run.dir=/nonexistent/never_written", "progress=false"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False,
+                          env={**os.environ, "HYDRA_FULL_ERROR": "1"})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    return lines[0]
 
 def row_noise(*size, dtype=None, device=None, **_) -> torch.Tensor:
     """A stand-in for ``torch.randn`` whose values depend only on an element's last two indices.

@@ -15,19 +15,24 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
+import importlib.util
 import inspect
 import io
 import math
+from pathlib import Path
 
 import pytest
 import torch
-from _batch_rl_testing import ACT, OBS, SPEC, one_thread  # noqa: F401 (autouse fixture)
+from _batch_rl_testing import ACT, HIDDEN, OBS, SPEC, one_thread  # noqa: F401 (autouse fixture)
 from _contract import (
     ALGO_BATCH,
     ALGO_CASES,
     LOSS_CASES,
+    TINY_HIDDEN,
     TINY_RUN,
     TINY_STEPS,
+    TINY_UPDATES,
     equal_trees,
     loss_batch,
     row_noise,
@@ -36,11 +41,12 @@ from _contract import (
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
+from torchrl.envs import Transform
 from torchrl.objectives import BCLoss, LossModule
 
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, entry_gaps, tiny_run_overrides
 from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
 from torchrl_bail.config import ConfigError, validate_config
 from torchrl_bail.config_builders import algo_config
@@ -109,8 +115,51 @@ def test_every_loss_and_algorithm_has_a_contract_case():
     covered = {type(_build(case)) for case in LOSS_CASES}
     missing = {cls.__name__ for cls in losses | {BCLoss}} - {cls.__name__ for cls in covered}
     assert not missing, f"register a LossCase for {sorted(missing)} in tests/_contract.py"
-    assert set(ALGO_CASES) == set(ALGORITHMS), "register an AlgoCase for every ALGORITHMS entry in tests/_contract.py"
     assert list(ALGORITHMS) == list(ALGO_SCHEMAS), "every algorithm class needs its schema in ALGO_SCHEMAS and back"
+    uncovered = sorted(set(ALGORITHMS) - set(ALGO_CASES))
+    assert not uncovered, (f"no contract case for {uncovered}: each derives from its registry entry; state its "
+                           "schema's `tiny` in src/torchrl_bail/algo_schemas.py")
+
+
+@pytest.mark.parametrize("name", list(ALGO_SCHEMAS))
+def test_every_registry_entry_is_complete(name):
+    """What the tiny runs and the docs' table read of an algorithm (``tiny``, ``description``, ``losses``) has no
+    default: each schema states it, and each loss module it names imports."""
+    gaps = entry_gaps(name)
+    assert not gaps, f"state {', '.join(gaps)} in src/torchrl_bail/algo_schemas.py (AlgoConfig says what each is)"
+    for path in ALGO_SCHEMAS[name].losses:
+        module, _, attr = path.rpartition(".")
+        assert hasattr(importlib.import_module(module), attr), f"{ALGO_SCHEMAS[name].__name__}.losses: {path}"
+
+
+
+@algo_cases
+def test_every_contract_case_is_its_registry_entrys_tiny_run(case):
+    """The case derives from the registry entry: every network of the schema tiny, its ``tiny`` overrides (the
+    mini-batches aside: :data:`ALGO_BATCH` here), and the tiny run through the config is the entry's."""
+    config = case.build().config
+    for block in blocks_with(case.name, "hidden"):
+        assert list(OmegaConf.select(config, f"{block}.hidden")) == list(HIDDEN), block
+    for override in ALGO_SCHEMAS[case.name].tiny:
+        key = override.split("=", 1)[0]
+        expected = OmegaConf.select(OmegaConf.from_dotlist([override]), key)
+        expected = ALGO_BATCH if key.endswith("batch_size") else expected
+        assert OmegaConf.select(config, key) == expected, override
+    assert list(case.cli) == tiny_run_overrides(case.name, TINY_UPDATES, TINY_HIDDEN)
+
+@pytest.mark.parametrize("name", list(ALGO_SCHEMAS))
+def test_the_registry_names_every_loss_module_the_algorithm_holds(name):
+    """Each loss module and transform a built algorithm holds (the paper's networks, before ``prepare``) is in its
+    registry entry's ``losses``, the docs' column (those made in ``prepare`` or inside another, like BCQ's
+    ``VAELoss``, cannot be seen here)."""
+    algo = ALGORITHMS[name](OBS, SPEC, algo_config(name))
+    modules = [v for value in vars(algo).values() for v in (value.values() if isinstance(value, dict) else [value])
+               if isinstance(v, torch.nn.Module)]
+    held = {type(m) for module in modules for m in module.modules() if isinstance(m, (LossModule, Transform))}
+    named = {getattr(importlib.import_module(module), attr)
+             for module, _, attr in (path.rpartition(".") for path in ALGO_SCHEMAS[name].losses)}
+    assert held, f"{name} holds no loss module"
+    assert held <= named, f"{ALGO_SCHEMAS[name].__name__}.losses lacks {sorted(c.__name__ for c in held - named)}"
 
 
 @pytest.mark.parametrize("name", list(ALGORITHMS))
@@ -126,6 +175,43 @@ def test_every_algorithm_has_its_yaml_and_presets(name):
         validate_config(cfg)
         epochs[preset] = cfg.algo.epochs
     assert epochs["quick"] < epochs["paper"] and epochs["study"] < epochs["paper"], epochs
+
+
+
+# -- the docs' algorithm table: the registry and the yaml -------------------------------------------------------------
+def _table_generator():
+    path = Path(__file__).resolve().parents[1] / "docs" / "gen_algorithm_table.py"
+    spec = importlib.util.spec_from_file_location("gen_algorithm_table", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+table_generator = _table_generator()
+
+
+def test_the_docs_table_has_a_row_per_registered_algorithm_with_its_yamls_schedule():
+    rows = {line.split("|")[1].strip().strip("`"): line for line in table_generator.table().splitlines()[2:]}
+    assert list(rows) == list(ALGO_SCHEMAS)
+    for name, row in rows.items():
+        algo = algo_config(name)
+        assert f"| {algo.batch_size} · {algo.epochs:g} epochs (" in row, row
+        assert ALGO_SCHEMAS[name].description.split(":")[0] in row, row
+    assert "(125k updates)" in rows["pbail"]  # its updates count 0.8 of a batch each: the algorithm says so, not 10^5
+    assert "best 30% by G/V" in rows["bail"] and "envelope 800 · 50 passes" in rows["bail"]  # filled from the yaml
+    page = (Path(__file__).resolve().parents[1] / "docs" / table_generator.PAGE).read_text()
+    assert page.count(table_generator.MARKER) == 1, "the Algorithms page lost the table's place"
+
+
+@pytest.mark.parametrize(("variable", "value", "message"), [
+    ("description", None, r"without what the Algorithms page shows: IQLConfig\.description"),
+    ("losses", (), r"without what the Algorithms page shows: IQLConfig\.losses"),
+    ("tiny", None, r"without what the Algorithms page shows: IQLConfig\.tiny"),
+    ("description", "IQL, {no_such_key}", r"IQLConfig\.description names algo\.no_such_key,")])
+def test_a_registry_entry_without_its_table_data_stops_the_table(monkeypatch, variable, value, message):
+    monkeypatch.setattr(ALGO_SCHEMAS["iql"], variable, value)
+    with pytest.raises(table_generator.MissingEntry, match=message):
+        table_generator.table()
 
 
 # -- one default per constant: the yaml --------------------------------------------------------------------------

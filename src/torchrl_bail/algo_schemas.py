@@ -1,14 +1,29 @@
 """The algorithms' schemas (``conf/algo``): one per algorithm, registered in :data:`ALGO_SCHEMAS` and named
-``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`). Torch-free, like every
-schema, so a bad command line fails before torch loads; the rules come from :mod:`torchrl_bail.config`.
+``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`); the rules come from
+:mod:`torchrl_bail.config`. Each schema is also its algorithm's registry entry (:class:`AlgoConfig`'s class
+variables): what the study, the drills, the contract suite and the docs know of an algorithm besides its keys.
+
+Why the schemas live here and not in ``algorithms/<name>.py`` beside the update step: an algorithm's module imports
+torch, tensordict and torchrl, a command line is checked against its schema before any of them loads, and a bad one
+must fail in about a second (:func:`torchrl_bail.cli.run_cli`). Measured on the project's 2-core CPU (one core, the
+other busy, load ~4; best and median of five ``python -c "import ..."`` in a fresh process): this module
+0.14 s / 0.18 s (omegaconf and the rules only), ``torchrl_bail.algorithms.iql`` 6.0 s / 6.7 s (torch alone
+2.8 s / 3.3 s, torchrl 5.1 s / 6.8 s); ``python -m torchrl_bail.train +exp=hopper_ddpg05 algo=iql
+algo.batch_size=0`` prints its one line and exits 2 after 2.0-2.3 s, Hydra's composition included. A schema in the
+algorithm's module would put those 6 s in front of every such error, so this one torch-free file holds every
+schema, and the class beside its update step is found through :data:`ALGO_SCHEMAS` by name (a test keeps the two
+registries equal).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
-from omegaconf import MISSING
+from omegaconf import MISSING, OmegaConf
 
 from torchrl_bail.config import (
     Checked,
@@ -24,7 +39,8 @@ from torchrl_bail.config import (
     rule,
 )
 
-__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "NetConfig", "study_algorithms"]
+__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "NetConfig", "blocks_with", "entry_gaps", "study_algorithms",
+           "tiny_run_overrides"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -41,8 +57,10 @@ class NetConfig(Checked):
 @dataclass
 class AlgoConfig(Checked):
     """The keys every algorithm has, and its registry entry: class variables (not config keys, torch-free) that the
-    study (``results/run_study.py``), the drills (``benchmarks/kill_drill.py``) and the docs read, so that no list of
-    algorithm names is kept anywhere else. A schema sets the ones that differ from these defaults."""
+    study (``results/run_study.py``), the drills (``benchmarks/kill_drill.py``), the contract suite
+    (``tests/_contract.py``) and the docs (``docs/gen_algorithm_table.py``) read, so that no list of algorithm names
+    is kept anywhere else. A schema sets the ones that differ from these defaults; ``tiny``, ``description`` and
+    ``losses`` have none, every schema states them (:func:`entry_gaps`; ``tests/test_contract.py`` fails without)."""
 
     #: which paper-scale schedule it takes (``results/run_study.PAPER_SCHEDULE``): ``"imitation"`` (the paper's own
     #: epochs) or ``"offline_rl"`` (an actor-critic at 10 % of its paper's 10^6 updates: ~10x an imitation run)
@@ -52,8 +70,19 @@ class AlgoConfig(Checked):
     study: ClassVar[str] = "none"
     #: whether the paper-scale Hopper study (``--study paper_hopper``) runs it: the paper's six algorithms
     paper_study: ClassVar[bool] = False
-    #: command-line overrides for a run of a few hundred updates (the kill drills)
-    drill: ClassVar[tuple[str, ...]] = ()
+    #: what a run of a few updates needs besides small networks and its length (both set by
+    #: :func:`tiny_run_overrides`): overrides of ``algo`` keys (``"warm_start_updates=2"``) that make a handful of
+    #: updates cross each switch of the update (BEAR's warm start, Progressive BAIL's validations) and keep
+    #: ``prepare`` as short (BAIL's envelope fit); ``()`` when nothing else is needed. The contract suite's tiny
+    #: runs and the kill drill read it
+    tiny: ClassVar[Optional[tuple[str, ...]]] = None
+    #: one line for the docs' table (``docs/guides/algorithms.md``): what the algorithm does, its paper by arXiv id
+    #: or section; ``{key}`` fields are filled with the paper preset's values (``{selection.percentile:.0%}``)
+    description: ClassVar[Optional[str]] = None
+    #: the loss modules (and selection transforms) it trains with, by import path (``torchrl.objectives.BCLoss``);
+    #: the docs' table lists them, ``tests/test_contract.py`` checks that each imports and that the built algorithm
+    #: holds no loss module missing here
+    losses: ClassVar[tuple[str, ...]] = ()
 
     name: str = registry_name("ALGO_SCHEMAS")
     batch_size: int = at_least(1, "a positive mini-batch size")
@@ -96,7 +125,10 @@ class BAILSelectionConfig(SelectionConfig):
 class BAILConfig(AlgoConfig):
     study = "all"
     paper_study = True
-    drill = ("algo.epochs=0.2", "eval.every_epochs=0.02", "algo.envelope.epochs=10", "algo.envelope.batch_size=100")
+    tiny = ("envelope.epochs=3", "envelope.batch_size=200")
+    description = "BAIL (supp. Alg. 1): upper envelope → best {selection.percentile:.0%} by G/V → BC on them"
+    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.BestActionFilter",
+              "torchrl.objectives.BCLoss")
 
     envelope: BAILEnvelopeConfig = MISSING
     selection: BAILSelectionConfig = MISSING
@@ -112,7 +144,11 @@ class PBAILEnvelopeConfig(EnvelopeConfig):
 class PBAILConfig(AlgoConfig):
     study = "all"
     paper_study = True
-    drill = ("algo.epochs=0.3", "eval.every_epochs=0.02", "algo.envelope.validate_every=20")
+    tiny = ("envelope.validate_every=2",)
+    description = ("Progressive BAIL (supp. Alg. 2): envelope step + in-batch top {selection.percentile:.0%} + policy "
+                   "step each iteration")
+    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.best_action_mask",
+              "torchrl.objectives.BCLoss")
 
     envelope: PBAILEnvelopeConfig = MISSING
     selection: SelectionConfig = MISSING
@@ -127,7 +163,9 @@ class PBAILConfig(AlgoConfig):
 class BCConfig(AlgoConfig):
     study = "all"
     paper_study = True
-    drill = ("algo.epochs=0.4", "eval.every_epochs=0.02")
+    tiny = ()
+    description = "behaviour cloning on the whole batch"
+    losses = ("torchrl.objectives.BCLoss",)
 
     policy: NetConfig = MISSING
 
@@ -136,7 +174,9 @@ class BCConfig(AlgoConfig):
 class MARWILConfig(AlgoConfig):
     study = "all"
     paper_study = True
-    drill = ("algo.epochs=0.4", "eval.every_epochs=0.02")
+    tiny = ()
+    description = "MARWIL (Wang et al., NeurIPS 2018): advantage-weighted imitation, β = {beta:g}, running c²"
+    losses = ("torchrl_bail.objectives.MARWILLoss",)
 
     beta: float = non_negative()
     c2_init: float = positive()
@@ -185,8 +225,10 @@ class TwinCriticVAEConfig(AlgoConfig):
 
 @dataclass
 class BCQConfig(TwinCriticVAEConfig):
-    drill = ("algo.epochs=0.02", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-             "algo.critic.hidden=[32,32]")
+    tiny = ()
+    description = ("BCQ 2019 (arXiv:1812.02900): VAE + perturbation (Φ = {phi:g}) + soft clipped double Q, best of "
+                   "{num_samples}")
+    losses = ("torchrl_bail.objectives.BCQLoss", "torchrl_bail.objectives.VAELoss")
 
     phi: float = non_negative()
     actor: NetConfig = MISSING
@@ -201,8 +243,10 @@ class BEARActorConfig(NetConfig):
 
 @dataclass
 class BEARConfig(TwinCriticVAEConfig):
-    drill = ("algo.epochs=0.03", "eval.every_epochs=0.002", "algo.vae.hidden=[32,32]", "algo.actor.hidden=[32,32]",
-             "algo.critic.hidden=[32,32]", "algo.warm_start_updates=100")
+    tiny = ("warm_start_updates=2",)
+    description = ("BEAR v0 (arXiv:1906.00949): Laplacian MMD (σ = {kernel_sigma:g}, {num_samples_match} samples, "
+                   "ε = {epsilon:g}), Lagrange α, warm start")
+    losses = ("torchrl_bail.objectives.BEARLoss", "torchrl_bail.objectives.VAELoss")
 
     kernel_sigma: float = positive()
     num_samples_match: int = at_least(1)
@@ -224,6 +268,10 @@ class BEARConfig(TwinCriticVAEConfig):
 class TD3BCConfig(AlgoConfig):
     cost = "offline_rl"
     study = "all"  # in the study since it landed (30 jobs): kept, now stated
+    tiny = ()
+    description = ("TD3+BC (arXiv:2106.06860): TD3 with a behaviour-cloning term in the actor loss (α = {alpha:g}), "
+                   "standardised observations; not in the BAIL paper")
+    losses = ("torchrl.objectives.TD3BCLoss",)
 
     alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
     policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
@@ -251,6 +299,11 @@ class IQLActorConfig(NetConfig):
 class IQLConfig(AlgoConfig):
     cost = "offline_rl"
     study = "none"
+    tiny = ()
+    description = ("IQL (arXiv:2110.06169): expectile value (τ = {expectile:g}), critics to r + γV(s'), "
+                   "advantage-weighted Gaussian actor (β = {beta:g}, weights clipped at {max_weight:g}) with a cosine "
+                   "learning rate; locomotion reward scaling; not in the BAIL paper")
+    losses = ("torchrl.objectives.IQLLoss",)
 
     expectile: float = rule(lambda v: 0 < v < 1, "an expectile in (0, 1) (0.5: mean regression)")
     beta: float = non_negative("a non-negative inverse temperature of the advantage weights")
@@ -279,3 +332,67 @@ def study_algorithms(batches: str) -> list[str]:
         ['bcq', 'bear']
     """
     return [name for name, schema in ALGO_SCHEMAS.items() if schema.study == batches]
+
+
+def entry_gaps(name: str) -> list[str]:
+    """What algorithm ``name``'s registry entry leaves unstated of what has no default, as ``<Schema>.<variable>``:
+    :attr:`AlgoConfig.tiny` (``()`` states that nothing is needed), :attr:`AlgoConfig.description` and
+    :attr:`AlgoConfig.losses`. The docs build and ``tests/test_contract.py`` fail on any.
+
+    Examples:
+        >>> entry_gaps("bear")
+        []
+    """
+    schema = ALGO_SCHEMAS[name]
+    gaps = {"tiny": schema.tiny is None, "description": not schema.description, "losses": not schema.losses}
+    return [f"{schema.__name__}.{variable}" for variable, missing in gaps.items() if missing]
+
+
+def blocks_with(name: str, key: str) -> list[str]:
+    """The dotted names of the blocks (nested nodes) of algorithm ``name``'s schema that have the field ``key``, in
+    schema order: ``blocks_with(name, "hidden")`` are its networks.
+
+    Examples:
+        >>> blocks_with("bail", "hidden"), blocks_with("bail", "batch_size"), blocks_with("bcq", "hidden")
+        (['envelope', 'policy'], ['envelope'], ['vae', 'critic', 'actor'])
+    """
+    return _blocks_with(ALGO_SCHEMAS[name], key)
+
+
+def _blocks_with(schema: type, key: str, prefix: str = "") -> list[str]:
+    types = typing.get_type_hints(schema)
+    found = []
+    for f in dataclasses.fields(schema):
+        block = types[f.name]
+        if dataclasses.is_dataclass(block):
+            found += [prefix + f.name] if key in {g.name for g in dataclasses.fields(block)} else []
+            found += _blocks_with(block, key, f"{prefix}{f.name}.")
+    return found
+
+
+def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluations: Optional[int] = None) -> list[str]:
+    """The command-line overrides of a run of algorithm ``name`` that takes seconds on a tiny batch: ``algo.epochs``
+    for ``updates`` mini-batches of its yaml's size (at ``conf/config.yaml``'s ``samples_per_epoch``), every network
+    :func:`blocks_with` a ``hidden`` key ``hidden`` wide, its registry entry's :attr:`AlgoConfig.tiny`, and, given
+    ``evaluations``, an evaluation every ``1 / evaluations`` of the run. The contract suite's tiny runs
+    (``tests/_contract.py``: 5 updates) and the kill drill (``benchmarks/kill_drill.py``: 300) are this at two
+    lengths.
+
+    Examples:
+        >>> tiny_run_overrides("bear", 5, [16, 16])  # doctest: +NORMALIZE_WHITESPACE
+        ['algo.epochs=0.0005', 'algo.vae.hidden=[16,16]', 'algo.critic.hidden=[16,16]',
+         'algo.actor.hidden=[16,16]', 'algo.warm_start_updates=2']
+        >>> tiny_run_overrides("bc", 300, [32, 32], evaluations=10)
+        ['algo.epochs=0.3', 'algo.policy.hidden=[32,32]', 'eval.every_epochs=0.03']
+    """
+    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.hydra_setup import config_dir
+
+    if ALGO_SCHEMAS[name].tiny is None:
+        raise ValueError(f"{ALGO_SCHEMAS[name].__name__}.tiny is not stated: the algo keys a run of a few updates "
+                         "needs besides small networks and its length, () if none (torchrl_bail.algo_schemas)")
+    epochs = updates * algo_config(name).batch_size / OmegaConf.load(config_dir() / "config.yaml").samples_per_epoch
+    width = "[" + ",".join(str(int(h)) for h in hidden) + "]"
+    overrides = [f"algo.epochs={epochs:g}", *(f"algo.{block}.hidden={width}" for block in blocks_with(name, "hidden")),
+                 *(f"algo.{override}" for override in ALGO_SCHEMAS[name].tiny)]
+    return overrides + ([f"eval.every_epochs={epochs / evaluations:g}"] if evaluations else [])
