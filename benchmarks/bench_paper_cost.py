@@ -2,7 +2,7 @@
 
 Usage (on a quiet machine: nothing else running; the batch installed, docs: Paper scale)::
 
-    python benchmarks/bench_paper_cost.py       # BAIL's envelope, BC (= BAIL's imitation), BCQ, BEAR; threads 1, 2
+    python benchmarks/bench_paper_cost.py       # BAIL's envelope and each algorithm of the paper study; threads 1, 2
     python benchmarks/bench_paper_cost.py --algos bcq,bear --threads 1,2 --repeats 2
 
 For each algorithm and thread count the probe runs the cell's own command (``python -m torchrl_bail.train
@@ -30,6 +30,7 @@ from pathlib import Path
 
 from _bench import Record, add_record_argument, summarise
 
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
 from torchrl_bail.config_builders import algo_config
 
 #: the probe's short number of epochs per cost class (the registry's ``cost``, :mod:`torchrl_bail.algo_schemas`):
@@ -42,14 +43,17 @@ def _schedules() -> dict[str, tuple[str, float, int]]:
     algorithm (updates per epoch of 10^6 samples: 10^6 / its batch size) and BAIL's envelope (passes over the training
     split); the long run is 3x, so the extra updates take tens of seconds, well above the ~1 s spread of the fixed
     part (start-up, loading the batch, its returns, the one evaluation: ~45 s)."""
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-
     schedules = {name: ("algo.epochs", SHORT_EPOCHS[schema.cost], 10**6 // algo_config(name).batch_size)
                  for name, schema in ALGO_SCHEMAS.items()}
     return {**schedules, "envelope": ("algo.envelope.epochs", 2, 1)}
 
 
 SCHEDULES = _schedules()
+#: the algorithm whose envelope the ``envelope`` probe lengthens: the registered one whose envelope has epochs (BAIL)
+ENVELOPE_OF = next(name for name in ALGO_SCHEMAS if "envelope" in blocks_with(name, "epochs"))
+#: what the probe runs by default: the envelope and every algorithm of the paper-scale study (the registry's
+#: ``paper_study``)
+DEFAULT_PROBES = ["envelope", *(name for name, schema in ALGO_SCHEMAS.items() if schema.paper_study)]
 #: what every probe run shares: one evaluation, at the end, no checkpoints, no progress bars
 COMMON = ["+exp=hopper_ddpg05", "progress=false", "checkpoint.enabled=false", "eval.final_window=1"]
 
@@ -58,15 +62,14 @@ def probe_run(algo: str, threads: int, length: float, workdir: Path) -> float:
     """Wall seconds (``summary.json``'s ``wall_time_s``) of one training run of ``algo`` whose probed schedule is
     ``length``."""
     key, _, _ = SCHEDULES[algo]
-    name = "bail" if algo == "envelope" else algo
+    name = ENVELOPE_OF if algo == "envelope" else algo
     run_dir = workdir / f"{algo}_t{threads}_{length}"
     overrides = [f"algo={name}", f"threads={threads}", f"{key}={length}", f"hydra.run.dir={run_dir}", *COMMON]
     if algo == "envelope":
         overrides += ["algo.epochs=0.1", "eval.every_epochs=0.1"]
-    elif "envelope" in algo_config(name):  # BAIL's and Progressive BAIL's envelope at 1 epoch on both sides
-        overrides += ["algo.envelope.epochs=1", f"eval.every_epochs={length * 3}"]
-    else:
-        overrides.append(f"eval.every_epochs={length * 3}")
+    else:  # a block with epochs of its own (BAIL's envelope) at 1 on both sides
+        overrides += [*(f"algo.{block}.epochs=1" for block in blocks_with(name, "epochs")),
+                      f"eval.every_epochs={length * 3}"]
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     subprocess.run([sys.executable, "-m", "torchrl_bail.train", *overrides], check=True, env=env,
                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -75,7 +78,7 @@ def probe_run(algo: str, threads: int, length: float, workdir: Path) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--algos", default="envelope,bc,bcq,bear",
+    parser.add_argument("--algos", default=",".join(DEFAULT_PROBES),
                         help="comma-separated, from: " + ", ".join(SCHEDULES))
     parser.add_argument("--threads", default="1,2", help="thread counts to compare (default: %(default)s)")
     parser.add_argument("--repeats", type=int, default=1, help="short/long pairs per algorithm and thread count")
