@@ -4,6 +4,7 @@ undocumented field, and every tutorial script runs here at tiny scale (the site 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import shutil
@@ -340,3 +341,39 @@ def test_readme_links_point_to_files_that_exist():
     assert len(targets) > 10
     missing = [t for t in targets if not (ROOT / t.split("#")[0]).exists()]
     assert missing == []
+
+
+def _table(text: str, key: str) -> dict[str, dict[str, str]]:
+    """The first Markdown table of ``text`` whose header starts with ``| key |``: ``{first cell: {column: cell}}``,
+    bold marks dropped."""
+    lines = text[text.index(f"| {key} |"):].splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    rows = {}
+    for line in lines[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip().replace("**", "") for c in line.strip("|").split("|")]
+        rows[cells[0]] = dict(zip(header, cells, strict=True))
+    return rows
+
+
+def test_the_home_pages_headline_result_is_the_results_own():
+    """Every figure of the home page's headline table is the one its results file holds: the study's Hopper DDPG
+    sigma = 0.5 row, and the paper-scale cell (results/paper_hopper: its report and its batch's metadata)."""
+    page = (ROOT / "docs" / "index.md").read_text()
+    home = _table(page[page.index("## The headline result"):], "batch")
+    small, paper = home["50k transitions (`preset=study`)"], home["10^6 transitions, the paper's size (`preset=paper`)"]
+    study = _table((ROOT / "results" / "study" / "study.md").read_text(), "batch")["hopper_ddpg05_b1"]
+    assert [small["the batch's own mean episode return"], small["BAIL"], small["BC"]] == [
+        study["data"], study["bail"], study["bc"]]
+    cell = _table((ROOT / "results" / "paper_hopper" / "cell.md").read_text(), "algorithm")
+    batch = json.loads((ROOT / "results" / "paper_hopper" / "batches" /
+                        "hopper_ddpg05_b1-dcc2994b.metadata.json").read_text())
+    assert [paper["the batch's own mean episode return"], paper["BAIL"], paper["BC"]] == [
+        f"{batch['episode_return_mean']:.1f}", cell["bail"]["mean ± std"], cell["bc"]["mean ± std"]]
+    runs = ROOT / "results" / "study" / "runs" / "hopper_ddpg05_b1"
+    seeds = [sum(bool(re.fullmatch(r"seed\d+,preset=study", d.name)) for d in (runs / algo).iterdir())
+             for algo in ("bail", "bc")]
+    assert seeds == [5, 5], "the study's runs of the cell without overrides"
+    assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and "over 5 seeds" in page
+    assert "2054 ± 158" in page and cell["bail"]["published (gym v2)"] == "2054 ± 158"
