@@ -22,7 +22,8 @@ import render_records  # noqa: E402
 from _bench import PACKAGES, Record, derive_table, summarise  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks.md"
-RECORDS = sorted((ROOT / "results" / "benchmarks").glob("*.json"))
+RECORDS_DIR = ROOT / "results" / "benchmarks"
+RECORDS = sorted(RECORDS_DIR.glob("*.json"))
 
 
 def test_every_rendered_table_matches_its_records():
@@ -111,3 +112,32 @@ def test_every_mean_quoted_on_the_page_is_a_rendered_one():
     assert quoted, "the page quotes no mean"
     for figure in quoted:
         assert figure in tables, figure
+
+
+def test_the_paper_scale_section_quotes_its_records():
+    """The costs the Paper scale section states are those of the paper cell's timings, its batch's metadata, the
+    cost probe's record and the study's SAC collections."""
+    page = PAGE.read_text()
+    section = page[page.index("## Paper scale"):]
+    results = ROOT / "results"
+    wall = {job: round(t if isinstance(t, (int, float)) else t["wall_s"])
+            for job, t in json.loads((results / "paper_hopper" / "timings.json").read_text()).items()}
+    bail = [wall[f"hopper_ddpg05/bail/seed{s}"] for s in range(2, 6)]
+    bc = [wall[job] for job in wall if job.startswith("hopper_ddpg05/bc/")]
+    assert f"BAIL's jobs of seeds 2-5 took {min(bail)}-{max(bail)} s and BC's jobs {min(bc)}-{max(bc)} s" in section
+    assert f"**{wall['hopper_ddpg05/bail/seed5']} s**" in section
+    assert f"BAIL seed 1's {wall['hopper_ddpg05/bail/seed1']} s" in section
+    meta = json.loads((results / "paper_hopper" / "batches" / "hopper_ddpg05_b1-dcc2994b.metadata.json").read_text())
+    assert (f"{meta['collection_wall_time_s']:.0f} s (2 h {meta['collection_wall_time_s'] / 60 - 120:.0f} min) at "
+            f"{meta['env_steps_per_s']:.0f} env steps/s: {meta['num_transitions']}") in section
+    flat = " ".join(section.split())
+    assert f"{meta['num_episodes']} episodes, mean return {meta['episode_return_mean']:.1f}" in flat
+    probe = {row["name"].split()[0]: row for row in json.loads(
+        (RECORDS_DIR / "bench_paper_cost.json").read_text())["rows"]}
+    quoted = {"bc": "BC {} updates/s on one thread and {} on two (×{:.2f})", "bcq": "BCQ {} and {} (×{:.2f})"}
+    for algo, text in quoted.items():
+        row = probe[algo]
+        assert text.format(f"{row['threads=1']:.1f}", f"{row['threads=2']:.1f}", row["ratio"]) in flat, algo
+    sac = sorted(round(t) for job, t in json.loads((results / "study" / "timings.json").read_text()).items()
+                 if job.startswith("collect/") and job.endswith("_sac"))
+    assert f"SAC runs took {sac[0]}-{sac[-1]} s" in flat
