@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from torchrl_bail.algorithms import BAIL, BehaviourCloning, PrepareContext, ProgressiveBAIL
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.trainer import train
+from torchrl_bail.trainer import make_trainee, train
 from torchrl_bail.transforms.best_action import best_action_mask
 
 SPEC = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])
@@ -58,7 +58,7 @@ def _imitation_error(algo, updates: int) -> float:
     torch.manual_seed(1)
     data = algo.prepare(crafted_batch(), _context())
     algo.epochs = updates * algo.samples_per_update / 1e6
-    train(algo, data, progress=False)
+    train(make_trainee([algo], [data]), progress=False)
     test_states = torch.rand(500, 3, generator=torch.Generator().manual_seed(9)) * 2 - 1
     with torch.no_grad():
         action = algo.policy(TensorDict({"observation": test_states}, [500]))["action"]

@@ -23,7 +23,7 @@ from torchrl.objectives import SoftUpdate
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.objectives.common import soft_clipped_double_q_target
-from torchrl_bail.trainer import train
+from torchrl_bail.trainer import make_trainee, train
 
 
 def test_soft_update_moves_targets_by_exactly_tau():
@@ -120,7 +120,7 @@ def test_update_runs_in_the_authors_order_and_counts_samples():
     assert isinstance(algo.target_updater, SoftUpdate) and algo.target_updater.eps == pytest.approx(0.995)
     # one epoch is 10^6 samples: 10^4 updates of 100; 300 samples -> 3 updates
     assert algo.samples_per_update == 100
-    history = train(algo, batch((50,)), progress=False)
+    (history,) = train(make_trainee([algo], [batch((50,))]), progress=False)
     assert history.iterations == 3
 
 

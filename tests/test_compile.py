@@ -34,7 +34,7 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.modules import make_deterministic_actor
-from torchrl_bail.trainer import train
+from torchrl_bail.trainer import make_trainee, train
 
 #: the device under test, with its index (``cuda:0``): the device a tensor made there reports
 DEVICE = torch.empty(0, device=os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu")).device
@@ -219,7 +219,7 @@ def test_training_loop_reads_back_only_at_log_points(name, monkeypatch):
     algo.epochs = 8 * algo.samples_per_update / 1e6
     logger = _Logger()
     reads = _HostReads(monkeypatch, algo.optimizers.values())
-    train(algo, data, logger=logger, log_every=4, progress=False)
+    train(make_trainee([algo], [data]), loggers=[logger], log_every=4, progress=False)
     monkeypatch.undo()
     logged = [scalar for scalar in logger.scalars if scalar[0].startswith("train/")]
     assert len(logged) == 2 * len(algo.update(data[:16])) and {s[2] for s in logged} == {4, 8}
@@ -231,7 +231,7 @@ def test_training_loop_reads_back_only_at_log_points(name, monkeypatch):
 def test_evaluation_transfers_once_each_way_per_step(monkeypatch):
     from torchrl_bail.evaluation import Evaluator
 
-    evaluator = Evaluator("Hopper-v5", episodes=3, seed=0, max_steps=7, device=DEVICE)
+    evaluator = Evaluator("Hopper-v5", episodes=3, seeds=[0], max_steps=7, device=DEVICE)
     actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(8,)).to(DEVICE)
     seen = []
 
@@ -244,7 +244,7 @@ def test_evaluation_transfers_once_each_way_per_step(monkeypatch):
     monkeypatch.setattr(torch.Tensor, "cpu", lambda t, *a, **k: to_host.append(t.device) or original_cpu(t, *a, **k))
     monkeypatch.setattr(torch, "tensor", lambda *a, **k: made.append(k.get("device")) or original_tensor(*a, **k))
     with evaluator:
-        result = evaluator(policy)
+        (result,) = evaluator.evaluate(policy)
     monkeypatch.undo()
     steps = max(result.lengths)
     assert len(seen) == steps == 7

@@ -108,9 +108,9 @@ def _fit_on_curve(mode: str, monkeypatch, stop_at: int | None = None):
         snapshots.append(_weights(net))
         return epoch == stop_at
 
-    fit = fit_upper_envelope(net, obs, obs[:, 0] * 10, epochs=len(CURVE), patience=2, batch_size=16, lr=3e-2,
-                             early_stopping=mode, progress=False, generator=torch.Generator().manual_seed(1),
-                             callback=record)
+    (fit,) = fit_upper_envelope([net], obs, obs[:, 0] * 10, epochs=len(CURVE), patience=2, batch_size=16, lr=3e-2,
+                                early_stopping=mode, progress=False, generators=[torch.Generator().manual_seed(1)],
+                                callback=record)
     return fit, net, snapshots
 
 
@@ -150,8 +150,8 @@ def test_split_forces_the_largest_return_into_training():
     obs = torch.randn(40, 2, generator=torch.Generator().manual_seed(0))
     returns = torch.zeros(40)
     returns[17] = 100.0
-    fit = fit_upper_envelope(make_value_network(2, (8,)), obs, returns, epochs=1, progress=False,
-                             generator=torch.Generator().manual_seed(3))
+    (fit,) = fit_upper_envelope([make_value_network(2, (8,))], obs, returns, epochs=1, progress=False,
+                                generators=[torch.Generator().manual_seed(3)])
     assert 17 in fit.train_index.tolist() and 17 not in fit.val_index.tolist()
 
 
@@ -159,12 +159,12 @@ def test_without_a_validation_set_the_last_weights_come_back():
     obs = torch.randn(30, 2, generator=torch.Generator().manual_seed(0))
     net = make_value_network(2, (8,))
     snapshots = []
-    fit = fit_upper_envelope(net, obs, obs[:, 0], epochs=3, val_fraction=0.0, progress=False,
-                             callback=lambda epoch, info: snapshots.append(_weights(net)))
+    (fit,) = fit_upper_envelope([net], obs, obs[:, 0], epochs=3, val_fraction=0.0, progress=False,
+                                callback=lambda epoch, info: snapshots.append(_weights(net)))
     assert len(fit.val_index) == 0 and fit.best_epoch == 3 and fit.returned == "last"
     assert all(math.isnan(v) for v in fit.val_loss) and _equal(_weights(net), snapshots[-1])
     with pytest.warns(UserWarning, match="no validation point"):
-        fit_upper_envelope(make_value_network(2, (8,)), obs[:3], obs[:3, 0], epochs=1, progress=False)
+        fit_upper_envelope([make_value_network(2, (8,))], obs[:3], obs[:3, 0], epochs=1, progress=False)
 
 
 def _pbail(envelope: dict | None = None, **kwargs) -> tuple[ProgressiveBAIL, TensorDict]:

@@ -1,4 +1,5 @@
-"""Evaluation reads each episode's true return, scores simulator failures 0, and keeps going."""
+"""Evaluation reads each episode's true return, scores simulator failures 0, and keeps going; an evaluator plays a list
+of seeds (one seed: a list of one, its policy unstacked) and returns one result per seed."""
 
 from __future__ import annotations
 
@@ -47,10 +48,10 @@ def _one_episode(env_id, seed, policy, max_steps, **make_kwargs):
 
 def test_each_episode_runs_to_its_own_first_done():
     """Batched evaluation equals running each seeded episode alone: none is cut at another's end or padded."""
-    with Evaluator("Hopper-v5", episodes=3, seed=3, max_steps=300) as evaluator:
+    with Evaluator("Hopper-v5", episodes=3, seeds=[3], max_steps=300) as evaluator:
         policy = _policy()
-        res = evaluator(policy)
-    assert policy.shapes[0] == (3, 11)  # one call per step on the stacked float32 observations
+        (res,) = evaluator.evaluate(policy)
+    assert policy.shapes[0] == (3, 11)  # one call per step on the float32 observations (one seed: no seed dim)
     reference = [_one_episode("Hopper-v5", episode_seed(3, 0, i), _policy(), 300) for i in range(3)]
     assert res.returns == [r for r, _ in reference]
     assert res.lengths == [n for _, n in reference]
@@ -59,14 +60,14 @@ def test_each_episode_runs_to_its_own_first_done():
 
 
 def test_same_seed_same_returns_new_start_states_each_evaluation():
-    a = Evaluator("Hopper-v5", episodes=2, seed=1, max_steps=30)
-    b = Evaluator("Hopper-v5", episodes=2, seed=1, max_steps=30)
-    first, again = a(_policy()), b(_policy())
+    a = Evaluator("Hopper-v5", episodes=2, seeds=[1], max_steps=30)
+    b = Evaluator("Hopper-v5", episodes=2, seeds=[1], max_steps=30)
+    (first,), (again,) = a.evaluate(_policy()), b.evaluate(_policy())
     assert first.returns == again.returns
-    second = a(_policy())
+    (second,) = a.evaluate(_policy())
     assert second.returns != first.returns  # the next evaluation starts from new states
     a.evaluations = 0  # resuming the stream reproduces the first evaluation
-    assert a(_policy()).returns == first.returns
+    assert a.evaluate(_policy())[0].returns == first.returns
     a.close()
     b.close()
 
@@ -74,9 +75,9 @@ def test_same_seed_same_returns_new_start_states_each_evaluation():
 def test_time_limit_and_step_budget_end_episodes():
     kwargs = {"terminate_when_unhealthy": False}
     with Evaluator("Hopper-v5", episodes=2, max_steps=50, max_episode_steps=7, env_kwargs=kwargs) as ev:
-        assert ev(_policy()).lengths == [7, 7]
+        assert ev.evaluate(_policy())[0].lengths == [7, 7]
     with Evaluator("Hopper-v5", episodes=2, max_steps=5, env_kwargs=kwargs) as ev:
-        assert ev(_policy()).lengths == [5, 5]
+        assert ev.evaluate(_policy())[0].lengths == [5, 5]
 
 
 def test_guard_ends_the_episode_mujoco_would_silently_reset():
@@ -104,29 +105,29 @@ def test_guard_ends_the_episode_mujoco_would_silently_reset():
 
 
 def test_unstable_simulator_scores_zero_and_is_counted():
-    evaluator = Evaluator("Hopper-v5", episodes=3, seed=0, max_steps=200)
+    evaluator = Evaluator("Hopper-v5", episodes=3, seeds=[0], max_steps=200)
 
     def diverge(call):  # before the 4th step, episode 1's simulation blows up
         if call == 4:
             evaluator.envs[1].unwrapped.data.qvel[:] = 1e20
 
-    res = evaluator(_policy(diverge))
+    (res,) = evaluator.evaluate(_policy(diverge))
     assert res.failures == 1 and res.failed_episodes == [1]
     assert res.returns[1] == 0.0 and res.lengths[1] == 4
     assert res.returns[0] != 0.0 and res.returns[2] != 0.0 and min(res.lengths[0], res.lengths[2]) > 4
     # the next evaluation is healthy again
-    assert evaluator(_policy()).failures == 0
+    assert evaluator.evaluate(_policy())[0].failures == 0
     evaluator.close()
 
 
 def test_simulator_exception_scores_only_that_episode_zero(monkeypatch):
-    evaluator = Evaluator("Hopper-v5", episodes=2, seed=0, max_steps=20)
+    evaluator = Evaluator("Hopper-v5", episodes=2, seeds=[0], max_steps=20)
 
     def broken_step(action):
         raise RuntimeError("mujoco exploded")
 
     monkeypatch.setattr(evaluator.envs[0], "step", broken_step)
-    res = evaluator(_policy())
+    (res,) = evaluator.evaluate(_policy())
     evaluator.close()
     assert res.failures == 1 and res.failed_episodes == [0]
     assert res.returns[0] == 0.0 and res.returns[1] != 0.0 and res.lengths[1] > 0
@@ -135,16 +136,29 @@ def test_simulator_exception_scores_only_that_episode_zero(monkeypatch):
 def test_several_seeds_in_one_step_loop_equal_separate_evaluations():
     policy = _policy()
     with Evaluator("Hopper-v5", episodes=2, seeds=[3, 4], max_steps=40) as ev:
-        together = ev.per_seed(policy)
-        with pytest.raises(ValueError, match=r"plays 2 seeds \[3, 4\]: call evaluator.per_seed\(policy\)"):
-            ev(policy)
+        together = ev.evaluate(policy)
     assert policy.shapes[0] == (2, 2, 11)  # [seeds, episodes, obs]
     separate = []
     for s in (3, 4):
-        with Evaluator("Hopper-v5", episodes=2, seed=s, max_steps=40) as ev:
-            separate.append(ev(_policy()))
+        with Evaluator("Hopper-v5", episodes=2, seeds=[s], max_steps=40) as ev:
+            separate.extend(ev.evaluate(_policy()))
     assert [r.returns for r in together] == [r.returns for r in separate]
     assert [r.lengths for r in together] == [r.lengths for r in separate]
+
+
+def test_the_deprecated_call_is_one_seeds_evaluate():
+    """``evaluator(policy)``, kept for the callers that read one result: ``seed=s`` is ``seeds=[s]``, the call warns
+    and returns the one seed's result; an evaluator of several seeds refuses it."""
+    with Evaluator("Hopper-v5", episodes=2, seed=3, max_steps=40) as ev, \
+            Evaluator("Hopper-v5", episodes=2, seeds=[3], max_steps=40) as listed:
+        with pytest.warns(DeprecationWarning, match=r"evaluator.evaluate\(policy\)"):
+            result = ev(_policy())
+        assert ev.seeds == listed.seeds == [3] and ev.batch_shape == listed.batch_shape == (2,)
+        (expected,) = listed.evaluate(_policy())
+    assert (result.returns, result.lengths) == (expected.returns, expected.lengths)
+    with Evaluator("Hopper-v5", episodes=2, seeds=[3, 4], max_steps=40) as ev, \
+            pytest.raises(ValueError, match=r"plays 2 seeds \[3, 4\]: call evaluator.evaluate\(policy\)"):
+        ev(_policy())
 
 
 def test_eval_result_statistics():

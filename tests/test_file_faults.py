@@ -28,7 +28,7 @@ import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error
 from torchrl_bail.resume import ResumeError
-from torchrl_bail.train import run as run_seeds
+from torchrl_bail.train import run as train_run
 
 REPO = Path(__file__).resolve().parents[1]
 VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
@@ -36,7 +36,7 @@ VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 
 def run(cfg, run_dir: Path) -> dict:
     """The single-seed run's summary."""
-    (summary,) = run_seeds(cfg, run_dir)
+    (summary,) = train_run(cfg, run_dir)
     return summary
 
 
@@ -209,6 +209,6 @@ def test_a_full_disk_under_a_write_without_a_file_names_the_run_directory(tiny_r
     def full(*args, **kwargs):  # e.g. a logger's own write, which reports no file
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(trainer_module, "train_seeds", full)  # the loop train.run drives
+    monkeypatch.setattr(trainer_module, "train", full)  # the loop train.run drives
     line = _one_line_exit(capsys, lambda: run(_cfg(tiny_run_data_dir), tmp_path / "run"))
     assert f"cannot write {tmp_path / 'run'}: No space left on device" in line

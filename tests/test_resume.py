@@ -24,6 +24,7 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 import torchrl_bail.algorithms as algorithms_module
+import torchrl_bail.envelope as envelope_module
 import torchrl_bail.resume as resume_module
 import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
@@ -32,7 +33,7 @@ from torchrl_bail.config_builders import algo_config
 from torchrl_bail.data.locks import host_name
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.resume import RUN_LOCK, ResumeError, Resumption
-from torchrl_bail.trainer import train
+from torchrl_bail.trainer import make_trainee, train
 
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
 POLICY = {"policy": {"hidden": [16]}, "batch_size": 16, "epochs": 1}
@@ -121,7 +122,7 @@ def _killing(algo, at: int):
 
 def test_training_loop_resumed_from_its_checkpoint_equals_the_uninterrupted_loop(tmp_path):
     data = _data(200)
-    kwargs = dict(evaluate=lambda policy: float(policy(data[:5].select("observation"))["action"].sum()),
+    kwargs = dict(evaluate=lambda policy: [float(policy(data[:5].select("observation"))["action"].sum())],
                   eval_every_epochs=40 / 1e6, log_every=3, progress=False)
 
     def fresh():
@@ -129,16 +130,17 @@ def test_training_loop_resumed_from_its_checkpoint_equals_the_uninterrupted_loop
         return BehaviourCloning(4, SPEC, algo_config("bc", **{**POLICY, "batch_size": 8, "epochs": 200 / 1e6}))
 
     reference_algo = fresh()
-    reference = train(reference_algo, data, **kwargs)
+    (reference,) = train(make_trainee([reference_algo], [data]), **kwargs)
     path = tmp_path / "checkpoint.pt"
     with pytest.raises(_Kill):
-        train(_killing(fresh(), at=13), data, checkpoint_path=path, checkpoint_every_s=0.0, **kwargs)
+        train(make_trainee([_killing(fresh(), at=13)], [data]), checkpoint_paths=[path], checkpoint_every_s=0.0,
+              **kwargs)
     state = torch.load(path, weights_only=False)
     assert state["iteration"] == 12  # checkpoint_every_s=0: one after every update
     resumed_algo = fresh()
     resumed_algo.load_state_dict(state["algorithm"])
     torch.manual_seed(99)  # the checkpoint's random streams replace whatever the process has
-    resumed = train(resumed_algo, data, checkpoint_path=path, resume_from=state, **kwargs)
+    (resumed,) = train(make_trainee([resumed_algo], [data]), checkpoint_paths=[path], resume_from=[state], **kwargs)
     assert resumed.evaluations == reference.evaluations and resumed.iterations == reference.iterations
     _assert_same(resumed_algo.state_dict(), reference_algo.state_dict())
 
@@ -186,7 +188,7 @@ def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir
     reference = _outputs(tmp_path / "reference")
     assert reference["logs"]  # scalars were logged
     total = json.loads((tmp_path / "reference" / "summary.json").read_text())["iterations"]
-    build = algorithms_module.build_algorithm
+    build, one_epoch = algorithms_module.build_algorithm, envelope_module.train_one_epoch
     rng = random.Random(algo)
     first = rng.randint(2, total // 2)
     kills = [first, rng.randint(first + 1, total - 1)]  # killed at these iterations, then a clean finish
@@ -199,17 +201,21 @@ def test_runs_killed_at_random_points_resume_to_the_reference(tmp_path, data_dir
         at = kill - done  # the update of this process that dies
 
         def dying_build(*args, at=at, **kwargs):
-            algorithm = build(*args, **kwargs)
-            if at == 0:
-                def dying_prepare(*a, **k):
-                    raise _Kill
-                algorithm.prepare = dying_prepare
-                return algorithm
-            return _killing(algorithm, at)
+            return _killing(build(*args, **kwargs), at)
 
-        monkeypatch.setattr(algorithms_module, "build_algorithm", dying_build)
+        def dying_epoch(*args, epochs=[0], **kwargs):  # noqa: B006 - the count of this process' envelope epochs
+            epochs[0] += 1
+            if epochs[0] == 2:  # in the envelope fit's second epoch
+                raise _Kill
+            return one_epoch(*args, **kwargs)
+
+        if at == 0:
+            monkeypatch.setattr(envelope_module, "train_one_epoch", dying_epoch)
+        else:
+            monkeypatch.setattr(algorithms_module, "build_algorithm", dying_build)
         with pytest.raises(_Kill):
             train_module.run(cfg, run_dir)
+        monkeypatch.setattr(envelope_module, "train_one_epoch", one_epoch)
     monkeypatch.setattr(algorithms_module, "build_algorithm", build)
     (summary,) = train_module.run(cfg, run_dir)
     assert summary["resumed_from_iteration"], "the last start resumed from a checkpoint"

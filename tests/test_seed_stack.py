@@ -1,7 +1,9 @@
-"""Many seeds in one process (torchrl_bail.stacking): seed s of a stacked run is the single-seed run with seed s."""
+"""Many seeds in one process (torchrl_bail.stacking): seed s of a stacked run is the single-seed run with seed s, and a
+list of one seed is the single-seed run to every digit."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -9,12 +11,13 @@ import pytest
 import torch
 from _contract import ALGO_BATCH, ALGO_CASES, OBS, TINY_RUN, loss_batch, row_noise, row_noise_like
 from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
 
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
-from torchrl_bail.trainer import train, train_seeds
+from torchrl_bail.trainer import make_trainee, train
 
 SEEDS = (3, 7, 11)
 #: the stacked run computes each seed's numbers with batched matrix products: equal up to float rounding
@@ -36,8 +39,6 @@ def _parameters(algorithm) -> dict[str, torch.Tensor]:
 
 
 def _actions(algorithm_or_stack, seeds: int | None = None) -> torch.Tensor:
-    from tensordict import TensorDict
-
     observation = torch.randn(4, OBS, generator=torch.Generator().manual_seed(5))
     if seeds is not None:
         observation = observation.expand(seeds, 4, OBS)
@@ -126,7 +127,7 @@ def test_training_loop_draws_each_seeds_single_seed_stream():
     singles = []
     for seed in SEEDS:
         algorithm = _built(case, seed)
-        train(algorithm, data, samples_per_epoch=ALGO_BATCH * 6, progress=False)
+        train(make_trainee([algorithm], [data]), samples_per_epoch=ALGO_BATCH * 6, progress=False)
         singles.append(algorithm)
     algorithms, streams = [], []
     for seed in SEEDS:
@@ -137,8 +138,8 @@ def test_training_loop_draws_each_seeds_single_seed_stream():
     sampler = SeedBatchSampler([data] * len(SEEDS), ALGO_BATCH, streams)
     assert len(sampler) == len(data)  # one storage for seeds that share their data
     scores = iter(range(100))
-    histories = train_seeds(StackedTrainee(stack, sampler), evaluate=lambda p: [float(next(scores)) for _ in SEEDS],
-                            samples_per_epoch=ALGO_BATCH * 6, eval_every_epochs=0.5, progress=False)
+    histories = train(StackedTrainee(stack, sampler), evaluate=lambda p: [float(next(scores)) for _ in SEEDS],
+                      samples_per_epoch=ALGO_BATCH * 6, eval_every_epochs=0.5, progress=False)
     assert [h.iterations for h in histories] == [6] * len(SEEDS)
     assert [[e.mean_return for e in h.evaluations] for h in histories] == [[0, 3], [1, 4], [2, 5]]
     _assert_close_per_seed(singles, stack)
@@ -188,6 +189,41 @@ def test_seeds_on_the_command_line_write_single_seed_summaries(tiny_run_data_dir
     assert again == stacked
 
 
+def _envelope_problem():
+    observations = torch.randn(300, OBS, generator=torch.Generator().manual_seed(0))
+    returns = observations[:, 0] * 3 + torch.randn(300, generator=torch.Generator().manual_seed(1))
+    return observations, returns
+
+
+def _envelope(seed: int):
+    from torchrl_bail.modules import make_value_network
+
+    torch.manual_seed(seed)
+    return make_value_network(OBS, (16, 16))
+
+
+@pytest.mark.parametrize("name", ["bail", "bcq"])
+def test_a_list_of_one_seed_on_the_command_line_is_the_single_seed_run_to_every_digit(tiny_run_data_dir, tmp_path,
+                                                                                     name):
+    """``seeds=[2]`` writes what ``seed=2`` writes, to every digit: summary, policies and checkpoint (BAIL: the
+    envelope fit of a list of one; BCQ: noise and mini-batches from the one global stream)."""
+    from _contract import equal_trees
+
+    from torchrl_bail.train import run
+
+    common = (f"algo={name}", *ALGO_CASES[name].cli, f"data_dir={tiny_run_data_dir}")
+    (listed,) = run(_tiny_config(*common, "seeds=[2]"), tmp_path / "listed")
+    (single,) = run(_tiny_config(*common, "seed=2"), tmp_path / "single")
+    volatile = {"wall_time_s", "run_dir"}
+    assert {k: v for k, v in listed.items() if k not in volatile} == {k: v for k, v in single.items()
+                                                                      if k not in volatile}
+    for file in ("policy.pt", "policy_best.pt", "checkpoint.pt"):
+        got = torch.load(tmp_path / "listed" / "seed2" / file, weights_only=False)
+        expected = torch.load(tmp_path / "single" / file, weights_only=False)
+        for key in ("state_dict", "info") if file.startswith("policy") else ("algorithm", "evaluations", "rng"):
+            equal_trees(got[key], expected[key], f"{file}[{key!r}]")
+
+
 @pytest.mark.parametrize("early_stopping", ["paper", "as_coded"])
 def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
     """BAIL's envelope, S seeds in one fit: own split, shuffles, validation losses, patience counts, reverts and
@@ -198,46 +234,80 @@ def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
     fit of one network only what rounding cannot move is compared: a batched and a plain product round differently,
     and 14 epochs at this learning rate amplify that beyond any fixed tolerance (1.2e-3 relative on an AVX-512 CPU).
     """
-    from torchrl_bail.envelope import fit_upper_envelope, fit_upper_envelopes
-    from torchrl_bail.modules import make_value_network
-    from torchrl_bail.stacking import stack_modules, unstack_modules
+    from torchrl_bail.envelope import fit_upper_envelope
 
-    observations = torch.randn(300, OBS, generator=torch.Generator().manual_seed(0))
-    returns = observations[:, 0] * 3 + torch.randn(300, generator=torch.Generator().manual_seed(1))
+    observations, returns = _envelope_problem()
     kwargs = dict(epochs=14, patience=2, batch_size=32, lr=0.05, early_stopping=early_stopping, progress=False)
 
-    def network(seed):
-        torch.manual_seed(seed)
-        return make_value_network(OBS, (16, 16))
-
-    def stacked_fit(seeds, **overrides):
-        networks = [network(seed) for seed in seeds]
-        stacked = stack_modules(networks)
-        fits = fit_upper_envelopes(stacked, observations, returns, **{**kwargs, **overrides},
-                                   generators=[torch.Generator().manual_seed(seed) for seed in seeds])
-        unstack_modules(stacked, networks)
+    def fit(seeds, **overrides):
+        networks = [_envelope(seed) for seed in seeds]
+        fits = fit_upper_envelope(networks, observations, returns, **{**kwargs, **overrides},
+                                  generators=[torch.Generator().manual_seed(seed) for seed in seeds])
+        assert [f.value_network for f in fits] == networks  # each seed's own network holds its fitted envelope
         return list(zip(fits, networks, strict=True))
 
-    mixed = stacked_fit(SEEDS)
+    mixed = fit(SEEDS)
     assert any(fit.revert_epochs for fit, _ in mixed) or early_stopping == "as_coded"
-    for seed, (fit, net) in zip(SEEDS, mixed, strict=True):
-        for alone, alone_net in stacked_fit([seed] * len(SEEDS)):
-            assert torch.equal(fit.train_index, alone.train_index) and torch.equal(fit.val_index, alone.val_index)
-            assert (fit.best_epoch, fit.revert_epochs, fit.returned) == \
+    for seed, (got, net) in zip(SEEDS, mixed, strict=True):
+        for alone, alone_net in fit([seed] * len(SEEDS)):
+            assert torch.equal(got.train_index, alone.train_index) and torch.equal(got.val_index, alone.val_index)
+            assert (got.best_epoch, got.revert_epochs, got.returned) == \
                 (alone.best_epoch, alone.revert_epochs, alone.returned)
-            assert fit.val_loss == alone.val_loss and fit.train_loss == alone.train_loss
+            assert got.val_loss == alone.val_loss and got.train_loss == alone.train_loss
             for (name, p), q in zip(net.named_parameters(), alone_net.parameters(), strict=True):
                 assert torch.equal(p, q), name
     # the stack against one plain network: the same split and, with the weights held still (lr=0), the same
     # validation losses to float32's rounding of three products of at most 16 terms and a mean over the
     # validation points (relative, about (3 * 16 + n) * 2^-24; 3x that is allowed)
     held = dict(epochs=2, lr=0.0)
-    for seed, (fit, _) in zip(SEEDS, stacked_fit(SEEDS, **held), strict=True):
-        single = fit_upper_envelope(network(seed), observations, returns, generator=torch.Generator().manual_seed(seed),
-                                    **{**kwargs, **held})
-        assert torch.equal(fit.train_index, single.train_index) and torch.equal(fit.val_index, single.val_index)
+    for seed, (got, _) in zip(SEEDS, fit(SEEDS, **held), strict=True):
+        ((single, _),) = fit([seed], **held)
+        assert torch.equal(got.train_index, single.train_index) and torch.equal(got.val_index, single.val_index)
         rtol = 3 * (3 * 16 + len(single.val_index)) * torch.finfo(torch.float32).eps / 2
-        torch.testing.assert_close(torch.tensor(fit.val_loss), torch.tensor(single.val_loss), rtol=rtol, atol=0)
+        torch.testing.assert_close(torch.tensor(got.val_loss), torch.tensor(single.val_loss), rtol=rtol, atol=0)
+
+
+def test_a_one_seed_envelope_fit_is_the_plain_fit_to_every_digit():
+    """``fit_upper_envelope`` of a list of one network is the fit of that network written out with plain tensors (the
+    fit as it was before seeds could be stacked): no seed dimension, TorchRL's mean reduction, the epoch's loss
+    divided in Python's float. The same losses, reverts and weights bit for bit (a seed dimension of size 1 would
+    send every layer through a batched matrix product and round differently)."""
+    from torchrl_bail.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
+    from torchrl_bail.objectives import UpperEnvelopeLoss
+
+    observations, returns = _envelope_problem()
+    epochs, batch_size, lr = 8, 32, 0.05
+    (fit,) = fit_upper_envelope([_envelope(3)], observations, returns, epochs=epochs, batch_size=batch_size, lr=lr,
+                                patience=2, generators=[torch.Generator().manual_seed(3)], progress=False)
+    net, generator = _envelope(3), torch.Generator().manual_seed(3)
+    loss_module = UpperEnvelopeLoss(net, penalty=1000.0)  # reduction "mean"
+    optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=0.02)
+    obs_key, return_key = net.in_keys[0], loss_module.tensor_keys.value_target
+
+    def batch(index):
+        return TensorDict({obs_key: observations[index], return_key: returns[index]}, [len(index)])
+
+    train_index, val_index = envelope_split(returns, 0.2, generator=generator)
+    tracker = EarlyStoppingTracker(net, patience=2)
+    train_losses, val_losses = [], []
+    for _ in range(epochs):
+        order, running = train_index[torch.randperm(len(train_index), generator=generator)], 0
+        for start in range(0, len(order), batch_size):
+            index = order[start:start + batch_size]
+            loss, _ = loss_module.envelope_loss(batch(index))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            running = running + loss.detach() * len(index)
+        train_losses.append(float(running) / len(train_index))
+        with torch.no_grad():  # the mean over the validation points, weighted by its size and divided back
+            val_losses.append(float(loss_module.envelope_loss(batch(val_index))[0] * len(val_index) / len(val_index)))
+        tracker.observe(val_losses[-1])
+    tracker.best.load_into(net)
+    assert fit.reverted and (fit.train_loss, fit.val_loss, fit.revert_epochs) == (train_losses, val_losses,
+                                                                                  tracker.reverts)
+    for (name, got), expected in zip(fit.value_network.state_dict().items(), net.state_dict().values(), strict=True):
+        assert torch.equal(got, expected), name
 
 
 class _Kill(BaseException):
@@ -248,27 +318,24 @@ class _Kill(BaseException):
                          ids=["bc", "pbail", "bc_one_seed"])
 def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name, seeds):
     """The stack writes one single-seed checkpoint per seed; the stacked run continued from them ends where the
-    uninterrupted stacked run ends, and each of them also continues alone as that seed's single-seed run. A
-    one-seed stack (``seeds=1``, or the one unfinished seed of a stacked command) checkpoints and resumes the same
-    way."""
+    uninterrupted stacked run ends, and each of them also continues alone as that seed's single-seed run. A list of
+    one seed (``seeds=1``, or the one unfinished seed of a stacked command) checkpoints and resumes the same way,
+    bit for bit."""
     from _contract import equal_trees
-    from tensordict import TensorDict
-
     case = ALGO_CASES[name]
     data = loss_batch((200,), seed=2)
     observation = torch.randn(5, OBS, generator=torch.Generator().manual_seed(3))
 
-    def evaluate(policy):
-        obs = observation.expand(len(seeds), 5, OBS) if evaluate.stacked else observation
+    def evaluate(policy):  # one seed's policy is unstacked: observations [5, OBS]
+        obs = observation.expand(len(evaluate.seeds), 5, OBS) if len(evaluate.seeds) > 1 else observation
         with torch.no_grad():
             actions = policy(TensorDict({"observation": obs}, obs.shape[:-1]))["action"]
-        sums = actions.sum((-2, -1))
-        return [float(v) for v in sums] if evaluate.stacked else float(sums)
+        return actions.sum((-2, -1)).reshape(-1).tolist()
 
     kwargs = dict(evaluate=evaluate, samples_per_epoch=ALGO_BATCH * 12, eval_every_epochs=0.25, log_every=5,
                   progress=False)
 
-    def fresh_stack(checkpoints=None):
+    def fresh_trainee(checkpoints=None):
         algorithms, streams = [], []
         for j, seed in enumerate(seeds):
             algorithms.append(_built(case, seed))
@@ -280,16 +347,14 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
             prepared = prepare_seeds(algorithms, data, [_context(seed) for seed in seeds])
         else:
             prepared = [a.restore_prepared(data, _context(seed)) for a, seed in zip(algorithms, seeds, strict=True)]
-        stack = SeedStack(algorithms)
-        return stack, SeedBatchSampler(prepared, ALGO_BATCH, streams)
+        return make_trainee(algorithms, prepared, streams)
 
-    evaluate.stacked = True
-    reference, sampler = fresh_stack()
-    reference_histories = train_seeds(StackedTrainee(reference, sampler), **kwargs)
-    reference.unstack()
+    evaluate.seeds = seeds
+    reference = fresh_trainee()
+    reference_histories = train(reference, **kwargs)
 
     paths = [tmp_path / f"seed{seed}.pt" for seed in seeds]
-    killed, sampler = fresh_stack()
+    killed = fresh_trainee()
     update, calls = killed.update, [0]
 
     def dying_update(batch):
@@ -300,24 +365,25 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
 
     killed.update = dying_update
     with pytest.raises(_Kill):
-        train_seeds(StackedTrainee(killed, sampler), checkpoint_paths=paths, checkpoint_every_s=0.0, **kwargs)
+        train(killed, checkpoint_paths=paths, checkpoint_every_s=0.0, **kwargs)
     checkpoints = [torch.load(p, weights_only=False) for p in paths]
     assert [c["iteration"] for c in checkpoints] == [7] * len(seeds)
+    last = copy.deepcopy(checkpoints[-1])  # a resumed optimizer steps the moments it loaded in place
     torch.manual_seed(99)  # the checkpoints' streams replace whatever the process has
-    resumed, sampler = fresh_stack(checkpoints)
-    histories = train_seeds(StackedTrainee(resumed, sampler), checkpoint_paths=paths, resume_from=checkpoints, **kwargs)
+    resumed = fresh_trainee(checkpoints)
+    histories = train(resumed, checkpoint_paths=paths, resume_from=checkpoints, **kwargs)
     assert [h.evaluations for h in histories] == [h.evaluations for h in reference_histories]
-    resumed.unstack()
-    for got, expected in zip(resumed.algorithms, reference.algorithms, strict=True):
+    for got, expected in zip(resumed.algorithms(), reference.algorithms(), strict=True):
         equal_trees(got.state_dict(), expected.state_dict())
 
-    evaluate.stacked = False  # the last seed's checkpoint, continued by its single-seed run
+    evaluate.seeds = seeds[-1:]  # the last seed's checkpoint, continued by its single-seed run
     single = _built(case, seeds[-1])
     single_data = single.prepare(data, _context(seeds[-1]))
-    single_reference = train(single, single_data, **kwargs)
+    (single_reference,) = train(make_trainee([single], [single_data]), **kwargs)
     alone = _built(case, seeds[-1])
-    alone.load_state_dict(checkpoints[-1]["algorithm"])
-    history = train(alone, alone.restore_prepared(data, _context(seeds[-1])), resume_from=checkpoints[-1], **kwargs)
+    alone.load_state_dict(last["algorithm"])
+    (history,) = train(make_trainee([alone], [alone.restore_prepared(data, _context(seeds[-1]))]), resume_from=[last],
+                       **kwargs)
     assert len(history.evaluations) == len(single_reference.evaluations)
     for got, expected in zip(history.evaluations, single_reference.evaluations, strict=True):
         assert math.isclose(got.mean_return, expected.mean_return, rel_tol=1e-4, abs_tol=1e-4)
@@ -335,8 +401,6 @@ def test_bad_seeds_are_refused_naming_the_key(seeds):
 def test_compiled_stack_updates_like_the_eager_stack():
     """``seeds=`` with ``compile``: the host's one update is compiled (aot_eager here: the same Dynamo capture as
     inductor, cheap on CPU), the per-seed gradient hooks included; weights agree with the eager stack's."""
-    from tensordict import TensorDict
-
     from torchrl_bail.algorithms.bc import BehaviourCloning
     from torchrl_bail.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds

@@ -1,4 +1,5 @@
-"""The one training loop: schedule in epochs of samples, evaluation cadence, scores, checkpoints."""
+"""The one training loop (one seed: a list of one): schedule in epochs of samples, evaluation cadence, scores,
+checkpoints."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from tensordict import TensorDict
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.trainer import EvalPoint, TrainHistory, train
+from torchrl_bail.trainer import AlgorithmTrainee, EvalPoint, TrainHistory, make_trainee, train
 
 
 def _bc(epochs: float, batch_size: int = 10) -> BehaviourCloning:
@@ -25,8 +26,8 @@ def _data(n: int = 200) -> TensorDict:
 def test_schedule_counts_samples_not_iterations():
     algo = _bc(epochs=1000 / 1e6, batch_size=10)  # 1000 samples = 100 updates
     calls = []
-    history = train(algo, _data(), evaluate=lambda p: float(len(calls.append(1) or calls)),
-                    eval_every_epochs=250 / 1e6, progress=False)
+    (history,) = train(make_trainee([algo], [_data()]), evaluate=lambda p: [float(len(calls.append(1) or calls))],
+                       eval_every_epochs=250 / 1e6, progress=False)
     assert history.iterations == 100
     assert [e.iteration for e in history.evaluations] == [25, 50, 75, 100]
     assert [round(e.epoch * 1e6) for e in history.evaluations] == [250, 500, 750, 1000]
@@ -35,7 +36,8 @@ def test_schedule_counts_samples_not_iterations():
 
 def test_final_evaluation_happens_even_off_cadence():
     algo = _bc(epochs=95 / 1e6, batch_size=10)  # 10 updates (ceil), evaluation every 4
-    history = train(algo, _data(), evaluate=lambda p: 0.0, eval_every_epochs=40 / 1e6, progress=False)
+    (history,) = train(make_trainee([algo], [_data()]), evaluate=lambda p: [0.0], eval_every_epochs=40 / 1e6,
+                       progress=False)
     assert [e.iteration for e in history.evaluations] == [4, 8, 10]
 
 
@@ -44,8 +46,8 @@ def test_bc_fits_the_behaviour_and_checkpoints(tmp_path):
     data = _data(500)
     algo = _bc(epochs=40_000 / 1e6, batch_size=50)
     before = algo.bc_loss(data)["loss_bc"].item()
-    train(algo, data, evaluate=lambda p: 0.0, eval_every_epochs=20_000 / 1e6, progress=False,
-          checkpoint_path=tmp_path / "checkpoint.pt")
+    train(make_trainee([algo], [data]), evaluate=lambda p: [0.0], eval_every_epochs=20_000 / 1e6, progress=False,
+          checkpoint_paths=[tmp_path / "checkpoint.pt"])
     after = algo.bc_loss(data)["loss_bc"].item()
     assert after < 0.2 * before
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
@@ -66,7 +68,7 @@ def test_empty_data_is_a_clear_error():
     import pytest
 
     with pytest.raises(ValueError, match="empty"):
-        train(_bc(1.0), _data(0), progress=False)
+        make_trainee([_bc(1.0)], [_data(0)])
 
 
 def test_checkpoints_before_the_first_update_and_on_a_clock(tmp_path, monkeypatch):
@@ -75,10 +77,10 @@ def test_checkpoints_before_the_first_update_and_on_a_clock(tmp_path, monkeypatc
 
     saved = []
     monkeypatch.setattr(trainer, "save_checkpoint", lambda path, state: saved.append(state["iteration"]))
-    train(_bc(epochs=100 / 1e6), _data(), evaluate=lambda p: 0.0, eval_every_epochs=50 / 1e6, progress=False,
-          checkpoint_path=tmp_path / "c.pt")
+    train(AlgorithmTrainee(_bc(epochs=100 / 1e6), _data()), evaluate=lambda p: [0.0], eval_every_epochs=50 / 1e6,
+          progress=False, checkpoint_paths=[tmp_path / "c.pt"])
     assert saved == [0, 5, 10]  # before the first update, then at each evaluation
     saved.clear()
-    train(_bc(epochs=100 / 1e6), _data(), evaluate=lambda p: 0.0, eval_every_epochs=50 / 1e6, progress=False,
-          checkpoint_path=tmp_path / "c.pt", checkpoint_every_s=0.0)
+    train(AlgorithmTrainee(_bc(epochs=100 / 1e6), _data()), evaluate=lambda p: [0.0], eval_every_epochs=50 / 1e6,
+          progress=False, checkpoint_paths=[tmp_path / "c.pt"], checkpoint_every_s=0.0)
     assert saved == list(range(11))

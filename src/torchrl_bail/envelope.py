@@ -4,6 +4,7 @@
 parameter, a train/validation split that forces the highest return into training, epochs of sequential
 mini-batches over the reshuffled training split, a validation loss after every epoch and early stopping with
 patience ``C = 4``. The penalty loss itself is :class:`~torchrl_bail.objectives.upper_envelope.UpperEnvelopeLoss`.
+It fits the envelopes of a list of seeds, one :class:`EnvelopeFit` each (one seed: a list of one).
 
 It is built from named steps that Progressive BAIL (:mod:`torchrl_bail.algorithms.pbail`) reuses:
 :func:`envelope_split`, :func:`train_one_epoch` (made of :func:`envelope_step`), :func:`validation_loss`, and the
@@ -18,8 +19,8 @@ Examples:
     >>> _ = torch.manual_seed(0)
     >>> obs = torch.randn(500, 3)
     >>> returns = obs[:, 0] + 0.1 * torch.randn(500)
-    >>> fit = fit_upper_envelope(make_value_network(3), obs, returns, epochs=5, progress=False,
-    ...                          generator=torch.Generator().manual_seed(0))
+    >>> (fit,) = fit_upper_envelope([make_value_network(3)], obs, returns, epochs=5, progress=False,
+    ...                             generators=[torch.Generator().manual_seed(0)])
     >>> len(fit.train_index), len(fit.val_index), len(fit.val_loss)
     (401, 99, 5)
     >>> values = envelope_values(fit.value_network, obs)
@@ -29,7 +30,6 @@ Examples:
 
 from __future__ import annotations
 
-import inspect
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -42,7 +42,7 @@ from tensordict.nn import TensorDictModuleBase
 from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.stacking import SeedSlice
+from torchrl_bail.stacking import SeedModules
 
 __all__ = [
     "EarlyStopping",
@@ -51,7 +51,6 @@ __all__ = [
     "EnvelopeFit",
     "envelope_split",
     "fit_upper_envelope",
-    "fit_upper_envelopes",
     "check_fit_arguments",
     "envelope_step",
     "train_one_epoch",
@@ -80,10 +79,10 @@ _VALIDATION_CHUNK = 65536
 
 @dataclass
 class EnvelopeFit:
-    """What :func:`fit_upper_envelope` returns.
+    """What :func:`fit_upper_envelope` returns for one seed.
 
     Attributes:
-        value_network: the fitted envelope (the module passed in, updated in place).
+        value_network: the seed's fitted envelope (the module passed in, updated in place).
         train_loss: per epoch, the mean penalty loss over that epoch's mini-batches (weighted by their size).
         val_loss: per epoch, the mean penalty loss over the whole validation set (``nan`` without one).
         best_epoch: the 1-based epoch with the lowest validation loss (the last epoch without validation).
@@ -92,7 +91,8 @@ class EnvelopeFit:
         revert_epochs: the epochs after which the weights were reverted to the best copy.
         early_stopping: the resolved mode (``"paper_best"``, ``"paper_revert"`` or ``"as_coded"``).
         returned: ``"best"`` or ``"last"``: which weights ``value_network`` holds.
-        optimizer: the Adam optimizer used (coupled L2 ``weight_decay``).
+        optimizer: the Adam optimizer used (coupled L2 ``weight_decay``; over the seed-stacked parameters when
+            several seeds were fitted together).
     """
 
     value_network: TensorDictModuleBase
@@ -369,7 +369,8 @@ def train_one_epoch(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optim
                     train_index: torch.Tensor, batch_size: int, *,
                     generators: Sequence[torch.Generator | None]) -> list[float]:
     """One pass over the reshuffled training split in sequential mini-batches of ``batch_size`` (the last, partial
-    one kept); returns the mean loss over the epoch (mini-batch losses weighted by their size), one per seed.
+    one kept); returns the mean loss over the epoch (mini-batch losses weighted by their size, summed in the loss'
+    dtype and divided in Python's float), one per seed.
 
     ``data`` holds the observations (the envelope's in-key) and returns (the loss' ``value_target``) of the whole
     batch on the training device; ``train_index`` (same device) selects the training split, ``[n]`` for one envelope
@@ -388,33 +389,37 @@ def train_one_epoch(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optim
         batch = TensorDict({obs_key: observations[index], return_key: returns[index]}, batch_size=index.shape)
         loss = envelope_step(loss_module, optimizer, batch) * index.shape[-1]
         running = loss if running is None else running + loss
-    return [float(running) / n_train] if running.ndim == 0 else (running / n_train).tolist()
+    return [float(seed_loss) / n_train for seed_loss in running.reshape(-1)]
 
 
 @torch.no_grad()
 def validation_loss(loss_module: UpperEnvelopeLoss, validation: TensorDictBase) -> list[float]:
-    """The mean penalty loss over every validation point (``nan`` for an empty set), evaluated in chunks for
-    memory; ``loss_module`` may reduce by ``"mean"`` or return per-point losses (``reduction="none"``). One loss per
-    seed: ``validation`` is ``[n]`` (one envelope) or ``[S, n]`` (seed-stacked envelopes, each seed's validation set;
-    the loss per point, ``reduction="none"``)."""
+    """The mean penalty loss over every validation point (``nan`` for an empty set), one per seed, evaluated in
+    chunks for memory.
+
+    ``validation`` is ``[n]`` (one envelope) or ``[S, n]`` (seed-stacked envelopes, each seed's validation set), and
+    ``loss_module`` returns per-point losses (``reduction="none"``): each seed's loss is the mean over its last
+    dimension, the same reduction for one seed as for ``S``.
+    """
     n = validation.batch_size[-1]
-    stacked = validation.batch_dims > 1
     if n == 0:
         return [math.nan] * validation.batch_size[:-1].numel()
     total = 0
     for chunk in validation.split(_VALIDATION_CHUNK, dim=validation.batch_dims - 1):
         loss, _ = loss_module.envelope_loss(chunk)
-        if stacked and loss.ndim < 2:
-            raise ValueError("validation_loss on seed-stacked [S, n] data needs a loss with reduction='none'")
-        total = total + (loss.mean(-1) if stacked else loss.mean()) * chunk.batch_size[-1]
+        if loss.shape != chunk.batch_size:
+            raise ValueError(f"validation_loss needs per-point losses (reduction='none'): the loss of a "
+                             f"{list(chunk.batch_size)} chunk has shape {list(loss.shape)}")
+        total = total + loss.mean(-1) * chunk.batch_size[-1]
     return (total / n).reshape(-1).tolist()
 
 
 def fit_upper_envelope(
-    value_network: TensorDictModuleBase,
+    value_networks: Sequence[TensorDictModuleBase],
     observations: torch.Tensor,
     returns: torch.Tensor,
     *,
+    generators: Sequence[torch.Generator | None] | None = None,
     penalty: float = 1000.0,
     lr: float = 3e-3,
     weight_decay: float = 0.02,
@@ -423,12 +428,12 @@ def fit_upper_envelope(
     val_fraction: float = 0.2,
     patience: int = 4,
     early_stopping: EarlyStopping = "paper",
-    generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
     progress: bool = True,
-    callback: Callable[[int, dict[str, Any]], Any] | None = None,
-) -> EnvelopeFit:
-    """Fits the upper envelope ``V_phi`` to the returns as the authors do (supp. B.1-B.2, Alg. 1).
+    callback: Callable[[int, dict[str, list]], Any] | None = None,
+) -> list[EnvelopeFit]:
+    """Fits the upper envelope ``V_phi`` to the returns as the authors do (supp. B.1-B.2, Alg. 1), for each seed of a
+    list (one seed: a list of one); returns one :class:`EnvelopeFit` per seed.
 
     BAIL: Best-Action Imitation Learning for Batch Deep Reinforcement Learning, https://arxiv.org/abs/1910.12179.
 
@@ -458,14 +463,25 @@ def fit_upper_envelope(
       Without a validation set (``val_fraction=0`` or a tiny batch) there is no early stopping and the last
       weights are returned in every mode.
 
+    **Seeds.** The ``S`` networks are fitted as one (:class:`~torchrl_bail.stacking.SeedModules`): their parameters
+    stacked along a seed dimension, the mini-batches of all seeds through one batched step, each seed's mean loss
+    back-propagated into its own slice. Each seed keeps its own split, shuffles, validation losses, early stopping
+    (patience count, best weights) and returned weights: those of its own fit with its generator, to float rounding
+    (a batched matrix product rounds differently). A list of one network is fitted unstacked, with the plain
+    layers' products and the same per-seed reductions, so a one-seed fit is the same, to every digit, as the fit
+    of that network before seeds could be stacked.
+
     Args:
-        value_network (TensorDictModuleBase): the envelope, e.g.
-            :func:`~torchrl_bail.modules.make_value_network`; it reads the observations from its first in-key
-            and writes ``"state_value"``. It is trained in place (and moved to ``device``).
+        value_networks (sequence of TensorDictModuleBase): one envelope per seed, of one architecture, e.g.
+            :func:`~torchrl_bail.modules.make_value_network`; each reads the observations from its first in-key and
+            writes ``"state_value"``. They are trained in place (and moved to ``device``).
         observations (torch.Tensor): ``[N, obs_dim]``.
         returns (torch.Tensor): ``[N]`` (or ``[N, 1]``) Monte-Carlo returns ``G``.
 
     Keyword Args:
+        generators (sequence of torch.Generator, optional): per seed, a CPU generator for its split and epoch
+            shuffles; the same seed (and the same initial weights) gives the same fit. Defaults to ``None`` (every
+            seed draws from the global RNG, one after the other).
         penalty (float): ``K``. Defaults to ``1000.0``.
         lr (float): Adam learning rate. Defaults to ``3e-3``.
         weight_decay (float): coupled L2 coefficient of Adam. Defaults to ``0.02``.
@@ -475,98 +491,80 @@ def fit_upper_envelope(
         patience (int): ``C``, consecutive non-improving epochs before a revert. Defaults to ``4``.
         early_stopping (str): ``"paper"`` | ``"paper_best"`` | ``"paper_revert"`` | ``"as_coded"`` |
             ``"as_coded_last"``, see above. Defaults to ``"paper"``.
-        generator (torch.Generator, optional): a CPU generator for the split and the epoch shuffles; the same
-            seed (and the same initial weights) gives the same fit. Defaults to ``None`` (the global RNG).
-        device (torch.device or str, optional): where to train. Defaults to the network's device.
-        progress (bool): show a tqdm bar over epochs with the losses. Defaults to ``True``.
+        device (torch.device or str, optional): where to train. Defaults to the first network's device.
+        progress (bool): show a tqdm bar over epochs with the losses (averaged over the seeds). Defaults to
+            ``True``.
         callback (callable, optional): called after every epoch as ``callback(epoch, info)`` with
-            ``info = {"train_loss", "val_loss", "best_epoch", "best_val_loss", "reverted"}``; a truthy return
-            value stops training after that epoch. Defaults to ``None``.
-
-    Several seeds in one fit: :func:`fit_upper_envelopes`.
+            ``info = {"train_loss", "val_loss", "best_epoch", "best_val_loss", "reverted"}``, each a list of one
+            value per seed; a truthy return value stops training after that epoch. Defaults to ``None``.
 
     Returns:
-        :class:`EnvelopeFit`.
+        a list of :class:`EnvelopeFit`, one per seed.
     """
-    settings = dict(penalty=penalty, lr=lr, weight_decay=weight_decay, batch_size=batch_size, epochs=epochs,
-                    val_fraction=val_fraction, patience=patience, early_stopping=early_stopping, device=device,
-                    progress=progress)
-    per_seed_callback = None if callback is None else (
-        lambda epoch, info: callback(epoch, {key: value[0] for key, value in info.items()}))
-    (fit,) = _fit(value_network, observations, returns, [generator], stacked=False, callback=per_seed_callback,
-                  **settings)
-    return fit
-
-
-def fit_upper_envelopes(
-    value_network: TensorDictModuleBase,
-    observations: torch.Tensor,
-    returns: torch.Tensor,
-    *,
-    generators: Sequence[torch.Generator],
-    callback: Callable[[int, dict[str, list]], Any] | None = None,
-    **settings: Any,
-) -> list[EnvelopeFit]:
-    """:func:`fit_upper_envelope` of ``S`` seeds in one fit: ``value_network`` stacked over the seeds
-    (:func:`~torchrl_bail.stacking.stack_modules`), ``generators`` the ``S`` seeds' generators, ``settings``
-    :func:`fit_upper_envelope`'s keyword arguments (its defaults).
-
-    Each seed gets its own split, shuffles, validation losses, early stopping (patience count, best weights) and
-    returned weights, exactly those of its own fit with its generator (to float rounding); the mini-batches of all
-    seeds go through one batched step. Returns one :class:`EnvelopeFit` per seed; ``callback`` gets ``info``'s
-    values as lists, one per seed.
-    """
-    defaults = {name: parameter.default for name, parameter in inspect.signature(fit_upper_envelope).parameters.items()
-                if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("generator", "callback")}
-    return _fit(value_network, observations, returns, list(generators), stacked=True, callback=callback,
-                **{**defaults, **settings})
-
-
-def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, returns: torch.Tensor,
-         generators: list[torch.Generator | None], *, stacked: bool, penalty: float, lr: float, weight_decay: float,
-         batch_size: int, epochs: int, val_fraction: float, patience: int, early_stopping: str,
-         device: torch.device | str | None, progress: bool,
-         callback: Callable[[int, dict[str, list]], Any] | None) -> list[EnvelopeFit]:
-    """The fit of one envelope (``stacked=False``, one generator) or of ``S`` seed-stacked ones; one
-    :class:`EnvelopeFit` per seed."""
     mode = check_fit_arguments(batch_size=batch_size, epochs=epochs, patience=patience, val_fraction=val_fraction,
                                early_stopping=early_stopping)
     returns = _flat_returns(observations, returns)
-    batch_size, epochs = int(batch_size), int(epochs)
-
-    device = torch.device(device) if device is not None else _module_device(value_network)
-    value_network.to(device)
-    dtype = _module_dtype(value_network)
-    # one envelope reduces its loss by the mean, as it always has; stacked ones per seed ([S, B] -> [S])
-    loss_module = UpperEnvelopeLoss(value_network, penalty=penalty, reduction="none" if stacked else "mean")
+    value_networks = list(value_networks)
+    generators = [None] * len(value_networks) if generators is None else list(generators)
+    if not value_networks or len(generators) != len(value_networks):
+        raise ValueError(f"fit_upper_envelope needs one value network and one generator per seed, got "
+                         f"{len(value_networks)} networks and {len(generators)} generators")
+    device = torch.device(device) if device is not None else _module_device(value_networks[0])
+    for network in value_networks:
+        network.to(device)
+    seeds = SeedModules(value_networks)
+    # per-point losses, each seed's mean taken by envelope_step / validation_loss ([S, B] -> [S], [B] -> [])
+    loss_module = UpperEnvelopeLoss(seeds.module, penalty=penalty, reduction="none")
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
-
     splits = [envelope_split(returns.cpu(), val_fraction, generator=g) for g in generators]
-    train_index, val_index = (torch.stack(parts) if stacked else parts[0] for parts in zip(*splits, strict=True))
-    networks = [SeedSlice(value_network, s) for s in range(len(generators))] if stacked else [value_network]
-    if float(val_fraction) > 0 and val_index.shape[-1] == 0:
+    if float(val_fraction) > 0 and len(splits[0][1]) == 0:
         warnings.warn(
             f"fit_upper_envelope: {len(returns)} points leave no validation point at val_fraction={val_fraction}; "
             "training without validation or early stopping (the last weights are returned)",
-            stacklevel=3,
+            stacklevel=2,
         )
-    keys = (value_network.in_keys[0], loss_module.tensor_keys.value_target)
+    dtype = _module_dtype(seeds.module)
+    keys = (seeds.module.in_keys[0], loss_module.tensor_keys.value_target)
     data = TensorDict(dict(zip(keys, (observations.to(device=device, dtype=dtype),
                                       returns.to(device=device, dtype=dtype)), strict=True)), batch_size=[len(returns)])
-    validation = data[val_index.to(device)]
-    has_validation = val_index.shape[-1] > 0
-    train_on_device = train_index.to(device)
+    train_index, val_index = (seeds.batch(parts).to(device) for parts in zip(*splits, strict=True))
     # as coded, the "best" record aliases the live weights and is never loaded back
     trackers = [EarlyStoppingTracker(network, patience=patience, revert=mode != "as_coded",
-                                     copy_best=mode != "as_coded") for network in networks]
+                                     copy_best=mode != "as_coded") for network in seeds.seeds]
+    losses = _train_epochs(loss_module, optimizer, data, train_index, data[val_index], trackers, generators,
+                           batch_size=int(batch_size), epochs=int(epochs), progress=progress, callback=callback)
+    fits = []
+    for network, seed, tracker, (train_losses, val_losses), (seed_train_index, seed_val_index) in zip(
+            value_networks, seeds.seeds, trackers, losses, splits, strict=True):
+        best = mode == "paper_best" and tracker.best.recorded
+        if best:
+            tracker.best.load_into(seed)
+        validated = len(seed_val_index) > 0
+        fits.append(EnvelopeFit(
+            value_network=network, train_loss=train_losses, val_loss=val_losses,
+            best_epoch=tracker.best_step if validated else len(train_losses),
+            best_val_loss=tracker.best_loss if validated else math.nan, train_index=seed_train_index,
+            val_index=seed_val_index, revert_epochs=tracker.reverts, early_stopping=mode,
+            returned="best" if best else "last", optimizer=optimizer,
+        ))
+    seeds.unstack()
+    return fits
 
-    train_losses: list[list[float]] = [[] for _ in networks]
-    val_losses: list[list[float]] = [[] for _ in networks]
+
+def _train_epochs(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimizer, data: TensorDict,
+                  train_index: torch.Tensor, validation: TensorDict, trackers: list[EarlyStoppingTracker],
+                  generators: list[torch.Generator | None], *, batch_size: int, epochs: int, progress: bool,
+                  callback) -> list[tuple[list[float], list[float]]]:
+    """:func:`fit_upper_envelope`'s epochs over the training split ``train_index`` (``[*S, n]``): train, validate on
+    ``validation``, let each seed's tracker observe its validation loss, call ``callback``; returns each seed's
+    ``(train losses, validation losses)``, one per epoch."""
+    has_validation = validation.batch_size[-1] > 0
+    losses: list[tuple[list[float], list[float]]] = [([], []) for _ in trackers]
     bar = tqdm(range(1, epochs + 1), desc="upper envelope", unit="epoch", disable=not progress, leave=False)
     for epoch in bar:
-        train = train_one_epoch(loss_module, optimizer, data, train_on_device, batch_size, generators=generators)
+        train = train_one_epoch(loss_module, optimizer, data, train_index, batch_size, generators=generators)
         val = validation_loss(loss_module, validation)
-        for tracker, seed_train, seed_val, tr, va in zip(trackers, train_losses, val_losses, train, val, strict=True):
+        for tracker, (seed_train, seed_val), tr, va in zip(trackers, losses, train, val, strict=True):
             seed_train.append(tr)
             seed_val.append(va)
             if has_validation:
@@ -581,28 +579,7 @@ def _fit(value_network: TensorDictModuleBase, observations: torch.Tensor, return
         }):
             break
     bar.close()
-
-    fits = []
-    for network, tracker, seed_train, seed_val, (seed_train_index, seed_val_index) in zip(
-            networks, trackers, train_losses, val_losses, splits, strict=True):
-        returned: Literal["best", "last"] = "last"
-        if mode == "paper_best" and tracker.best.recorded:
-            tracker.best.load_into(network)
-            returned = "best"
-        fits.append(EnvelopeFit(
-            value_network=value_network,
-            train_loss=seed_train,
-            val_loss=seed_val,
-            best_epoch=tracker.best_step if has_validation else len(seed_train),
-            best_val_loss=tracker.best_loss if has_validation else math.nan,
-            train_index=seed_train_index,
-            val_index=seed_val_index,
-            revert_epochs=tracker.reverts,
-            early_stopping=mode,
-            returned=returned,
-            optimizer=optimizer,
-        ))
-    return fits
+    return losses
 
 
 @torch.no_grad()

@@ -22,17 +22,19 @@ Seeding: the ``k``-th call (``k = 0, 1, ...``, :attr:`Evaluator.evaluations`) re
 states, the same ``seed`` always gives the same returns, and the ``k``-th evaluation does not depend on what the
 earlier ones did (set :attr:`Evaluator.evaluations` to resume a stream).
 
-Several training seeds at once: ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step
-loop; the policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. a vmapped
-ensemble of ``S`` policies) and :meth:`Evaluator.per_seed` returns one :class:`EvalResult` per seed, each equal to
-what ``Evaluator(..., seed=s_j)`` gives for that seed's policy (as long as the policy computes each row as it would
-alone: a matrix product's last bits can depend on the batch shape).
+Seeds: an evaluator plays the training seeds of a list, and :meth:`Evaluator.evaluate` returns one
+:class:`EvalResult` per seed. ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step loop; the
+policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. the seed-stacked policies of
+:mod:`torchrl_bail.stacking`), and each seed's result equals what ``Evaluator(..., seeds=[s_j])`` gives for that
+seed's policy (as long as the policy computes each row as it would alone: a matrix product's last bits can depend
+on the batch shape). A list of one seed (``seed=s`` is ``seeds=[s]``) is played by one unstacked policy on
+``[N, obs_dim]`` observations, as a single-seed run's policy always was.
 
 Examples:
     >>> from torchrl_bail.modules import make_deterministic_actor
-    >>> evaluator = Evaluator("Hopper-v5", episodes=2, seed=0, max_steps=20)
+    >>> evaluator = Evaluator("Hopper-v5", episodes=2, seeds=[0], max_steps=20)
     >>> actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(8,))
-    >>> result = evaluator(actor)
+    >>> (result,) = evaluator.evaluate(actor)
     >>> len(result.returns), result.failures, evaluator.evaluations
     (2, 0, 1)
     >>> evaluator.close()
@@ -41,6 +43,7 @@ Examples:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -93,10 +96,10 @@ class Evaluator:
 
     Keyword Args:
         episodes (int): number of test episodes (per seed). Defaults to ``10``.
-        seed (int): the run seed; see the module docstring for the per-episode reset seeds. Defaults to ``0``.
-        seeds (sequence of int, optional): evaluate ``S`` seeds at once (``S x episodes`` episodes, policy batch
-            ``[S, episodes]``, :meth:`per_seed` returns one :class:`EvalResult` per seed); overrides ``seed``.
-            Defaults to ``None``.
+        seed (int): shorthand for ``seeds=[seed]``. Defaults to ``0``.
+        seeds (sequence of int, optional): the run seeds evaluated, ``S >= 1`` (``S x episodes`` episodes; see the
+            module docstring for the per-episode reset seeds and the policy's batch); overrides ``seed``. Defaults
+            to ``None`` (``[seed]``).
         max_steps (int): step budget of one episode (the env's time limit ends episodes first when shorter).
             Defaults to ``1000``.
         max_episode_steps (int, optional): overrides the env's time limit.
@@ -127,10 +130,10 @@ class Evaluator:
         self.env_id = env_id
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
-        #: the seeds evaluated: ``[seed]``, or ``seeds``
+        #: the seeds evaluated: ``seeds``, or ``[seed]``
         self.seeds = [int(seed)] if seeds is None else [int(s) for s in seeds]
-        #: the policy's batch: ``[episodes]`` for ``seed``, ``[S, episodes]`` for ``seeds``
-        self.batch_shape = torch.Size([self.episodes] if seeds is None else [len(self.seeds), self.episodes])
+        #: the policy's batch: ``[episodes]`` for one seed (an unstacked policy), ``[S, episodes]`` for ``S > 1``
+        self.batch_shape = torch.Size([*([len(self.seeds)] if len(self.seeds) > 1 else []), self.episodes])
         self.device = torch.device(device)
         self.evaluations = 0
         make_kwargs = {"disable_env_checker": True, **(env_kwargs or {})}
@@ -141,17 +144,21 @@ class Evaluator:
         self.obs_dim = int(self.envs[0].observation_space.shape[-1])
 
     def __call__(self, policy: TensorDictModuleBase) -> EvalResult:
-        """Plays one evaluation of one seed's policy; returns its :class:`EvalResult` (an evaluator of several
-        ``seeds`` plays them with :meth:`per_seed`)."""
+        """Deprecated: ``(result,) = evaluator.evaluate(policy)`` for an evaluator of one seed. Kept, with a
+        :class:`DeprecationWarning`, for the callers that still read one result (``torchrl_bail.evaluate``, the SAC
+        behaviour runs, the benchmarks)."""
+        warnings.warn("Evaluator(...)(policy) is deprecated: use (result,) = evaluator.evaluate(policy), one result "
+                      "per seed", DeprecationWarning, stacklevel=2)
         if len(self.seeds) > 1:
             raise ValueError(f"this Evaluator plays {len(self.seeds)} seeds {self.seeds}: call "
-                             "evaluator.per_seed(policy) for their results, one per seed")
-        (result,) = self.per_seed(policy)
+                             "evaluator.evaluate(policy) for their results, one per seed")
+        (result,) = self.evaluate(policy)
         return result
 
     @torch.no_grad()
-    def per_seed(self, policy: TensorDictModuleBase) -> list[EvalResult]:
-        """Plays one evaluation; returns one :class:`EvalResult` per seed (one for an evaluator of one seed)."""
+    def evaluate(self, policy: TensorDictModuleBase) -> list[EvalResult]:
+        """Plays one evaluation of the policy of every seed (:attr:`batch_shape` observations); returns one
+        :class:`EvalResult` per seed, in the order of :attr:`seeds`."""
         n = len(self.envs)
         seeds = self.seeds
         obs = np.zeros((n, self.obs_dim), dtype=np.float32)

@@ -15,13 +15,19 @@ serves every seed:
   ``S``: each seed's slice receives exactly its own loss' gradient, and Adam (elementwise) over the stacked tensors
   is per-seed Adam; BEAR's Lagrange multiplier and MARWIL's ``c2`` are one per seed;
 * BAIL fits the ``S`` upper envelopes as one stacked network (:func:`~torchrl_bail.envelope.fit_upper_envelope`
-  with a list of generators): each seed has its own split, epoch shuffles, validation loss, patience counter,
-  reverts and best weights, and selects its best actions under its own envelope; Progressive BAIL keeps per-seed
-  validation sets and early-stopping trackers on slices of the stacked envelopes and selects inside each seed's
-  row of the mini-batch;
-* the evaluation policy sees observations ``[S, N, obs_dim]`` (:class:`~torchrl_bail.evaluation.Evaluator` with
-  ``seeds=``, the ``S x episodes`` test episodes in one step loop) and plays each seed's policy on its own row;
+  of ``S`` networks, :class:`SeedModules`): each seed has its own split, epoch shuffles, validation loss, patience
+  counter, reverts and best weights, and selects its best actions under its own envelope; Progressive BAIL keeps
+  per-seed validation sets and early-stopping trackers on slices of the stacked envelopes and selects inside each
+  seed's row of the mini-batch;
+* the evaluation policy sees observations ``[S, N, obs_dim]`` (:class:`~torchrl_bail.evaluation.Evaluator` of ``S``
+  seeds, the ``S x episodes`` test episodes in one step loop) and plays each seed's policy on its own row;
   each seed gets the reset seeds its single-seed run uses.
+
+One seed is not a stack of one. A seed dimension of size 1 would send every layer through a batched matrix product,
+which rounds differently from the plain one, so the functions that take a list of seeds keep a list of one
+unstacked: :func:`torchrl_bail.trainer.make_trainee` trains one algorithm itself, :class:`SeedModules` of one module
+is that module, and an :class:`~torchrl_bail.evaluation.Evaluator` of one seed plays a ``[N, obs_dim]`` policy. A
+single-seed run is thereby the run it was before seeds could be stacked, to every digit.
 
 :meth:`SeedStack.unstack` writes the trained slices (parameters, target networks, per-seed buffers, optimizer
 states) back into the ``S`` original algorithms, which then save their policies, checkpoints and summaries exactly
@@ -57,8 +63,8 @@ import torch
 from tensordict import TensorDictBase, TensorDictParams
 from torch import nn
 
-__all__ = ["SeedBatchSampler", "SeedSlice", "SeedStack", "SeedStackedLinear", "StackedTrainee", "linear",
-           "prepare_seeds", "stack_modules", "unstack_modules"]
+__all__ = ["SeedBatchSampler", "SeedModules", "SeedSlice", "SeedStack", "SeedStackedLinear", "StackedTrainee",
+           "linear", "prepare_seeds", "stack_modules", "unstack_modules"]
 
 _TARGET = "target_"
 
@@ -152,6 +158,53 @@ class SeedSlice:
                 target.copy_(state[name])
 
 
+
+class SeedModules:
+    """``S`` modules of one architecture, one per seed, as one module to train (BAIL's envelopes in
+    :func:`~torchrl_bail.envelope.fit_upper_envelope`).
+
+    For ``S > 1``, :attr:`module` holds the modules' parameters stacked along a leading seed dimension
+    (:func:`stack_modules`: inputs ``[S, *B, in]``, row ``s`` through ``modules[s]``), :attr:`seeds` is each seed's
+    view of it (:class:`SeedSlice`), :meth:`batch` stacks per-seed tensors into that layout and :meth:`unstack` writes
+    the trained slices back into the modules. One module is its own stack: :attr:`module` and ``seeds[0]`` are the
+    module itself, :meth:`batch` returns the one seed's tensor unchanged and :meth:`unstack` has nothing to write. The
+    module then sees the very inputs, shapes and matrix products of a fit that never heard of seeds, so a single-seed
+    fit is that fit to every digit (a seed dimension of size 1 would round differently: see the module docstring).
+
+    Args:
+        modules: the ``S >= 1`` modules, trained in place (for ``S > 1`` from :meth:`unstack` on).
+
+    Examples:
+        >>> nets = [nn.Linear(2, 1), nn.Linear(2, 1)]
+        >>> both, one = SeedModules(nets), SeedModules(nets[:1])
+        >>> both.module.weight.shape, one.module is nets[0], one.seeds == [nets[0]]
+        (torch.Size([2, 1, 2]), True, True)
+        >>> both.batch([torch.zeros(5), torch.ones(5)]).shape, one.batch([torch.zeros(5)]).shape
+        (torch.Size([2, 5]), torch.Size([5]))
+    """
+
+    def __init__(self, modules: Sequence[nn.Module]) -> None:
+        self.modules = list(modules)
+        if not self.modules:
+            raise ValueError("SeedModules needs at least one module")
+        self.stacked = len(self.modules) > 1
+        #: the module to train: the stack, or the one module itself
+        self.module = stack_modules(self.modules) if self.stacked else self.modules[0]
+        #: per seed, what its weights are saved from and loaded into (early stopping's best-weights record)
+        self.seeds: list = ([SeedSlice(self.module, s) for s in range(len(self.modules))] if self.stacked
+                            else [self.module])
+
+    def batch(self, tensors: Sequence[torch.Tensor]) -> torch.Tensor:
+        """One tensor per seed in :attr:`module`'s batch layout: stacked along a new leading seed dimension, or the
+        one seed's tensor itself."""
+        return torch.stack(list(tensors)) if self.stacked else tensors[0]
+
+    def unstack(self) -> None:
+        """Writes each seed's trained slice of :attr:`module` back into its module (nothing to write for one)."""
+        if self.stacked:
+            unstack_modules(self.module, self.modules)
+
+
 def _entries(algorithm) -> list[tuple[str, torch.Tensor, int]]:
     """``(name, tensor, seed dim)`` of everything a seed owns: every parameter of the algorithm's modules and every
     target-network copy of one (``target_<name>`` buffers of TorchRL losses), in a fixed order. The seed dimension
@@ -216,7 +269,7 @@ def _other_buffers(algorithm, stacked_ids: set[int]) -> dict[str, torch.Tensor]:
 
 class SeedStack:
     """``S`` independently initialised copies of one algorithm, trained by one update step (see the module
-    docstring); :class:`StackedTrainee` trains it (:func:`torchrl_bail.trainer.train_seeds`).
+    docstring); :class:`StackedTrainee` trains it (:func:`torchrl_bail.trainer.train`).
 
     Args:
         algorithms: ``S`` algorithms of one class and config, each built (and prepared) as its single-seed run
@@ -450,13 +503,15 @@ class SeedBatchSampler:
 
 
 class StackedTrainee:
-    """``S`` seeds trained as one (:func:`torchrl_bail.trainer.train_seeds`' trainee): ``stack``'s update on the
+    """``S`` seeds trained as one (:func:`torchrl_bail.trainer.train`' trainee): ``stack``'s update on the
     ``[S, B]`` mini-batches of ``sampler``, each seed's checkpoint a single-seed one
     (:meth:`SeedStack.seed_checkpoints`).
 
     Training scalars: a ``[S]`` value (a per-seed diagnostic) is logged per seed under its name, a plain one (a
     loss, averaged over the seeds by the host's update) by every seed as ``<name>_mean_over_seeds``.
     """
+
+    layout = "networks stacked"
 
     def __init__(self, stack: SeedStack, sampler: SeedBatchSampler) -> None:
         self.stack, self.sampler = stack, sampler
@@ -476,6 +531,10 @@ class StackedTrainee:
     def plan_updates(self, updates: int) -> None:
         for algorithm in (self.stack.host, *self.stack.algorithms):
             algorithm.plan_updates(updates)
+
+    def compile(self, mode: bool | str) -> None:
+        """Compiles the host's update, the one all seeds share."""
+        self.stack.host.compile(mode)
 
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         def per_seed(value) -> bool:
@@ -498,12 +557,12 @@ class StackedTrainee:
 
 
 def prepare_seeds(algorithms: Sequence[Any], data: TensorDictBase, contexts: Sequence[Any]) -> list[TensorDictBase]:
-    """Each seed's training data: the algorithm class' ``prepare_stacked(algorithms, data, contexts)`` when it has one
-    (BAIL fits its ``S`` envelopes as one stacked network), else each algorithm's own ``prepare`` with its seed's
-    context, as its single-seed run calls it."""
-    stacked = getattr(type(algorithms[0]), "prepare_stacked", None)
-    if stacked is not None:
-        return stacked(algorithms, data, contexts)
+    """Each seed's training data (``S >= 1`` seeds): the algorithm class' ``prepare_seeds(algorithms, data, contexts)``
+    when it has one (BAIL fits its ``S`` envelopes in one fit, and its ``prepare`` is that of a list of one), else
+    each algorithm's own ``prepare`` with its seed's context, as its single-seed run calls it."""
+    own = getattr(type(algorithms[0]), "prepare_seeds", None)
+    if own is not None:
+        return own(algorithms, data, contexts)
     return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts, strict=True)]
 
 

@@ -121,17 +121,6 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return logger
 
 
-def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
-    """Runs the training job described by ``cfg`` into ``run_dir``; returns one summary per seed (one for a
-    single-seed run; ``seeds=``: see :func:`run_seeds`).
-
-    With ``resume=auto`` (default) a checkpoint in ``run_dir`` is continued and a finished run is reported, not
-    trained again (:mod:`torchrl_bail.resume`).
-    """
-    validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
-    return run_seeds(cfg, run_dir)
-
-
 def training_data(cfg: DictConfig, batch, evaluator):
     """The batch's transitions with their Monte-Carlo returns (``"return"``), after checking that the batch fits
     the evaluation env."""
@@ -236,20 +225,23 @@ def seed_run_dir(run_dir: Path, seed: int, other: int) -> Path:
     return run_dir / f"seed{other}"
 
 
-def run_seeds(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
-    """Trains the seeds of ``cfg.seeds`` in one process, their networks stacked (:mod:`torchrl_bail.stacking`);
-    returns one summary per seed.
+def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
+    """Runs the training job described by ``cfg`` into ``run_dir``: the seeds of :func:`seed_list` (``seed``, or
+    those of ``seeds=``) in one process; returns one summary per seed.
 
-    Each seed runs with the config of the single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory
-    (:func:`seed_run_dir`): the same ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt``
-    and ``summary.json``. Seeds whose directory already holds a finished run are reported, not trained again
-    (``resume=auto``); the others train together (:func:`_train_seeds`; one seed left, or ``seeds`` null, trains as
-    the single-seed run, its algorithm unstacked). The checkpoints are single-seed checkpoints: a killed stacked run
-    continues from them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be
-    continued alone (``seed=<s>``).
+    ``seeds`` null is the single-seed run in ``run_dir``. With ``seeds=``, each seed runs with the config of the
+    single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory (:func:`seed_run_dir`): the same
+    ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt`` and ``summary.json``. With
+    ``resume=auto`` (default) a checkpoint is continued and a seed whose directory already holds a finished run is
+    reported, not trained again (:mod:`torchrl_bail.resume`); the others train together (:func:`_train_seeds`:
+    their networks stacked when there are several, :mod:`torchrl_bail.stacking`; one seed trains its algorithm
+    unstacked, as it always has). The checkpoints are single-seed checkpoints: a killed stacked run continues from
+    them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be continued alone
+    (``seed=<s>``).
     """
     import contextlib
 
+    validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
     from torchrl_bail.algorithms import ALGORITHMS
     from torchrl_bail.resume import ResumeError
 
@@ -293,19 +285,21 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     """The one run path: trains the seeds of ``configs`` (each with its run directory and resumption) together and
     finishes each; returns their summaries.
 
-    Every step runs once for all seeds: configs, device, batch, evaluator, training data, loggers, then per seed the
-    seeding, the algorithm and its prepared data (or what its checkpoint restores), the compile, the best-policy
-    callbacks, the training loop and the finish. One place picks the trainee: one seed trains its algorithm itself,
-    on the batch as TorchRL's replay buffer samples it (the single-seed run, bit for bit); several train as one
-    :class:`~torchrl_bail.stacking.SeedStack` on a :class:`~torchrl_bail.stacking.SeedBatchSampler`, each seed
-    drawing its single-seed run's mini-batch stream.
+    Every step runs once for the list of seeds, whatever its length: configs, device, batch, evaluator, training
+    data, loggers, then per seed the seeding, the algorithm and its prepared data (or what its checkpoint restores),
+    the trainee and its compile, the best-policy callbacks, the training loop and the finish. Whether the seeds'
+    networks are stacked is decided by the list-taking pieces themselves (:func:`~torchrl_bail.trainer.make_trainee`,
+    :func:`~torchrl_bail.stacking.prepare_seeds`, the :class:`~torchrl_bail.evaluation.Evaluator` of the seeds): a
+    list of one trains its algorithm unstacked, on the batch as TorchRL's replay buffer samples it (the single-seed
+    run, to every digit); several train as one :class:`~torchrl_bail.stacking.SeedStack`, each seed drawing its
+    single-seed run's mini-batch stream.
     """
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
     from torchrl_bail.evaluation import Evaluator
     from torchrl_bail.policy import save_policy
     from torchrl_bail.resume import record_config
-    from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
-    from torchrl_bail.trainer import AlgorithmTrainee, train_seeds
+    from torchrl_bail.stacking import prepare_seeds
+    from torchrl_bail.trainer import make_trainee, train
 
     start = time.perf_counter()
     cfg = configs[0]
@@ -314,12 +308,8 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     device = _device(cfg.device)
     batch = load_training_batch(cfg)
     seeds = [int(c.seed) for c in configs]
-    stacked = len(seeds) > 1
-    if stacked:
-        log.info("training seeds %s of %s in one process (networks stacked)", seeds, cfg.algo.name)
     evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, max_steps=cfg.eval.max_steps,
-                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device,
-                          **({"seeds": seeds} if stacked else {"seed": seeds[0]}))
+                          max_episode_steps=cfg.env.get("max_episode_steps"), device=device, seeds=seeds)
     try:
         obs_dim, action_spec = evaluator.obs_dim, evaluator.action_spec
         data = training_data(cfg, batch, evaluator)
@@ -334,7 +324,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
             # run, resumed ones included) leaves the training streams the same
             generator = seed_everything(int(seed_cfg.seed))
             algorithms.append(build_algorithm(seed_cfg.algo, obs_dim, action_spec, device))
-            streams.append(_sampling_stream(int(seed_cfg.seed), device))  # a stacked seed's mini-batch stream
+            streams.append(_sampling_stream(int(seed_cfg.seed), device))  # its mini-batch stream, when stacked
             if checkpoint is not None:  # a checkpoint restores what prepare fitted: nothing is refitted or logged
                 algorithms[-1].load_state_dict(checkpoint["algorithm"])
                 contexts.append(PrepareContext(generator=generator))
@@ -343,18 +333,11 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
                                                progress=cfg.progress))
         if resuming:
             prepared = [a.restore_prepared(data, ctx) for a, ctx in zip(algorithms, contexts, strict=True)]
-        elif stacked:
+        else:
             prepared = prepare_seeds(algorithms, data, contexts)
-        else:
-            prepared = [algorithms[0].prepare(data, contexts[0])]
-        # -- the trainee: the algorithm itself, or the seeds' stack ---------------------------------------------------
-        if stacked:
-            stack = SeedStack(algorithms)
-            trainee = StackedTrainee(stack, SeedBatchSampler(prepared, stack.batch_size, streams, device=device))
-            stack.host.compile(cfg.compile)  # the one update all seeds share; a no-op for compile=false
-        else:
-            trainee = AlgorithmTrainee(algorithms[0], prepared[0])
-            algorithms[0].compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
+        trainee = make_trainee(algorithms, prepared, streams)  # one seed: its algorithm itself; several: their stack
+        trainee.compile(cfg.compile)  # after the checkpoint's state is in place; a no-op for compile=false
+        log.info("training seeds %s of %s in one process (%s)", seeds, cfg.algo.name, trainee.layout)
 
         def keep_best(i: int):  # policy_best.pt: the best-evaluated policy of seed i so far
             def save(point, index: int) -> None:
@@ -364,8 +347,8 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
             return save
 
         every_minutes = cfg.checkpoint.get("every_minutes")
-        histories = train_seeds(
-            trainee, evaluate=evaluator.per_seed, evaluation_state=evaluator, samples_per_epoch=cfg.samples_per_epoch,
+        histories = train(
+            trainee, evaluate=evaluator.evaluate, evaluation_state=evaluator, samples_per_epoch=cfg.samples_per_epoch,
             eval_every_epochs=cfg.eval.every_epochs, loggers=loggers, progress=cfg.progress,
             checkpoint_paths=[d / "checkpoint.pt" for d in dirs] if cfg.checkpoint.enabled else None,
             checkpoint_every_s=60.0 * every_minutes if every_minutes else None,

@@ -1,6 +1,6 @@
 """The one offline training loop every algorithm runs through.
 
-``train`` samples mini-batches with replacement from the data an algorithm prepared, calls the algorithm's
+:func:`train` samples mini-batches with replacement from the data an algorithm prepared, calls the algorithm's
 update step, evaluates the deterministic policy every ``eval_every_epochs`` (an epoch is 10^6 samples
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
 and writes an atomic checkpoint before the first update, after each evaluation and every few minutes, and, when
@@ -9,9 +9,10 @@ which it came, before it raises :class:`~torchrl_bail.interrupts.Interrupted`. G
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
 as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
-The loop itself is :func:`train_seeds`: it trains a :class:`Trainee` of ``S >= 1`` seeds and keeps every per-seed
-value (loggers, callbacks, histories, checkpoint paths) in lists. ``train`` is its one-seed edge, with an
-:class:`AlgorithmTrainee`; :class:`~torchrl_bail.stacking.StackedTrainee` trains ``S`` seeds stacked.
+:func:`train` trains a :class:`Trainee` of ``S >= 1`` seeds and keeps every per-seed value (loggers, callbacks,
+histories, checkpoint paths) in lists of ``S``; one seed is a list of one. :func:`make_trainee` makes the trainee of
+a list of algorithms: one algorithm trains itself (:class:`AlgorithmTrainee`), ``S > 1`` train stacked
+(:class:`~torchrl_bail.stacking.StackedTrainee`).
 
 Examples:
     >>> import torch
@@ -22,7 +23,8 @@ Examples:
     >>> config = algo_config("bc", batch_size=10, epochs=100 / 1e6, policy={"hidden": [8]})
     >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
     >>> data = TensorDict({"observation": torch.randn(50, 3), "action": torch.rand(50, 1) * 2 - 1}, [50])
-    >>> history = train(algo, data, evaluate=lambda policy: 1.0, eval_every_epochs=50 / 1e6, progress=False)
+    >>> (history,) = train(make_trainee([algo], [data]), evaluate=lambda policy: [1.0], eval_every_epochs=50 / 1e6,
+    ...                    progress=False)
     >>> history.iterations, [e.epoch * 1e6 for e in history.evaluations]
     (10, [50.0, 100.0])
 """
@@ -47,9 +49,10 @@ from tqdm.auto import tqdm
 from torchrl_bail import interrupts
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.io import write_atomic
+from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee
 
-__all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "rng_state",
-           "save_checkpoint", "set_rng_state", "train", "train_seeds"]
+__all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "make_trainee",
+           "rng_state", "save_checkpoint", "set_rng_state", "train"]
 
 #: version of the checkpoint layout :func:`train` writes and resumes from
 CHECKPOINT_FORMAT = 1
@@ -107,7 +110,7 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 class Trainee(Protocol):
-    """What :func:`train_seeds` trains: ``S >= 1`` seeds of one algorithm, seen as one learner.
+    """What :func:`train` trains: ``S >= 1`` seeds of one algorithm, seen as one learner (:func:`make_trainee`).
 
     :class:`AlgorithmTrainee` is one seed's algorithm with TorchRL's replay buffer;
     :class:`~torchrl_bail.stacking.StackedTrainee` is a :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds with
@@ -117,6 +120,8 @@ class Trainee(Protocol):
     name: str
     epochs: float
     samples_per_update: int
+    #: how the seeds' networks are held, for the run's log: ``"unstacked"`` or ``"networks stacked"``
+    layout: str
 
     @property
     def seeds(self) -> int:
@@ -135,6 +140,10 @@ class Trainee(Protocol):
     def plan_updates(self, updates: int) -> None:
         """Tells every seed's algorithm the run's number of updates
         (:meth:`~torchrl_bail.algorithms.base.Algorithm.plan_updates`)."""
+
+    def compile(self, mode: bool | str) -> None:
+        """Compiles the one update step (:meth:`~torchrl_bail.algorithms.base.Algorithm.compile`; a no-op for
+        ``False``), after the checkpoint's state is in place."""
 
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         """The accumulated training scalars as each seed logs them (one dict per seed)."""
@@ -156,6 +165,7 @@ class AlgorithmTrainee:
     algorithm's device) by TorchRL's :class:`~torchrl.data.RandomSampler`, as a single-seed run always trained."""
 
     seeds = 1
+    layout = "unstacked"
 
     def __init__(self, algorithm: Algorithm, data: TensorDictBase) -> None:
         if len(data) == 0:
@@ -180,6 +190,9 @@ class AlgorithmTrainee:
     def plan_updates(self, updates: int) -> None:
         self.algorithm.plan_updates(updates)
 
+    def compile(self, mode: bool | str) -> None:
+        self.algorithm.compile(mode)
+
     def seed_metrics(self, sums: dict[str, Any]) -> list[dict[str, Any]]:
         return [sums]
 
@@ -197,61 +210,29 @@ class AlgorithmTrainee:
         return [self.algorithm]
 
 
-def train(
-    algorithm: Algorithm,
-    data: TensorDictBase,
-    *,
-    evaluate: Callable | None = None,
-    samples_per_epoch: int = 1_000_000,
-    eval_every_epochs: float = 0.5,
-    logger=None,
-    checkpoint_path: Path | None = None,
-    checkpoint_every_s: float | None = None,
-    checkpoint_extra: Callable[[], dict] | None = None,
-    resume_from: dict | None = None,
-    progress: bool = True,
-    log_every: int = 100,
-    on_new_best: Callable[[EvalPoint, int], None] | None = None,
-) -> TrainHistory:
-    """Runs ``algorithm`` for ``algorithm.epochs`` epochs on ``data``: the one-seed case of :func:`train_seeds`,
-    with an :class:`AlgorithmTrainee`.
+def make_trainee(algorithms: Sequence[Algorithm], datas: Sequence[TensorDictBase],
+                 streams: Sequence[torch.Generator] | None = None) -> Trainee:
+    """The :class:`Trainee` of ``S >= 1`` seeds' algorithms (each built, and prepared into its ``datas`` entry, as
+    its single-seed run does).
 
-    Args:
-        algorithm: the :class:`~torchrl_bail.algorithms.base.Algorithm` (its ``prepare`` already ran).
-        data: the TensorDict ``[N]`` to sample from (with replacement).
-
-    Keyword Args:
-        evaluate: ``policy -> EvalResult | float``; called every ``eval_every_epochs`` and at the end. When it
-            has ``state_dict``/``load_state_dict`` (an :class:`~torchrl_bail.evaluation.Evaluator`'s random stream),
-            that state is checkpointed too.
-        samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
-        eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
-        logger (Logger, optional): a TorchRL logger (``log_scalar``).
-        checkpoint_path: where to write the checkpoint: before the first update, after every evaluation and
-            every ``checkpoint_every_s`` seconds of training. Optional.
-        checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).
-        checkpoint_extra: ``() -> dict`` of run-level entries added to each checkpoint (config, log sizes).
-        resume_from (dict, optional): a checkpoint this function wrote; training continues after its iteration
-            with every network, optimizer, metric accumulator, evaluation and random stream as they were, so the
-            rest of the run is the same as an uninterrupted one. The algorithm's own
-            :meth:`~torchrl_bail.algorithms.base.Algorithm.load_state_dict` must already have run.
-        progress (bool): tqdm progress bar. Defaults to ``True``.
-        log_every (int): training scalars are averaged and logged every ``log_every`` updates.
-        on_new_best: ``(point, index)`` called when an evaluation beats every earlier one (e.g. to save the
-            best policy); ``index`` is the evaluation's position in ``history.evaluations``.
+    One algorithm trains itself (:class:`AlgorithmTrainee`): its mini-batches come from TorchRL's replay buffer on
+    the global random stream, and its update is the plain one, so a list of one is the single-seed run to every
+    digit (a seed-stacked update of one seed would round differently, see :mod:`torchrl_bail.stacking`). ``S > 1``
+    train as one :class:`~torchrl_bail.stacking.SeedStack` on a :class:`~torchrl_bail.stacking.SeedBatchSampler`
+    whose ``streams`` (per seed, the generator on the algorithms' device its mini-batch indices come from) give
+    each seed its single-seed run's mini-batches.
     """
-    (history,) = train_seeds(
-        AlgorithmTrainee(algorithm, data), evaluate=None if evaluate is None else lambda policy: [evaluate(policy)],
-        evaluation_state=evaluate, samples_per_epoch=samples_per_epoch, eval_every_epochs=eval_every_epochs,
-        loggers=[logger], checkpoint_paths=None if checkpoint_path is None else [checkpoint_path],
-        checkpoint_every_s=checkpoint_every_s, checkpoint_extras=[checkpoint_extra],
-        resume_from=None if resume_from is None else [resume_from], progress=progress, log_every=log_every,
-        on_new_best=[on_new_best],
-    )
-    return history
+    algorithms, datas = list(algorithms), list(datas)
+    if len(algorithms) == 1:
+        return AlgorithmTrainee(algorithms[0], datas[0])
+    if streams is None:
+        raise ValueError(f"{len(algorithms)} seeds train stacked: pass one mini-batch stream (torch.Generator) per "
+                         "seed")
+    stack = SeedStack(algorithms)
+    return StackedTrainee(stack, SeedBatchSampler(datas, stack.batch_size, streams, device=stack.device))
 
 
-def train_seeds(
+def train(
     trainee: Trainee,
     *,
     evaluate: Callable[[Callable], Sequence] | None = None,
@@ -267,24 +248,35 @@ def train_seeds(
     log_every: int = 100,
     on_new_best: Sequence[Callable[[EvalPoint, int], None] | None] | None = None,
 ) -> list[TrainHistory]:
-    """The training loop: runs the ``S`` seeds of ``trainee`` for ``trainee.epochs`` epochs; returns one
-    :class:`TrainHistory` per seed. Every per-seed argument is a list of ``S`` (``None`` entries allowed).
+    """The training loop: runs the ``S`` seeds of ``trainee`` (:func:`make_trainee`; their ``prepare`` already ran)
+    for ``trainee.epochs`` epochs; returns one :class:`TrainHistory` per seed. Every per-seed argument is a list of
+    ``S`` (``None`` entries allowed), a list of one for one seed.
 
     Keyword Args:
         evaluate: ``policy -> [result per seed]`` (an :class:`~torchrl_bail.evaluation.EvalResult` or a float
-            each), e.g. :meth:`Evaluator.per_seed <torchrl_bail.evaluation.Evaluator.per_seed>`.
+            each), e.g. :meth:`Evaluator.evaluate <torchrl_bail.evaluation.Evaluator.evaluate>`; called every
+            ``eval_every_epochs`` and at the end.
         evaluation_state: the object whose ``state_dict``/``load_state_dict`` (the evaluation's random stream)
             is checkpointed with the loop, when it has them (the :class:`~torchrl_bail.evaluation.Evaluator`).
-        loggers: per seed, a TorchRL logger. Its training scalars are what the trainee's ``seed_metrics`` names:
-            a stack logs each seed's own ``[S]`` values under their names and a loss averaged over the seeds as
-            ``train/<name>_mean_over_seeds``.
-        checkpoint_paths: per seed, the path of its single-seed checkpoint (a stack's seeds must have stopped at
-            the same iteration to resume).
-        checkpoint_extras: per seed, what :func:`train`'s ``checkpoint_extra`` is for one seed.
-        resume_from: per seed, the checkpoint state to continue from, as :func:`train` takes one.
-        on_new_best: per seed, what :func:`train`'s ``on_new_best`` is for one seed.
-
-    The other arguments are :func:`train`'s.
+        samples_per_epoch (int): samples in one epoch. Defaults to ``10**6``.
+        eval_every_epochs (float): evaluation period in epochs. Defaults to ``0.5``.
+        loggers: per seed, a TorchRL logger (``log_scalar``). Its training scalars are what the trainee's
+            ``seed_metrics`` names: a stack logs each seed's own ``[S]`` values under their names and a loss
+            averaged over the seeds as ``train/<name>_mean_over_seeds``.
+        checkpoint_paths: per seed, where to write its single-seed checkpoint: before the first update, after
+            every evaluation and every ``checkpoint_every_s`` seconds of training. Optional.
+        checkpoint_every_s (float, optional): time-based checkpoint cadence (for long gaps between evaluations).
+        checkpoint_extras: per seed, ``() -> dict`` of run-level entries added to each of its checkpoints (config,
+            log sizes).
+        resume_from: per seed, a checkpoint this function wrote (a stack's seeds must have stopped at the same
+            iteration); training continues after its iteration with every network, optimizer, metric
+            accumulator, evaluation and random stream as they were, so the rest of the run is the same as an
+            uninterrupted one. Each seed's algorithm must already hold the checkpoint's ``"algorithm"`` state
+            (:meth:`~torchrl_bail.algorithms.base.Algorithm.load_state_dict`).
+        progress (bool): tqdm progress bar. Defaults to ``True``.
+        log_every (int): training scalars are averaged and logged every ``log_every`` updates.
+        on_new_best: per seed, ``(point, index)`` called when an evaluation beats every earlier one of that seed
+            (e.g. to save the best policy); ``index`` is the evaluation's position in its history.
     """
     count = trainee.seeds
     per_update = trainee.samples_per_update

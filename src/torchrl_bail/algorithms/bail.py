@@ -13,7 +13,6 @@ regression instead of the envelope).
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import torch
@@ -23,10 +22,9 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
 
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
-from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fit_upper_envelopes, fraction_below
+from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.plots import plot_envelope
-from torchrl_bail.stacking import stack_modules, unstack_modules
 from torchrl_bail.transforms.best_action import BestActionFilter
 
 __all__ = ["BAIL"]
@@ -67,33 +65,27 @@ class BAIL(BehaviourCloning):
         return BestActionFilter(percentile=selection.percentile, nonpositive_value=selection.nonpositive_value)
 
     def prepare(self, data: TensorDictBase, ctx: PrepareContext) -> TensorDictBase:
-        fit = None
-        if self.selection_by == "envelope":
-            fit = fit_upper_envelope(
-                self.value_network, data["observation"].to(self.device), data["return"].to(self.device),
-                generator=ctx.generator, device=self.device, progress=ctx.progress, **self.envelope_kwargs,
-            )
-        return self._select_after_fit(data, fit, ctx)
+        """Fits the envelope and selects the best actions: :meth:`prepare_seeds` of this one seed."""
+        (selected,) = self.prepare_seeds([self], data, [ctx])
+        return selected
 
     @staticmethod
-    def prepare_stacked(algorithms: list[BAIL], data: TensorDictBase,
-                        contexts: list[PrepareContext]) -> list[TensorDictBase]:
-        """:meth:`prepare` of ``S`` seeds' BAIL (:mod:`torchrl_bail.stacking`): their envelopes are fitted as one
-        seed-stacked network, each seed with its own split, shuffles, early stopping and best weights (those of its
-        own :meth:`prepare`, to float rounding); then each seed selects its best actions under its envelope."""
+    def prepare_seeds(algorithms: list[BAIL], data: TensorDictBase,
+                      contexts: list[PrepareContext]) -> list[TensorDictBase]:
+        """The prepared data of ``S >= 1`` seeds' BAIL (:func:`torchrl_bail.stacking.prepare_seeds`): their envelopes
+        are fitted by one :func:`~torchrl_bail.envelope.fit_upper_envelope` of the ``S`` networks (stacked when
+        ``S > 1``), each seed with its own split, shuffles, early stopping and best weights; then each seed selects
+        its best actions under its envelope. Ranking by return (``selection.by="return"``) fits nothing."""
         first = algorithms[0]
-        if first.selection_by != "envelope":
-            return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts, strict=True)]
-        networks = [algorithm.value_network for algorithm in algorithms]
-        stacked = stack_modules(networks)
-        observations = data["observation"].to(first.device)
-        fits = fit_upper_envelopes(
-            stacked, observations, data["return"].to(first.device), generators=[ctx.generator for ctx in contexts],
-            device=first.device, progress=contexts[0].progress, **first.envelope_kwargs,
-        )
-        unstack_modules(stacked, networks)
-        return [algorithm._select_after_fit(data, dataclasses.replace(fit, value_network=network), ctx)
-                for algorithm, fit, network, ctx in zip(algorithms, fits, networks, contexts, strict=True)]
+        fits = [None] * len(algorithms)
+        if first.selection_by == "envelope":
+            fits = fit_upper_envelope(
+                [algorithm.value_network for algorithm in algorithms], data["observation"].to(first.device),
+                data["return"].to(first.device), generators=[ctx.generator for ctx in contexts], device=first.device,
+                progress=contexts[0].progress, **first.envelope_kwargs,
+            )
+        return [algorithm._select_after_fit(data, fit, ctx)
+                for algorithm, fit, ctx in zip(algorithms, fits, contexts, strict=True)]
 
     def _select_after_fit(self, data: TensorDictBase, fit, ctx: PrepareContext) -> TensorDictBase:
         """What :meth:`prepare` does after the envelope fit (``fit`` is ``None`` when ranking by return): log the
