@@ -72,7 +72,7 @@ def lockstep(python: str, cfg, batch, arrays: Path, scratch: Path, threads: int)
         evaluator = Evaluator(cfg.env.id, episodes=cfg.eval.episodes, seed=seed, max_steps=cfg.eval.max_steps,
                               max_episode_steps=cfg.env.get("max_episode_steps"))
         try:
-            return evaluator(policy).mean_return
+            return evaluator.evaluate(policy)[0].mean_return
         finally:
             evaluator.close()
 

@@ -105,12 +105,12 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec)
 
-    result, reference = evaluator(actor), plain(actor)
+    (result,), reference = evaluator.evaluate(actor), plain(actor)
     if result.returns != reference or result.failures:
         raise SystemExit(f"Evaluator and the plain loop disagree: {result.returns} vs {reference}")
     steps = sum(result.lengths)
     name = f"{args.episodes} x {args.max_steps}-step {args.env} episodes"
-    rows = [compare(name, lambda: evaluator(actor), lambda: plain(actor), n=1, repeats=args.repeats,
+    rows = [compare(name, lambda: evaluator.evaluate(actor), lambda: plain(actor), n=1, repeats=args.repeats,
                     unit="evaluations/s")]
     if args.serial_env:
         serial = SerialEnvEvaluation(args.env, args.episodes, seed, args.max_steps, env_kwargs)

@@ -30,9 +30,9 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config_builders import algo_config
-from torchrl_bail.envelope import fit_upper_envelope, fit_upper_envelopes
+from torchrl_bail.envelope import fit_upper_envelope
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
-from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds, stack_modules
+from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
 
 OBS, ACT, N = 11, 3, 20_000
 SPEC = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)
@@ -126,17 +126,17 @@ def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
                 for _ in range(seeds)]
 
     def stacked() -> None:
-        fit_upper_envelopes(stack_modules(networks()), observations, returns,
-                            generators=[torch.Generator().manual_seed(s) for s in range(seeds)], **kwargs)
+        fit_upper_envelope(networks(), observations, returns,
+                           generators=[torch.Generator().manual_seed(s) for s in range(seeds)], **kwargs)
         _sync(device)
 
     def sequential() -> None:
         for s, net in enumerate(networks()):
-            fit_upper_envelope(net, observations, returns, generator=torch.Generator().manual_seed(s), **kwargs)
+            fit_upper_envelope([net], observations, returns, generators=[torch.Generator().manual_seed(s)], **kwargs)
         _sync(device)
 
     def single() -> None:
-        fit_upper_envelope(networks()[0], observations, returns, generator=torch.Generator().manual_seed(0),
+        fit_upper_envelope(networks()[:1], observations, returns, generators=[torch.Generator().manual_seed(0)],
                            **kwargs)
         _sync(device)
 

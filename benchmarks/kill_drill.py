@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib
 import json
 import os
 import random
@@ -55,19 +56,19 @@ VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 DRILL_UPDATES, DRILL_EVALUATIONS, DRILL_HIDDEN = 300, 10, (32, 32)
 
 
-def _registry():
-    """This checkout's :mod:`torchrl_bail.algo_schemas` (torch-free): the algorithm registry."""
+def _checkout(module: str):
+    """This checkout's ``torchrl_bail.<module>`` (``algo_schemas``, the algorithm registry, and ``config_builders``:
+    both torch-free)."""
     if str(ROOT / "src") not in sys.path:
         sys.path.insert(0, str(ROOT / "src"))
-    from torchrl_bail import algo_schemas
-
-    return algo_schemas
+    return importlib.import_module(f"torchrl_bail.{module}")
 
 
 def _drill(algo: str) -> list[str]:
     """An algorithm's overrides for the drilled run: its tiny run (its registry entry's, the contract suite's,
-    :func:`torchrl_bail.algo_schemas.tiny_run_overrides`) at the drill's length."""
-    return _registry().tiny_run_overrides(algo, DRILL_UPDATES, DRILL_HIDDEN, evaluations=DRILL_EVALUATIONS)
+    :func:`torchrl_bail.config_builders.tiny_run_overrides`) at the drill's length."""
+    return _checkout("config_builders").tiny_run_overrides(algo, DRILL_UPDATES, DRILL_HIDDEN,
+                                                           evaluations=DRILL_EVALUATIONS)
 
 
 def _env() -> dict:
@@ -267,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--target", choices=sorted(TARGETS), default="training")
-    parser.add_argument("--algo", default="bail", choices=list(_registry().ALGO_SCHEMAS),
+    parser.add_argument("--algo", default="bail", choices=list(_checkout("algo_schemas").ALGO_SCHEMAS),
                         help="training target: the algorithm (default bail)")
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--max-kills", type=int, default=2, help="kills per trial: 1..N, drawn at random")

@@ -28,10 +28,10 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, tiny_run_overrides
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
 from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.config_builders import algo_config, tiny_run_overrides
 from torchrl_bail.modules import make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
 from torchrl_bail.transforms import BestActionFilter
@@ -199,7 +199,7 @@ def algo_case(name: str) -> AlgoCase:
     """The contract case of a registered algorithm, from its registry entry (:mod:`torchrl_bail.algo_schemas`): its
     ``tiny`` overrides, every network of its schema :data:`HIDDEN` wide, every block's mini-batch :data:`ALGO_BATCH`,
     then :data:`CONTRACT_OVERRIDES`; its tiny run through the config is
-    :func:`~torchrl_bail.algo_schemas.tiny_run_overrides` at :data:`TINY_UPDATES`."""
+    :func:`~torchrl_bail.config_builders.tiny_run_overrides` at :data:`TINY_UPDATES`."""
     overrides = OmegaConf.from_dotlist(list(ALGO_SCHEMAS[name].tiny))
     for key, value in [*((f"{block}.hidden", list(HIDDEN)) for block in blocks_with(name, "hidden")),
                        *((f"{block}.batch_size", ALGO_BATCH) for block in blocks_with(name, "batch_size")),

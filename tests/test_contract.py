@@ -46,10 +46,10 @@ from torchrl.objectives import BCLoss, LossModule
 
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, entry_gaps, tiny_run_overrides
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, entry_gaps
 from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
 from torchrl_bail.config import ConfigError, validate_config
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.config_builders import algo_config, tiny_run_overrides
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.policy import load_policy
 

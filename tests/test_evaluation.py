@@ -146,19 +146,14 @@ def test_several_seeds_in_one_step_loop_equal_separate_evaluations():
     assert [r.lengths for r in together] == [r.lengths for r in separate]
 
 
-def test_the_deprecated_call_is_one_seeds_evaluate():
-    """``evaluator(policy)``, kept for the callers that read one result: ``seed=s`` is ``seeds=[s]``, the call warns
-    and returns the one seed's result; an evaluator of several seeds refuses it."""
+def test_seed_is_shorthand_for_a_list_of_one():
+    """``seed=s`` is ``seeds=[s]``: the same unstacked ``[episodes]`` batch and the same episodes."""
     with Evaluator("Hopper-v5", episodes=2, seed=3, max_steps=40) as ev, \
             Evaluator("Hopper-v5", episodes=2, seeds=[3], max_steps=40) as listed:
-        with pytest.warns(DeprecationWarning, match=r"evaluator.evaluate\(policy\)"):
-            result = ev(_policy())
         assert ev.seeds == listed.seeds == [3] and ev.batch_shape == listed.batch_shape == (2,)
+        (result,) = ev.evaluate(_policy())
         (expected,) = listed.evaluate(_policy())
     assert (result.returns, result.lengths) == (expected.returns, expected.lengths)
-    with Evaluator("Hopper-v5", episodes=2, seeds=[3, 4], max_steps=40) as ev, \
-            pytest.raises(ValueError, match=r"plays 2 seeds \[3, 4\]: call evaluator.evaluate\(policy\)"):
-        ev(_policy())
 
 
 def test_eval_result_statistics():

@@ -5,18 +5,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
 from torchrl_bail.batch_schemas import BATCH_SCHEMAS
 from torchrl_bail.config import Checked, EnvConfig, validate_config
 from torchrl_bail.errors import ConfigError
 from torchrl_bail.hydra_setup import config_dir
 
-__all__ = ["CollectionConfig", "algo_config", "checked_algo_config", "collection_config"]
+__all__ = ["CollectionConfig", "algo_config", "checked_algo_config", "collection_config", "tiny_run_overrides"]
 
 
 
@@ -117,3 +118,28 @@ def _checked_algo(node: DictConfig) -> DictConfig:
     except ConfigError as err:
         raise err.under("algo") from None
     return node
+
+
+def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluations: Optional[int] = None) -> list[str]:
+    """The command-line overrides of a run of algorithm ``name`` that takes seconds on a tiny batch: ``algo.epochs``
+    for ``updates`` mini-batches of its yaml's size (at ``conf/config.yaml``'s ``samples_per_epoch``), every network
+    :func:`~torchrl_bail.algo_schemas.blocks_with` a ``hidden`` key ``hidden`` wide, its registry entry's
+    ``tiny``, and, given ``evaluations``, an evaluation every ``1 / evaluations`` of the run. The contract suite's
+    tiny runs (``tests/_contract.py``: 5 updates) and the kill drill (``benchmarks/kill_drill.py``: 300) are this at
+    two lengths.
+
+    Examples:
+        >>> tiny_run_overrides("bear", 5, [16, 16])  # doctest: +NORMALIZE_WHITESPACE
+        ['algo.epochs=0.0005', 'algo.vae.hidden=[16,16]', 'algo.critic.hidden=[16,16]',
+         'algo.actor.hidden=[16,16]', 'algo.warm_start_updates=2']
+        >>> tiny_run_overrides("bc", 300, [32, 32], evaluations=10)
+        ['algo.epochs=0.3', 'algo.policy.hidden=[32,32]', 'eval.every_epochs=0.03']
+    """
+    if ALGO_SCHEMAS[name].tiny is None:
+        raise ValueError(f"{ALGO_SCHEMAS[name].__name__}.tiny is not stated: the algo keys a run of a few updates "
+                         "needs besides small networks and its length, () if none (torchrl_bail.algo_schemas)")
+    epochs = updates * algo_config(name).batch_size / OmegaConf.load(config_dir() / "config.yaml").samples_per_epoch
+    width = "[" + ",".join(str(int(h)) for h in hidden) + "]"
+    overrides = [f"algo.epochs={epochs:g}", *(f"algo.{block}.hidden={width}" for block in blocks_with(name, "hidden")),
+                 *(f"algo.{override}" for override in ALGO_SCHEMAS[name].tiny)]
+    return overrides + ([f"eval.every_epochs={epochs / evaluations:g}"] if evaluations else [])

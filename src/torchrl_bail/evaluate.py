@@ -47,8 +47,9 @@ def evaluate_policy(policy, *, episodes: int, seed: int, max_steps: int, max_epi
                           max_episode_steps=max_episode_steps, device="cpu")
     try:
         for _ in range(evaluation):
-            evaluator(policy)
-        return evaluator(policy)
+            evaluator.evaluate(policy)
+        (result,) = evaluator.evaluate(policy)
+        return result
     finally:
         evaluator.close()
 

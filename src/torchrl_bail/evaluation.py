@@ -43,7 +43,6 @@ Examples:
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -142,18 +141,6 @@ class Evaluator:
         space = self.envs[0].action_space
         self.action_spec = action_spec_from_bounds(space.low, space.high).to(self.device)
         self.obs_dim = int(self.envs[0].observation_space.shape[-1])
-
-    def __call__(self, policy: TensorDictModuleBase) -> EvalResult:
-        """Deprecated: ``(result,) = evaluator.evaluate(policy)`` for an evaluator of one seed. Kept, with a
-        :class:`DeprecationWarning`, for the callers that still read one result (``torchrl_bail.evaluate``, the SAC
-        behaviour runs, the benchmarks)."""
-        warnings.warn("Evaluator(...)(policy) is deprecated: use (result,) = evaluator.evaluate(policy), one result "
-                      "per seed", DeprecationWarning, stacklevel=2)
-        if len(self.seeds) > 1:
-            raise ValueError(f"this Evaluator plays {len(self.seeds)} seeds {self.seeds}: call "
-                             "evaluator.evaluate(policy) for their results, one per seed")
-        (result,) = self.evaluate(policy)
-        return result
 
     @torch.no_grad()
     def evaluate(self, policy: TensorDictModuleBase) -> list[EvalResult]:

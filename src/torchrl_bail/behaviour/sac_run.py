@@ -221,7 +221,7 @@ def train_sac(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
 
         def evaluate(t: int) -> None:
             t0 = time.perf_counter()
-            result = evaluator(agent.actor)
+            (result,) = evaluator.evaluate(agent.actor)
             fname = f"evals/step_{t:09d}.pt"
             snapshots[fname] = agent.policy_state()
             evaluations.append({"step": t, "return_mean": result.mean_return, "return_std": result.std_return,
