@@ -5,7 +5,7 @@ to make it)::
 
     # the results study's Hopper batches (50k transitions, B1), 3 seeds, the study's schedules
     OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy_returns.py --python .d3venv/bin/python \\
-        --batch hopper_ddpg05_b1 --batch hopper_sac_b1 --batch-overrides preset=quick --seeds 1,2,3 --preset study
+        --batch hopper_ddpg05_b1 --batch hopper_sac_b1 --batch-overrides preset=study --seeds 1,2,3 --preset study
 
     # a smoke run on any batch (a catalogue name or a path) at a tiny scale
     python benchmarks/bench_d3rlpy_returns.py --python .d3venv/bin/python --batch /path/to/batch --seeds 1 \\
@@ -20,6 +20,11 @@ same :class:`~torchrl_bail.evaluation.Evaluator` (this package's env, ``eval.epi
 the run seed's reset seeds, ``eval.max_steps``), at the same updates (every ``eval.every_epochs`` and at the end),
 d3rlpy's policy through its ``predict`` (greedy action); each side's final return is the mean of its last
 ``eval.final_window`` evaluations, as in ``summary.json``.
+
+The record (default ``results/d3rlpy/bench_d3rlpy_returns.json``, written after every row) holds per row both
+final returns and both curves: ``torchrl_bail_evaluations`` (read from our run's CSV log) and
+``d3rlpy_evaluations``, taken at ``evaluated_at_updates``. ``benchmarks/render_records.py`` renders the Benchmarks
+page's tables from such records.
 
 The data reach d3rlpy as the batch's own transitions: an episode that ends without a termination gets one padding
 row holding its final next observation (flagged a timeout), so d3rlpy's transitions are exactly the batch's (its
@@ -67,6 +72,7 @@ from tensordict import TensorDict  # noqa: E402
 from torchrl_bail import config_dir  # noqa: E402
 from torchrl_bail.datasets import resolve_batch  # noqa: E402
 from torchrl_bail.evaluation import Evaluator  # noqa: E402
+from torchrl_bail.plots import read_eval_curve  # noqa: E402
 from torchrl_bail.train import run  # noqa: E402
 
 ALGOS = ("bc", "bcq", "bear")
@@ -180,12 +186,13 @@ def d3rlpy_final_return(python: str, cfg, arrays: Path, threads: int, decoder_ta
         for point in points:
             peer.update(point - done)
             done = point
-            returns.append(evaluator(peer).mean_return)
+            returns.append(evaluator.evaluate(peer)[0].mean_return)
     finally:
         evaluator.close()
         peer.close()
     window = returns[-cfg.eval.final_window:]
-    return {"final_return": sum(window) / len(window), "evaluations": returns, "updates": updates,
+    return {"final_return": sum(window) / len(window), "evaluations": returns, "evaluated_at": points,
+            "updates": updates,
             "train_cpu_s": peer.cpu_s, "versions": {k: peer.info[k] for k in ("d3rlpy", "torch")},
             "transitions": peer.info["transitions"]}
 
@@ -213,6 +220,8 @@ def main() -> None:
                              "(d3rlpy >= 2.1 leaves it linear; _d3rlpy_worker.restore_decoder_tanh); recorded in "
                              "each row as d3rlpy_patch")
     add_run_arguments(parser, __file__)
+    # beside the other returns records, not among results/benchmarks' ratio records (render_records.D3RLPY_TABLES)
+    parser.set_defaults(json="results/d3rlpy/bench_d3rlpy_returns.json")
     args = parser.parse_args()
     record = Record(__file__, args.json, reference="d3rlpy 2.8.1 (final returns)", settings=vars(args))
     torch.set_num_threads(args.threads)
@@ -231,14 +240,21 @@ def main() -> None:
             for algo in args.algos.split(","):
                 for seed in seeds:
                     cfg = compose_run(batch.path, env, algo, seed, args.preset, args.overrides)
-                    (ours,) = run(cfg, Path(tmp) / f"{label}_{algo}_{seed}")
+                    run_dir = Path(tmp) / f"{label}_{algo}_{seed}"
+                    (ours,) = run(cfg, run_dir)
+                    ours_curve = read_eval_curve(run_dir)
                     peer = d3rlpy_final_return(args.python, cfg, arrays, args.threads, args.d3rlpy_decoder_tanh)
-                    if ours["iterations"] != peer["updates"] or peer["transitions"] != batch.num_transitions:
+                    if (ours["iterations"] != peer["updates"] or peer["transitions"] != batch.num_transitions
+                            or ours_curve is None or len(ours_curve[1]) != len(peer["evaluations"])):
                         raise SystemExit(f"{label} {algo} seed {seed}: the two sides differ in updates "
-                                         f"({ours['iterations']} vs {peer['updates']}) or transitions "
-                                         f"({batch.num_transitions} vs {peer['transitions']})")
+                                         f"({ours['iterations']} vs {peer['updates']}), transitions "
+                                         f"({batch.num_transitions} vs {peer['transitions']}) or evaluations "
+                                         f"({'no CSV log' if ours_curve is None else len(ours_curve[1])} vs "
+                                         f"{len(peer['evaluations'])})")
                     row = {"batch": label, "algo": algo, "seed": seed, "torchrl_bail": ours["final_return"],
                            "d3rlpy": peer["final_return"], "updates": peer["updates"],
+                           "evaluated_at_updates": peer["evaluated_at"],
+                           "torchrl_bail_evaluations": [float(r) for r in ours_curve[1]],
                            "d3rlpy_evaluations": peer["evaluations"], "d3rlpy_versions": peer["versions"],
                            "torchrl_bail_wall_s": ours["wall_time_s"], "d3rlpy_train_cpu_s": peer["train_cpu_s"],
                            "d3rlpy_patch": "VAE decoder tanh restored" if args.d3rlpy_decoder_tanh else None}

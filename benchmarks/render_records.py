@@ -9,9 +9,9 @@ Sources (every figure of the tables comes from one of them; nothing is typed by 
   ``ratios.md`` (every measured row of every record: both sides' medians, the ratio, the number of rounds),
   ``records.md`` (what each record was measured on: command, CPU, pinning, threads, load average, versions) and
   ``collection_rates.md`` (``bench_collection.py``'s env and collection rates);
-* ``results/d3rlpy/<batch>.json``: the rows ``bench_d3rlpy_returns.py`` wrote (``d3rlpy_returns_<batch>.md``). A
-  row without the fields the script writes for every row (``d3rlpy_evaluations``) was copied into the file from
-  the run's printed output; its figures are marked ``†`` in the table.
+* ``results/d3rlpy/*.json``: the rows ``bench_d3rlpy_returns.py`` wrote; :data:`D3RLPY_TABLES` names the files
+  whose rows make each ``d3rlpy_returns_<table>.md``. A row without the curve the script writes on every row
+  (``d3rlpy_evaluations``) was not written by it, and rendering refuses it, as it refuses a cell given twice.
 
 ``docs/benchmarks.md`` includes the files with ``--8<--`` (pymdownx.snippets), as the Results page includes
 ``results/study/study.md``; ``tests/test_bench_records.py`` renders them again and compares.
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -33,8 +34,15 @@ D3RLPY = ROOT / "results" / "d3rlpy"
 # the order of the ratio table; a record of any other script follows, by name
 ORDER = ("bench_bail", "bench_marwil", "bench_bcq_bear", "bench_collection", "bench_evaluation", "bench_seed_stack",
          "bench_compile", "bench_d3rlpy", "bench_sweep", "bench_memory")
-D3RLPY_BATCHES = ("hopper_sac_b1", "hopper_ddpg05_b1", "hopper_ddpg05_b1_bcq_decoder_tanh")
-COPIED = "†"
+#: each d3rlpy returns table and the ``results/d3rlpy/<name>.json`` files whose rows it shows
+D3RLPY_TABLES = {
+    "hopper_sac_b1": ("hopper_sac_b1",),
+    # BC seeds 4-5 and BEAR (the first runs); BC and BCQ seeds 1-3 (rerun, both sides' curves recorded)
+    "hopper_ddpg05_b1": ("hopper_ddpg05_b1", "hopper_ddpg05_b1_bc_bcq"),
+    "hopper_ddpg05_b1_bcq_decoder_tanh": ("hopper_ddpg05_b1_bcq_decoder_tanh",),
+}
+#: the row order of a d3rlpy table (bench_d3rlpy_returns.ALGOS); any other algorithm follows, by name
+D3RLPY_ALGOS = ("bc", "bcq", "bear")
 
 
 def load_records(directory: Path = RECORDS) -> dict[str, dict]:
@@ -48,6 +56,11 @@ def num(value: float) -> str:
     """A rate or time at a precision that fits its size: 1234.5, 56.7, 8.91, 0.123."""
     size = abs(value)
     return f"{value:.1f}" if size >= 10 else f"{value:.2f}" if size >= 0.1 else f"{value:.3f}"
+
+
+def case_name(name: str) -> str:
+    """A row's name with any float written at its shortest (``0.6000000000000001`` -> ``0.6``)."""
+    return re.sub(r"\d+\.\d{10,}", lambda m: f"{float(m.group()):.12g}", name)
 
 
 def render_ratios(records: dict[str, dict]) -> str:
@@ -66,7 +79,7 @@ def render_ratios(records: dict[str, dict]) -> str:
                 cells = [medians, "—", row["unit"], "—", str(min(len(v) for v in row["rounds"].values()))]
             else:
                 continue
-            lines.append(f"| `{stem}.py` | {row['name']} | " + " | ".join(cells) + " |")
+            lines.append(f"| `{stem}.py` | {case_name(row['name'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -83,18 +96,18 @@ def _commit(git: dict | None) -> str:
 
 
 def render_records(records: dict[str, dict]) -> str:
-    lines = ["| record | command | started (UTC) | commit | wall s | CPU s of the process | CPU | CPUs pinned / torch "
-             "threads / OMP_NUM_THREADS | load average (1 min) start → end |", "|---|---|---|---|---|---|---|---|---|"]
-    versions = {}
+    """What each record was measured on, one list item per record (a table of these columns runs off the page)."""
+    lines, versions = [], {}
     for stem, r in records.items():
         m = r["machine"]
         pinned = ",".join(map(str, m["affinity"])) if m["affinity"] is not None else "?"
-        started = r["started"].replace("+00:00", "")
-        lines.append(f"| `results/benchmarks/{stem}.json` | `{r['command']}` | {started} | {_commit(r.get('git'))} | "
-                     f"{r['wall_s']:.0f} | "
-                     f"{r['process_cpu_s']:.0f} | {m['cpu_model']} ({m['cpus']} CPUs) | {pinned} / "
-                     f"{m['torch_threads']} / {m['OMP_NUM_THREADS']} | {_load(r['load_average']['start'])} → "
-                     f"{_load(r['load_average']['end'])} |")
+        started = r["started"].replace("+00:00", "").replace("T", " ")
+        lines.append(f"- `results/benchmarks/{stem}.json`: `{r['command']}`  \n"
+                     f"  started {started} UTC at {_commit(r.get('git'))}; {r['wall_s']:.0f} s wall clock, "
+                     f"{r['process_cpu_s']:.0f} CPU s of the process; {m['cpu_model']} ({m['cpus']} CPUs), "
+                     f"pinned to CPU {pinned}, {m['torch_threads']} torch thread(s), "
+                     f"OMP_NUM_THREADS={m['OMP_NUM_THREADS']}; load average (1 min) "
+                     f"{_load(r['load_average']['start'])} → {_load(r['load_average']['end'])}")
         versions.setdefault(", ".join(f"{k} {v}" for k, v in r["versions"].items()), []).append(stem)
     lines.append("")
     for text, stems in versions.items():
@@ -115,41 +128,55 @@ def render_collection_rates(record: dict) -> str:
 
 
 def d3rlpy_rows(path: Path) -> list[dict]:
-    """The rows of a ``bench_d3rlpy_returns.py`` output: a plain list (older files) or a record's ``rows``."""
+    """The rows of a ``bench_d3rlpy_returns.py`` output: a plain list (older files) or a record's ``rows``; a row the
+    script did not write (no ``d3rlpy_evaluations``, the curve it writes on every row) is refused."""
     data = json.loads(path.read_text())
-    return data["rows"] if isinstance(data, dict) else data
+    rows = data["rows"] if isinstance(data, dict) else data
+    for row in rows:
+        if "d3rlpy_evaluations" not in row:
+            raise ValueError(f"{path.name}: {row['batch']} {row['algo']} seed {row['seed']} has no curve "
+                             "(d3rlpy_evaluations): not a row bench_d3rlpy_returns.py wrote")
+    return rows
 
 
-def recorded(row: dict) -> bool:
-    """Whether the script wrote the row (it writes ``d3rlpy_evaluations`` on every row it writes)."""
-    return "d3rlpy_evaluations" in row
+def table_rows(paths: list[Path]) -> list[dict]:
+    """The rows of ``paths`` in table order (algorithm, then seed); a cell (batch, algorithm, seed) given twice is
+    refused, so a figure has one home."""
+    rows, seen = [], {}
+    for path in paths:
+        for row in d3rlpy_rows(path):
+            cell = (row["batch"], row["algo"], row["seed"])
+            if cell in seen:
+                raise ValueError(f"{cell[0]} {cell[1]} seed {cell[2]} is in both {seen[cell]} and {path.name}")
+            seen[cell] = path.name
+            rows.append(row)
+
+    def order(row):
+        known = row["algo"] in D3RLPY_ALGOS
+        return (D3RLPY_ALGOS.index(row["algo"]) if known else len(D3RLPY_ALGOS), row["algo"], row["seed"])
+
+    return sorted(rows, key=order)
 
 
 def render_d3rlpy_returns(rows: list[dict]) -> str:
     lines = ["| batch | algo | updates | seeds | torchrl_bail per seed | d3rlpy per seed | torchrl_bail mean ± std "
              "| d3rlpy mean ± std |", "|---|---|---|---|---|---|---|---|"]
-    copied = []
     for batch in dict.fromkeys(r["batch"] for r in rows):
         for algo in dict.fromkeys(r["algo"] for r in rows if r["batch"] == batch):
             group = [r for r in rows if r["batch"] == batch and r["algo"] == algo]
-            mark = COPIED if not all(recorded(r) for r in group) else ""
-            copied += [f"{algo} seed {r['seed']}" for r in group if not recorded(r)]
 
             def per_seed(side, group=group):
-                return " / ".join(f"{r[side]:.1f}" + ("" if recorded(r) else COPIED) for r in group)
+                return " / ".join(f"{r[side]:.1f}" for r in group)
 
-            def mean_std(side, group=group, mark=mark):
+            def mean_std(side, group=group):
                 values = [r[side] for r in group]
                 spread = f"{statistics.stdev(values):.1f}" if len(values) > 1 else "—"
-                return f"{statistics.mean(values):.1f} ± {spread}{mark}"
+                return f"{statistics.mean(values):.1f} ± {spread}"
 
             updates = sorted({r["updates"] for r in group})
             lines.append(f"| {batch} | {algo} | {', '.join(map(str, updates))} | "
                          f"{', '.join(str(r['seed']) for r in group)} | {per_seed('torchrl_bail')} | "
                          f"{per_seed('d3rlpy')} | {mean_std('torchrl_bail')} | {mean_std('d3rlpy')} |")
-    if copied:
-        lines += ["", f"{COPIED} Not written by the script: {', '.join(copied)} were copied into the JSON from the "
-                  "run's printed output (one decimal), and the means marked so include them."]
     return "\n".join(lines) + "\n"
 
 
@@ -159,9 +186,9 @@ def render_all(records_dir: Path = RECORDS, d3rlpy_dir: Path = D3RLPY) -> dict[P
     out = {records_dir / "ratios.md": render_ratios(records), records_dir / "records.md": render_records(records)}
     if "bench_collection" in records:
         out[records_dir / "collection_rates.md"] = render_collection_rates(records["bench_collection"])
-    for batch in D3RLPY_BATCHES:
-        rows = d3rlpy_rows(d3rlpy_dir / f"{batch}.json")
-        out[records_dir / f"d3rlpy_returns_{batch}.md"] = render_d3rlpy_returns(rows)
+    for table, sources in D3RLPY_TABLES.items():
+        rows = table_rows([d3rlpy_dir / f"{source}.json" for source in sources])
+        out[records_dir / f"d3rlpy_returns_{table}.md"] = render_d3rlpy_returns(rows)
     return out
 
 

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -23,6 +24,7 @@ from _bench import PACKAGES, Record, derive_table, summarise  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 RECORDS_DIR = ROOT / "results" / "benchmarks"
+D3RLPY = ROOT / "results" / "d3rlpy"
 RECORDS = sorted(RECORDS_DIR.glob("*.json"))
 
 
@@ -84,16 +86,38 @@ def test_derived_rows_are_medians_of_the_rounds():
         {"case": "x", "unit": "updates/s", "torchrl_bail": 3.0, "reference": 3.0, "ratio": 1.0, "rounds": 3}]
 
 
-def test_d3rlpy_rows_copied_from_printed_output_are_marked():
-    rows = render_records.d3rlpy_rows(ROOT / "results" / "d3rlpy" / "hopper_ddpg05_b1.json")
-    copied = [r for r in rows if not render_records.recorded(r)]
-    assert {(r["algo"], r["seed"]) for r in copied} == {("bc", 1), ("bc", 2), ("bc", 3), ("bcq", 1), ("bcq", 2),
-                                                         ("bcq", 3)}
-    table = render_records.render_d3rlpy_returns(rows)
-    line = {cells[1]: cells for cells in (row.split(" | ") for row in table.splitlines()[2:5])}
-    assert line["bc"][4] == "40.2† / 39.5† / 48.5† / 47.8 / 73.9" and line["bc"][6] == "50.0 ± 14.0†"
-    assert line["bear"][4] == "311.7 / 355.4" and line["bear"][6] == "333.5 ± 30.9"  # all recorded: no mark
-    assert "bc seed 1, bc seed 2, bc seed 3, bcq seed 1, bcq seed 2, bcq seed 3 were copied" in table
+def test_a_d3rlpy_row_the_script_did_not_write_or_a_cell_given_twice_is_refused(tmp_path):
+    (row, *_) = render_records.d3rlpy_rows(D3RLPY / "hopper_ddpg05_b1_bc_bcq.json")
+    typed = tmp_path / "typed.json"  # a row copied from printed output has no curve
+    typed.write_text(json.dumps([{k: v for k, v in row.items() if k != "d3rlpy_evaluations"}]))
+    with pytest.raises(ValueError, match="typed.json: hopper_ddpg05_b1 bc seed 1 has no curve"):
+        render_records.table_rows([typed])
+    again = tmp_path / "again.json"
+    again.write_text(json.dumps([row]))
+    with pytest.raises(ValueError, match="bc seed 1 is in both hopper_ddpg05_b1_bc_bcq.json and again.json"):
+        render_records.table_rows([D3RLPY / "hopper_ddpg05_b1_bc_bcq.json", again])
+
+
+def test_the_ddpg05_rerun_records_both_curves_and_reproduces_the_study_seed_for_seed():
+    """BC's and BCQ's seeds 1-3 on hopper_ddpg05_b1, as bench_d3rlpy_returns.py wrote them: each final return is
+    the mean of its curve's last eval.final_window evaluations (both sides), and our side's return and curve are
+    the study's runs of the same cells to every digit."""
+    record = json.loads((D3RLPY / "hopper_ddpg05_b1_bc_bcq.json").read_text())
+    assert record["script"] == "bench_d3rlpy_returns.py"
+    assert record["command"].startswith("python benchmarks/bench_d3rlpy_returns.py --python .d3venv/bin/python ")
+    assert sorted((r["algo"], r["seed"]) for r in record["rows"]) == [(a, s) for a in ("bc", "bcq") for s in (1, 2, 3)]
+    window = OmegaConf.load(ROOT / "conf" / "preset" / "study.yaml").eval.final_window
+    study = ROOT / "results" / "study" / "runs" / "hopper_ddpg05_b1"
+    for row in record["rows"]:
+        points = row["evaluated_at_updates"]
+        assert points == sorted(points) and points[-1] == row["updates"]
+        for side in ("torchrl_bail", "d3rlpy"):
+            curve = row[f"{side}_evaluations"]
+            assert len(curve) == len(points) and row[side] == pytest.approx(statistics.mean(curve[-window:]))
+        run = study / row["algo"] / f"seed{row['seed']},preset=study"
+        assert row["torchrl_bail"] == json.loads((run / "summary.json").read_text())["final_return"]
+        logged = (run / "logs" / "scalars" / "eval" / "return.csv").read_text().splitlines()
+        assert row["torchrl_bail_evaluations"] == [float(line.split(",")[1]) for line in logged]
 
 
 def test_the_page_includes_every_table_and_names_no_machine_path():
@@ -107,7 +131,7 @@ def test_the_page_includes_every_table_and_names_no_machine_path():
 def test_every_mean_quoted_on_the_page_is_a_rendered_one():
     """Prose quotes ``mean ± std`` figures only as a rendered d3rlpy table (of a record) states them."""
     page = PAGE.read_text()
-    tables = "".join(render_records.render_all().values()).replace("†", "")
+    tables = "".join(render_records.render_all().values())
     quoted = re.findall(r"\d+\.\d ± \d+\.\d", page)
     assert quoted, "the page quotes no mean"
     for figure in quoted:
@@ -141,3 +165,24 @@ def test_the_paper_scale_section_quotes_its_records():
     sac = sorted(round(t) for job, t in json.loads((results / "study" / "timings.json").read_text()).items()
                  if job.startswith("collect/") and job.endswith("_sac"))
     assert f"SAC runs took {sac[0]}-{sac[-1]} s" in flat
+
+
+def test_the_throughput_section_quotes_its_record():
+    """The d3rlpy throughput prose states the ratios, the load and the rounds' spread of bench_d3rlpy.json."""
+    record = json.loads((RECORDS_DIR / "bench_d3rlpy.json").read_text())
+    flat = " ".join(PAGE.read_text().split())
+    ratio = {row["name"].split()[0]: row["ratio"] for row in record["rows"]}
+    assert f"level with d3rlpy** (ratios {ratio['BCQ']:.2f} and {ratio['BEAR']:.2f})" in flat
+    assert f"**BC: {ratio['BC']:.2f}× d3rlpy's rate**" in flat
+    spread = {kind: max(max(v) / min(v) for row in record["rows"] for side, v in row["rounds"].items()
+                        if side.endswith(kind)) for kind in ("_wall", "_cpu")}
+    assert (f"swung up to {spread['_wall']:.0f}-fold with the neighbours' load, its CPU-time rounds by at most "
+            f"{spread['_cpu']:.1f}-fold") in flat
+    assert f"load average {record['load_average']['start'][0]:.1f} at its start" in flat
+    assert f"medians of {len(record['rows'][0]['rounds']['d3rlpy_cpu'])} alternating rounds" in flat
+
+
+def test_a_case_name_shows_its_floats_at_their_shortest():
+    assert render_records.case_name("bcq (algo.epochs 0.2 vs 0.6000000000000001)") == "bcq (algo.epochs 0.2 vs 0.6)"
+    assert render_records.case_name("x 1.2345678901234 y 0.3") == "x 1.23456789012 y 0.3"
+    assert "0.6000000000000001" not in render_records.render_ratios(render_records.load_records())
