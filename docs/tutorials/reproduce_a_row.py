@@ -34,9 +34,9 @@ def main() -> None:
     sh(sys.executable, "-m", "torchrl_bail.train", "-m", "+exp=hopper_ddpg05", "preset=study",
        f"algo={args.algos}", f"seed={args.seeds}", f"hydra.sweep.dir={runs}", "progress=false", *overrides)
 
-    # 2. The report groups the runs by batch and algorithm: mean +- std and the IQM with a bootstrap interval.
+    # 2. The report groups the runs by batch and algorithm: mean +- std and the IQM with a bootstrap interval. It
+    #    prints its tables and writes them to row.md.
     sh(sys.executable, "-m", "torchrl_bail.report", str(runs), "--out", str(args.work_dir / "row"), "--reps", "200")
-    print((args.work_dir / "row.md").read_text())
 
     # 3. Each run's summary.json holds its score; the row above is their mean over seeds.
     for summary in sorted(runs.rglob("summary.json")):

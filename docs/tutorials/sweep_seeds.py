@@ -36,7 +36,7 @@ def main() -> None:
     sh(*train, "-m", *common, f"seed={args.seeds}", f"hydra.sweep.dir={sweep}")
 
     # 2. The same seeds in ONE process, their networks stacked (seeds=[...]): one update step serves every seed,
-    #    and each seed writes the run directory and summary.json its single-seed run writes.
+    #    and each seed writes a run directory and summary.json laid out as its single-seed run's.
     stacked = args.work_dir / "stacked"
     sh(*train, *common, f"seeds=[{args.seeds}]", f"hydra.run.dir={stacked}")
 
@@ -55,9 +55,9 @@ def main() -> None:
              "algo=bail,bc", "seed=1,2,3,4,5"]
     print("on Slurm:", shlex.join(slurm).replace(sys.executable, "python"))
 
-    # 5. One table over the sweep, and the stacked run beside it: seed for seed, the same scores.
+    # 5. One table over the sweep (the report prints it and writes seeds.md), and each seed's score alone and
+    #    stacked: equal to float rounding in a short run; the rounding grows over a long one (the page says how far).
     sh(sys.executable, "-m", "torchrl_bail.report", str(sweep), "--out", str(args.work_dir / "seeds"), "--reps", "200")
-    print((args.work_dir / "seeds.md").read_text())
     for seed in args.seeds.split(","):
         one = summary(sweep, seed)
         print(f"seed {seed}: final_return {one:.2f} alone, {summary(stacked, seed):.2f} stacked")
