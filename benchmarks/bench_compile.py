@@ -29,6 +29,7 @@ from _bench import Record, add_record_argument, summarise
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
+from torchrl_bail.algo_schemas import envelope_algorithm
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
@@ -51,7 +52,7 @@ def build(name: str, device: torch.device, data: TensorDict):
     """The algorithm at its yaml's sizes and a replay buffer over the data it trains on (BAIL: the whole batch)."""
     torch.manual_seed(0)
     algo = ALGORITHMS[name](OBS, action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT), algo_config(name), device)
-    prepared = data if name == "bail" else algo.prepare(data, PrepareContext())
+    prepared = data if name == envelope_algorithm() else algo.prepare(data, PrepareContext())  # no envelope fit
     storage = TensorStorage(prepared.to(device))
     buffer = TensorDictReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=algo.batch_size)
     return algo, buffer

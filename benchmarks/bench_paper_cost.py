@@ -30,7 +30,7 @@ from pathlib import Path
 
 from _bench import Record, add_record_argument, summarise
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, envelope_algorithm
 from torchrl_bail.config_builders import algo_config
 
 #: the probe's short number of epochs per cost class (the registry's ``cost``, :mod:`torchrl_bail.algo_schemas`):
@@ -50,7 +50,7 @@ def _schedules() -> dict[str, tuple[str, float, int]]:
 
 SCHEDULES = _schedules()
 #: the algorithm whose envelope the ``envelope`` probe lengthens: the registered one whose envelope has epochs (BAIL)
-ENVELOPE_OF = next(name for name in ALGO_SCHEMAS if "envelope" in blocks_with(name, "epochs"))
+ENVELOPE_OF = envelope_algorithm()
 #: what the probe runs by default: the envelope and every algorithm of the paper-scale study (the registry's
 #: ``paper_study``)
 DEFAULT_PROBES = ["envelope", *(name for name, schema in ALGO_SCHEMAS.items() if schema.paper_study)]

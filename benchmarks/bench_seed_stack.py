@@ -28,6 +28,7 @@ from _bench import Record, add_record_argument, machine, print_columns, summaris
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
+from torchrl_bail.algo_schemas import blocks_with, envelope_algorithm
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
 from torchrl_bail.config_builders import algo_config
 from torchrl_bail.envelope import fit_upper_envelope
@@ -78,7 +79,7 @@ def interleaved(name: str, stacked, sequential, single, *, repeats: int, warmup:
 
 
 def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int) -> dict:
-    config = algo_config(name, **({"envelope.epochs": 1} if name == "bail" else {}))
+    config = algo_config(name, **{f"{block}.epochs": 1 for block in blocks_with(name, "epochs")})
     cls = ALGORITHMS[name]
 
     def build(seed: int):
@@ -114,7 +115,7 @@ def bench_updates(name: str, seeds: int, data: TensorDict, device, repeats: int)
 
 
 def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
-    config = algo_config("bail")
+    config = algo_config(envelope_algorithm())
     env = config.envelope
     kwargs = dict(penalty=env.penalty, lr=env.lr, weight_decay=env.weight_decay, batch_size=env.batch_size,
                   epochs=2, val_fraction=env.val_fraction, patience=env.patience, progress=False, device=device)
@@ -140,8 +141,8 @@ def bench_envelope(seeds: int, data: TensorDict, device, repeats: int) -> dict:
                            **kwargs)
         _sync(device)
 
-    return interleaved(f"bail envelope fit (2 epochs, batch {env.batch_size})", stacked, sequential, single,
-                       repeats=max(3, repeats // 5), warmup=1)
+    return interleaved(f"{envelope_algorithm()} envelope fit (2 epochs, batch {env.batch_size})", stacked, sequential,
+                       single, repeats=max(3, repeats // 5), warmup=1)
 
 
 def main() -> None:
@@ -160,7 +161,7 @@ def main() -> None:
     device = torch.device(args.device)
     data = synthetic_batch(device)
     rows = [bench_updates(name, args.seeds, data, device, args.repeats) for name in args.algos]
-    if "bail" in args.algos:
+    if envelope_algorithm() in args.algos:
         rows.append(bench_envelope(args.seeds, data, device, args.repeats))
     columns = [("stacked/s", "stacked_per_s", ">10.2f"), ("sequential/s", "sequential_per_s", ">13.2f"),
                    ("speedup", "speedup", ">8.2f"), ("vs 1 seed", "vs_one_seed", ">10.2f")]

@@ -74,7 +74,7 @@ def table() -> str:
     gaps = [gap for name in ALGO_SCHEMAS for gap in entry_gaps(name)]
     if gaps:
         raise MissingEntry("algorithm registry entries without what the Algorithms page shows: " + ", ".join(gaps)
-                           + " (state them on the schema in src/torchrl_bail/algo_schemas.py)")
+                           + " (state them on the schema, in src/torchrl_bail/algorithms/<name>.py)")
     lines = ["| `algo=` | what | loss modules | batch · length (paper preset) | evaluation |", "|---|---|---|---|---|"]
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         for name, schema in ALGO_SCHEMAS.items():

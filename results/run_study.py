@@ -434,8 +434,15 @@ MIN_SEEDS_FOR_VERDICT = 3
 
 
 def cell_label(row: dict) -> str:
-    """A report row's name in the cell: its algorithm, and the overrides that set it apart (e.g. MARWIL's warm-up)."""
-    extra = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in sorted(row["overrides"].items()) if v is not None)
+    """A report row's name in the cell: its algorithm, and the overrides that set it apart from its yaml's values
+    (the paper preset's). The report names a key for every group of an algorithm once one group overrides it, so
+    the faithful MARWIL beside the one with V fitted first is ``marwil``, not ``marwil (value_warmup_updates=0)``
+    (which left the claim "MARWIL above BC" without its group)."""
+    from torchrl_bail.config_builders import algo_config
+
+    yaml = OmegaConf.create({"algo": algo_config(row["algo"])})
+    extra = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in sorted(row["overrides"].items())
+                      if v is not None and OmegaConf.select(yaml, k) != v)
     return f"{row['algo']} ({extra})" if extra else row["algo"]
 
 

@@ -59,8 +59,9 @@ def test_a_planted_wrong_number_is_found(tmp_path):
 @pytest.mark.parametrize("path", RECORDS, ids=[p.stem for p in RECORDS])
 def test_a_record_states_its_run_and_every_round(path):
     record = json.loads(path.read_text())
-    assert record["script"] == f"{path.stem}.py"
-    assert record["command"].startswith(f"python benchmarks/{path.stem}.py")
+    script = record["script"]  # a record is named after its script, a second run's with a suffix (--json)
+    assert path.stem == script[:-3] or path.stem.startswith(script[:-3] + "_"), (path.name, script)
+    assert (ROOT / "benchmarks" / script).is_file() and record["command"].startswith(f"python benchmarks/{script}")
     assert set(record["versions"]) >= {"python", *PACKAGES} and all(record["versions"][k] for k in PACKAGES)
     machine = record["machine"]
     assert machine["cpu_model"] and machine["cpus"] >= 1 and machine["torch_threads"] >= 1
@@ -156,12 +157,18 @@ def test_the_paper_scale_section_quotes_its_records():
             f"{meta['env_steps_per_s']:.0f} env steps/s: {meta['num_transitions']}") in section
     flat = " ".join(section.split())
     assert f"{meta['num_episodes']} episodes, mean return {meta['episode_return_mean']:.1f}" in flat
-    probe = {row["name"].split()[0]: row for row in json.loads(
-        (RECORDS_DIR / "bench_paper_cost.json").read_text())["rows"]}
-    quoted = {"bc": "BC {} updates/s on one thread and {} on two (×{:.2f})", "bcq": "BCQ {} and {} (×{:.2f})"}
+    probe = {row["name"].split()[0]: row for record in ("bench_paper_cost.json", "bench_paper_cost_bear_envelope.json")
+             for row in json.loads((RECORDS_DIR / record).read_text())["rows"]}
+    quoted = {"bc": "BC {:.1f} updates/s on one thread and {:.1f} on two (×{:.2f})",
+              "bcq": "BCQ {:.1f} and {:.1f} (×{:.2f})", "bear": "BEAR {:.1f} and {:.1f} (×{:.2f})",
+              "envelope": "envelope fit {:.2f} and {:.2f} epochs/s (×{:.2f})"}
     for algo, text in quoted.items():
         row = probe[algo]
-        assert text.format(f"{row['threads=1']:.1f}", f"{row['threads=2']:.1f}", row["ratio"]) in flat, algo
+        assert text.format(row["threads=1"], row["threads=2"], row["ratio"]) in flat, algo
+    minutes = {algo: 10**5 / probe[algo]["threads=1"] / 60 for algo in ("bcq", "bear")}
+    assert (f"BCQ's 10^5 updates take about {minutes['bcq']:.0f} min and BEAR's about {minutes['bear']:.0f} min "
+            "before their evaluations") in flat
+    assert f"50 epochs take about {50 / probe['envelope']['threads=1'] / 60:.1f} min" in flat
     sac = sorted(round(t) for job, t in json.loads((results / "study" / "timings.json").read_text()).items()
                  if job.startswith("collect/") and job.endswith("_sac"))
     assert f"SAC runs took {sac[0]}-{sac[-1]} s" in flat

@@ -146,7 +146,8 @@ def test_unreadable_dataset_is_one_line(tmp_path):
 
 def test_entry_points_do_not_import_torch_before_the_config_is_checked():
     """What keeps a bad command line at about a second: the entry modules and the schemas load without torch."""
-    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.cli, torchrl_bail.config; "
+    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.cli, torchrl_bail.config, "
+            "torchrl_bail.algo_schemas; "
             "print(sorted(m for m in ('torch', 'torchrl', 'tensordict', 'numpy') if m in sys.modules))")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)

@@ -343,6 +343,15 @@ def test_readme_links_point_to_files_that_exist():
     assert missing == []
 
 
+def test_readme_names_every_registered_algorithm_in_the_registrys_order():
+    """The README's Algorithms paragraph is written by hand; the registry decides what it must name."""
+    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Algorithms"):readme.index("\n## ", readme.index("## Algorithms") + 1)]
+    assert re.findall(r"`algo=(\w+)`", section) == list(ALGO_SCHEMAS)
+
+
 def _table(text: str, key: str) -> dict[str, dict[str, str]]:
     """The first Markdown table of ``text`` whose header starts with ``| key |``: ``{first cell: {column: cell}}``,
     bold marks dropped."""

@@ -226,6 +226,17 @@ def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_ru
     assert "| hopper_ddpg05_b1/bail/seed2 | 42 of 50 | 1.25 % | 48.0 |  |" in text
 
 
+def test_each_marwil_claim_reads_its_own_group_when_both_variants_ran(run_study):
+    """The report names ``value_warmup_updates`` on both MARWIL groups once one overrides it; the faithful one (the
+    yaml's 0) must still be the group of "MARWIL above BC"."""
+    faithful = {"algo": "marwil", "overrides": {"algo.value_warmup_updates": 0}}
+    warmed = {"algo": "marwil", "overrides": {"algo.value_warmup_updates": 1000}}
+    labels = {run_study.cell_label(faithful), run_study.cell_label(warmed)}
+    claims = {claim: a for claim, a, _b, _kind in run_study.PAPER_CLAIMS}
+    assert labels == {claims["MARWIL above BC"], claims["MARWIL with V fitted first above BC"]}
+    assert run_study.cell_label({"algo": "bail", "overrides": {}}) == claims["BAIL ≫ BC"]
+
+
 def test_claim_verdicts_read_the_iqm_intervals(run_study):
     def row(seeds, low, high):
         return {"seeds": seeds, "final_return_iqm_ci_low": low, "final_return_iqm_ci_high": high}

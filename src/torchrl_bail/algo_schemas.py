@@ -1,44 +1,43 @@
-"""The algorithms' schemas (``conf/algo``): one per algorithm, registered in :data:`ALGO_SCHEMAS` and named
-``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`); the rules come from
-:mod:`torchrl_bail.config`. Each schema is also its algorithm's registry entry (:class:`AlgoConfig`'s class
-variables): what the study, the drills, the contract suite and the docs know of an algorithm besides its keys.
+"""The algorithms' registry (:data:`ALGO_SCHEMAS`): each algorithm's schema (``conf/algo``), named
+``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`), is its registry entry
+(:class:`AlgoConfig`'s class variables): what the study, the drills, the contract suite and the docs know of an
+algorithm besides its keys. The rules come from :mod:`torchrl_bail.config`; this module holds the keys every
+algorithm has, the blocks several share and the registration (:func:`algo_schema`, :func:`schema_block`).
 
-Why the schemas live here and not in ``algorithms/<name>.py`` beside the update step: an algorithm's module imports
-torch, tensordict and torchrl, a command line is checked against its schema before any of them loads, and a bad one
-must fail in about a second (:func:`torchrl_bail.cli.run_cli`). Measured on the project's 2-core CPU (one core, the
-other busy, load ~4; best and median of five ``python -c "import ..."`` in a fresh process): this module
-0.14 s / 0.18 s (omegaconf and the rules only), ``torchrl_bail.algorithms.iql`` 6.0 s / 6.7 s (torch alone
-2.8 s / 3.3 s, torchrl 5.1 s / 6.8 s); ``python -m torchrl_bail.train +exp=hopper_ddpg05 algo=iql
-algo.batch_size=0`` prints its one line and exits 2 after 2.0-2.3 s, Hydra's composition included. A schema in the
-algorithm's module would put those 6 s in front of every such error, so this one torch-free file holds every
-schema, and the class beside its update step is found through :data:`ALGO_SCHEMAS` by name (a test keeps the two
-registries equal).
+A schema is written in its algorithm's module (``algorithms/<name>.py``), beside the update step, and read from
+there without importing it. The module imports torch, tensordict and torchrl, while a command line is checked
+against its schema before any of them loads, so that a bad one fails in about a second
+(:func:`torchrl_bail.cli.run_cli`): measured on the project's 2-core CPU (one core, the other busy, load ~4; best
+and median of five ``python -c "import ..."`` in a fresh process), the config modules import in 0.14 s / 0.18 s and
+``torchrl_bail.algorithms.iql`` in 6.0 s / 6.7 s (torch alone 2.8 s / 3.3 s, torchrl 5.1 s / 6.8 s). So on import
+this module parses each module of the package (:mod:`ast`) and runs only its schema classes and the torch-free
+imports they need (:func:`_read_package_schemas`); importing the module later gives back the same classes.
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
-
-from omegaconf import MISSING
 
 from torchrl_bail.config import (
     Checked,
     at_least,
-    discount,
     fraction,
     layers,
     learning_rate,
     non_negative,
-    one_of,
     positive,
     registry_name,
     rule,
 )
 
-__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "NetConfig", "blocks_with", "entry_gaps", "study_algorithms"]
+__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "CriticConfig", "EnvelopeConfig", "NetConfig", "SchemaReadError",
+           "SelectionConfig", "algo_schema", "blocks_with", "entry_gaps", "envelope_algorithm", "schema_block",
+           "study_algorithms"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -60,6 +59,10 @@ class AlgoConfig(Checked):
     is kept anywhere else. A schema sets the ones that differ from these defaults; ``tiny``, ``description`` and
     ``losses`` have none, every schema states them (:func:`entry_gaps`; ``tests/test_contract.py`` fails without)."""
 
+    #: its place among the report's columns and everywhere the algorithms are listed (:data:`ALGO_SCHEMAS`' order):
+    #: the paper's imitation methods, its actor-critics, then the later baselines; ties and unset (a module outside
+    #: the package) by name, after the package's
+    column: ClassVar[float] = float("inf")
     #: which paper-scale schedule it takes (``results/run_study.PAPER_SCHEDULE``): ``"imitation"`` (the paper's own
     #: epochs) or ``"offline_rl"`` (an actor-critic at 10 % of its paper's 10^6 updates: ~10x an imitation run)
     cost: ClassVar[str] = "imitation"
@@ -102,99 +105,8 @@ class EnvelopeConfig(Checked):
 
 
 @dataclass
-class BAILEnvelopeConfig(EnvelopeConfig):
-    batch_size: int = at_least(1)
-    epochs: int = at_least(1)
-    early_stopping: str = one_of("paper", "as_coded")
-
-
-@dataclass
 class SelectionConfig(Checked):
     percentile: float = fraction()
-
-
-@dataclass
-class BAILSelectionConfig(SelectionConfig):
-    by: str = one_of("envelope", "return")
-    nonpositive_value: str = one_of("raw", "project", "error")
-
-
-@dataclass
-class BAILConfig(AlgoConfig):
-    study = "all"
-    paper_study = True
-    tiny = ("envelope.epochs=3", "envelope.batch_size=200")
-    description = "BAIL (supp. Alg. 1): upper envelope → best {selection.percentile:.0%} by G/V → BC on them"
-    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.BestActionFilter",
-              "torchrl.objectives.BCLoss")
-
-    envelope: BAILEnvelopeConfig = MISSING
-    selection: BAILSelectionConfig = MISSING
-    policy: NetConfig = MISSING
-
-
-@dataclass
-class PBAILEnvelopeConfig(EnvelopeConfig):
-    validate_every: int = at_least(1)
-
-
-@dataclass
-class PBAILConfig(AlgoConfig):
-    study = "all"
-    paper_study = True
-    tiny = ("envelope.validate_every=2",)
-    description = ("Progressive BAIL (supp. Alg. 2): envelope step + in-batch top {selection.percentile:.0%} + policy "
-                   "step each iteration")
-    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.best_action_mask",
-              "torchrl.objectives.BCLoss")
-
-    envelope: PBAILEnvelopeConfig = MISSING
-    selection: SelectionConfig = MISSING
-    best_envelope: str = one_of("paper", "as_coded")
-    selection_envelope: str = one_of("best", "training")
-    v_projection: bool = MISSING
-    validation: str = one_of("split", "with_replacement")
-    policy: NetConfig = MISSING
-
-
-@dataclass
-class BCConfig(AlgoConfig):
-    study = "all"
-    paper_study = True
-    tiny = ()
-    description = "behaviour cloning on the whole batch"
-    losses = ("torchrl.objectives.BCLoss",)
-
-    policy: NetConfig = MISSING
-
-
-@dataclass
-class MARWILConfig(AlgoConfig):
-    study = "all"
-    paper_study = True
-    tiny = ()
-    description = "MARWIL (Wang et al., NeurIPS 2018): advantage-weighted imitation, β = {beta:g}, running c²"
-    losses = ("torchrl_bail.objectives.MARWILLoss",)
-
-    beta: float = non_negative()
-    c2_init: float = positive()
-    c2_rate: float = fraction()
-    vf_coeff: float = non_negative()
-    max_exponent: float = positive()
-    eps: float = non_negative()
-    value_warmup_updates: int = at_least(0)
-    value: NetConfig = MISSING
-    policy: NetConfig = MISSING
-
-
-@dataclass
-class VAEConfig(NetConfig):
-    latent_per_action: int = at_least(1)
-    log_std_min: float = MISSING
-    log_std_max: float = MISSING
-
-    def check(self) -> None:
-        self._ordered("log_std_min", "log_std_max")
 
 
 @dataclass
@@ -202,123 +114,126 @@ class CriticConfig(NetConfig):
     vmap: Any = rule(lambda v: v in ("auto", True, False), "auto | true | false")
 
 
-@dataclass
-class TwinCriticVAEConfig(AlgoConfig):
-    """BCQ's and BEAR's shared keys; both are actor-critics the study runs on DDPG batches only (for cost), and
-    both are in the paper-scale study."""
-
-    cost = "offline_rl"
-    study = "ddpg"
-    paper_study = True
-
-    lmbda: float = rule(lambda v: 0 <= v <= 1, "a weight in [0, 1]")
-    num_samples: int = at_least(1)
-    kl_weight: float = non_negative()
-    latent_clip: float = positive()
-    gamma: float = discount()
-    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
-    vae: VAEConfig = MISSING
-    critic: CriticConfig = MISSING
+#: algorithm name -> its schema, in the report's column order (:attr:`AlgoConfig.column`); filled by
+#: :func:`algo_schema` as each ``algorithms/<name>.py`` is read (:func:`_read_package_schemas`) and kept equal to the
+#: algorithm classes' registry, :data:`torchrl_bail.algorithms.ALGORITHMS`, by a test; each schema's class variables
+#: are its registry entry
+ALGO_SCHEMAS: dict[str, type[AlgoConfig]] = {}
+#: (module, class name) -> every schema class an algorithm module defines (its entry and its blocks), so that a
+#: module's classes are the ones its schemas were read as
+_DEFINED: dict[tuple[str, str], type] = {}
 
 
-@dataclass
-class BCQConfig(TwinCriticVAEConfig):
-    tiny = ()
-    description = ("BCQ 2019 (arXiv:1812.02900): VAE + perturbation (Φ = {phi:g}) + soft clipped double Q, best of "
-                   "{num_samples}")
-    losses = ("torchrl_bail.objectives.BCQLoss", "torchrl_bail.objectives.VAELoss")
-
-    phi: float = non_negative()
-    actor: NetConfig = MISSING
-
-
-@dataclass
-class BEARActorConfig(NetConfig):
-    noise_clip: float = positive()
-    log_std_min: float = MISSING
-    log_std_max: float = MISSING
+def schema_block(cls: type) -> type:
+    """Declares a block of an algorithm's schema (a nested node such as ``actor``, or a base schema several
+    algorithms share) in the algorithm's module: a dataclass that the torch-free reader picks up with the entry
+    (:func:`algo_schema`). Defined once: importing the module later gives back the class the reader made."""
+    key = (cls.__module__, cls.__qualname__)
+    if key not in _DEFINED:
+        _DEFINED[key] = dataclass(cls)
+    return _DEFINED[key]
 
 
-@dataclass
-class BEARConfig(TwinCriticVAEConfig):
-    tiny = ("warm_start_updates=2",)
-    description = ("BEAR v0 (arXiv:1906.00949): Laplacian MMD (σ = {kernel_sigma:g}, {num_samples_match} samples, "
-                   "ε = {epsilon:g}), Lagrange α, warm start")
-    losses = ("torchrl_bail.objectives.BEARLoss", "torchrl_bail.objectives.VAELoss")
+def algo_schema(name: str):
+    """Registers the decorated class as algorithm ``name``'s schema and registry entry (``algo=<name>``,
+    ``conf/algo/<name>.yaml``) in :data:`ALGO_SCHEMAS`; the class is made a dataclass (:func:`schema_block`).
 
-    kernel_sigma: float = positive()
-    num_samples_match: int = at_least(1)
-    mmd_stabilizer: float = non_negative()
-    epsilon: float = non_negative()
-    log_alpha_init: Optional[float] = None
-    log_alpha_min: float = MISSING
-    log_alpha_max: float = MISSING
-    lagrange_lr: float = learning_rate()
-    warm_start_updates: int = at_least(0)
-    actor: BEARActorConfig = MISSING
+    It is written in the algorithm's own module, beside its update step, and read from there without importing the
+    module (:func:`_read_package_schemas`), so a bad command line fails before torch loads. A module outside this
+    package registers the same way when it is imported.
 
-    def check(self) -> None:
-        super().check()
-        self._ordered("log_alpha_min", "log_alpha_max")
+    Examples:
+        >>> from torchrl_bail.algorithms import bcq
+        >>> ALGO_SCHEMAS["bcq"].__module__, ALGO_SCHEMAS["bcq"] is bcq.BCQConfig
+        ('torchrl_bail.algorithms.bcq', True)
+    """
 
+    def register(cls: type) -> type:
+        schema = schema_block(cls)
+        known = ALGO_SCHEMAS.setdefault(name, schema)
+        if known is not schema:
+            raise ValueError(f"two schemas named {name!r}: {known.__module__}.{known.__qualname__} and "
+                             f"{schema.__module__}.{schema.__qualname__}")
+        return schema
 
-@dataclass
-class TD3BCConfig(AlgoConfig):
-    cost = "offline_rl"
-    study = "all"  # in the study since it landed (30 jobs): kept, now stated
-    tiny = ()
-    description = ("TD3+BC (arXiv:2106.06860): TD3 with a behaviour-cloning term in the actor loss (α = {alpha:g}), "
-                   "standardised observations; not in the BAIL paper")
-    losses = ("torchrl.objectives.TD3BCLoss",)
-
-    alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
-    policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
-    noise_clip: float = non_negative("a non-negative clip of the target policy's noise, times max_action")
-    policy_delay: int = at_least(1, "a positive number of critic updates per actor update")
-    gamma: float = discount()
-    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
-    normalize_observations: bool = MISSING
-    normalize_eps: float = positive("a positive number added to the observations' standard deviation")
-    actor: NetConfig = MISSING
-    critic: CriticConfig = MISSING
+    return register
 
 
-@dataclass
-class IQLActorConfig(NetConfig):
-    log_std_min: float = MISSING
-    log_std_max: float = MISSING
-    lr_schedule: str = one_of("cosine", "constant")
-
-    def check(self) -> None:
-        self._ordered("log_std_min", "log_std_max")
+class SchemaReadError(ImportError):
+    """An algorithm module's schema uses something the torch-free reader cannot give it."""
 
 
-@dataclass
-class IQLConfig(AlgoConfig):
-    cost = "offline_rl"
-    study = "none"
-    tiny = ()
-    description = ("IQL (arXiv:2110.06169): expectile value (τ = {expectile:g}), critics to r + γV(s'), "
-                   "advantage-weighted Gaussian actor (β = {beta:g}, weights clipped at {max_weight:g}) with a cosine "
-                   "learning rate; locomotion reward scaling; not in the BAIL paper")
-    losses = ("torchrl.objectives.IQLLoss",)
-
-    expectile: float = rule(lambda v: 0 < v < 1, "an expectile in (0, 1) (0.5: mean regression)")
-    beta: float = non_negative("a non-negative inverse temperature of the advantage weights")
-    # TorchRL's IQLLoss clips the advantage weights at 100 (a constant of its code): the one value it can train
-    max_weight: float = rule(lambda v: v == 100, "100, the clip of exp(beta A) that TorchRL's IQLLoss hard-codes")
-    gamma: float = discount()
-    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
-    reward_scale: str = one_of("locomotion", "none")
-    actor: IQLActorConfig = MISSING
-    critic: CriticConfig = MISSING
-    value: NetConfig = MISSING
+_DECORATORS = {"algo_schema", "schema_block"}
 
 
-#: algorithm name -> its schema, in the report's column order (kept equal to the algorithm classes' registry,
-#: :data:`torchrl_bail.algorithms.ALGORITHMS`, by a test); each schema's class variables are its registry entry
-ALGO_SCHEMAS = {"bail": BAILConfig, "pbail": PBAILConfig, "bc": BCConfig, "marwil": MARWILConfig,
-                "bcq": BCQConfig, "bear": BEARConfig, "td3bc": TD3BCConfig, "iql": IQLConfig}
+def _is_schema(node: ast.stmt) -> bool:
+    """A top-level class decorated with :func:`algo_schema` or :func:`schema_block`."""
+    def decorator_name(d: ast.expr) -> str | None:
+        target = d.func if isinstance(d, ast.Call) else d
+        return target.id if isinstance(target, ast.Name) else None
+
+    return isinstance(node, ast.ClassDef) and any(decorator_name(d) in _DECORATORS for d in node.decorator_list)
+
+
+#: the modules whose imports the reader runs: what a schema may use besides its siblings' schema classes
+TORCH_FREE_MODULES = frozenset({"typing", "dataclasses", "omegaconf", f"{__package__}.config", __name__})
+
+
+def _is_torch_free_import(node: ast.stmt) -> bool:
+    if isinstance(node, ast.ImportFrom):
+        return node.module in TORCH_FREE_MODULES and not node.level
+    return isinstance(node, ast.Import) and all(alias.name in TORCH_FREE_MODULES for alias in node.names)
+
+
+def _read_module_schemas(stem: str, folder: Path, namespaces: dict[str, dict], reading: tuple[str, ...] = ()) -> dict:
+    """Defines the schema classes of ``folder/<stem>.py`` (and first those of the sibling modules it imports from)
+    by running only its imports of :data:`TORCH_FREE_MODULES` and its schema class statements, with the sibling
+    schema classes it imports; returns that namespace. Nothing else of the module runs: no torch."""
+    if stem in namespaces:
+        return namespaces[stem]
+    module = f"{__package__}.algorithms.{stem}"
+    path = folder / f"{stem}.py"
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    namespace = {"__name__": module}
+    for node in tree.body:  # the module's own torch-free imports, and the schema classes it imports from siblings
+        if _is_torch_free_import(node):
+            exec(compile(ast.Module(body=[node], type_ignores=[]), str(path), "exec", dont_inherit=True), namespace)
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(f"{__package__}.algorithms."):
+            sibling = node.module.rsplit(".", 1)[-1]
+            if sibling in reading:
+                raise SchemaReadError(f"{path}: its schemas import from {sibling}.py, which imports from it")
+            theirs = _read_module_schemas(sibling, folder, namespaces, (*reading, stem))
+            namespace.update({alias.asname or alias.name: theirs[alias.name] for alias in node.names
+                              if isinstance(theirs.get(alias.name), type)})
+    for node in filter(_is_schema, tree.body):
+        code = compile(ast.Module(body=[node], type_ignores=[]), str(path), "exec", dont_inherit=True)
+        try:
+            exec(code, namespace)  # noqa: S102 -- one class statement of the package's own source
+        except NameError as e:
+            raise SchemaReadError(
+                f"{path}:{node.lineno}: schema {node.name} uses {e.name!r}, which the torch-free reader does not "
+                f"define: a schema may use what its module imports from {', '.join(sorted(TORCH_FREE_MODULES))} and "
+                f"the schema classes of its own and sibling modules (it is read without importing {module})"
+            ) from None
+    namespaces[stem] = namespace
+    return namespace
+
+
+def _read_package_schemas() -> None:
+    """Fills :data:`ALGO_SCHEMAS` from every module of :mod:`torchrl_bail.algorithms`, torch-free: each module's
+    classes decorated with :func:`algo_schema` / :func:`schema_block` are defined from its source (parsed with
+    :mod:`ast`, ~10 ms for the package), the rest of the module is not run; then orders the registry by
+    :attr:`AlgoConfig.column`. Importing a module afterwards gives back these same classes."""
+    folder = Path(__file__).with_name("algorithms")
+    namespaces: dict[str, dict] = {}
+    for path in sorted(folder.glob("*.py")):
+        _read_module_schemas(path.stem, folder, namespaces)
+    ordered = sorted(ALGO_SCHEMAS.items(), key=lambda item: (item[1].column, item[0]))
+    ALGO_SCHEMAS.clear()
+    ALGO_SCHEMAS.update(ordered)
+
+
+_read_package_schemas()
 
 
 def study_algorithms(batches: str) -> list[str]:
@@ -355,6 +270,17 @@ def blocks_with(name: str, key: str) -> list[str]:
         (['envelope', 'policy'], ['envelope'], ['vae', 'critic', 'actor'])
     """
     return _blocks_with(ALGO_SCHEMAS[name], key)
+
+
+def envelope_algorithm() -> str:
+    """The registered algorithm whose upper envelope is fitted before its training, for a number of epochs (BAIL):
+    what the benchmarks time as "the envelope fit".
+
+    Examples:
+        >>> envelope_algorithm()
+        'bail'
+    """
+    return next(name for name in ALGO_SCHEMAS if "envelope" in blocks_with(name, "epochs"))
 
 
 def _blocks_with(schema: type, key: str, prefix: str = "") -> list[str]:

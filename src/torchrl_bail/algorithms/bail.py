@@ -16,18 +16,51 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
+from omegaconf import MISSING, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
 
+from torchrl_bail.algo_schemas import AlgoConfig, EnvelopeConfig, NetConfig, SelectionConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
+from torchrl_bail.config import at_least, one_of
 from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.plots import plot_envelope
 from torchrl_bail.transforms.best_action import BestActionFilter
 
 __all__ = ["BAIL"]
+
+
+# -- the schema (conf/algo/bail.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@schema_block
+class BAILEnvelopeConfig(EnvelopeConfig):
+    batch_size: int = at_least(1)
+    epochs: int = at_least(1)
+    early_stopping: str = one_of("paper", "as_coded")
+
+
+@schema_block
+class BAILSelectionConfig(SelectionConfig):
+    by: str = one_of("envelope", "return")
+    nonpositive_value: str = one_of("raw", "project", "error")
+
+
+@algo_schema("bail")
+class BAILConfig(AlgoConfig):
+    column = 1
+    study = "all"
+    paper_study = True
+    tiny = ("envelope.epochs=3", "envelope.batch_size=200")
+    description = "BAIL (supp. Alg. 1): upper envelope → best {selection.percentile:.0%} by G/V → BC on them"
+    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.BestActionFilter",
+              "torchrl.objectives.BCLoss")
+
+    envelope: BAILEnvelopeConfig = MISSING
+    selection: BAILSelectionConfig = MISSING
+    policy: NetConfig = MISSING
 
 
 class BAIL(BehaviourCloning):

@@ -20,14 +20,31 @@ from __future__ import annotations
 import warnings
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.objectives import BCLoss
 
+from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.modules import make_deterministic_actor
 
 __all__ = ["BehaviourCloning", "DeterministicActorAlgorithm", "make_bc_loss"]
+
+
+# -- the schema (conf/algo/bc.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@algo_schema("bc")
+class BCConfig(AlgoConfig):
+    column = 3
+    study = "all"
+    paper_study = True
+    tiny = ()
+    description = "behaviour cloning on the whole batch"
+    losses = ("torchrl.objectives.BCLoss",)
+
+    policy: NetConfig = MISSING
 
 
 def make_bc_loss(actor, reduction: str = "mean") -> BCLoss:

@@ -23,13 +23,31 @@ Examples:
 from __future__ import annotations
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 
-from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm
+from torchrl_bail.algo_schemas import NetConfig, algo_schema
+from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, TwinCriticVAEConfig
+from torchrl_bail.config import non_negative
 from torchrl_bail.modules import make_perturbation_actor
 from torchrl_bail.objectives.bcq import BCQLoss
 
 __all__ = ["BCQ"]
+
+
+# -- the schema (conf/algo/bcq.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@algo_schema("bcq")
+class BCQConfig(TwinCriticVAEConfig):
+    column = 5
+    tiny = ()
+    description = ("BCQ 2019 (arXiv:1812.02900): VAE + perturbation (Φ = {phi:g}) + soft clipped double Q, best of "
+                   "{num_samples}")
+    losses = ("torchrl_bail.objectives.BCQLoss", "torchrl_bail.objectives.VAELoss")
+
+    phi: float = non_negative()
+    actor: NetConfig = MISSING
 
 
 class BCQ(TwinCriticVAEAlgorithm):

@@ -22,17 +22,54 @@ Examples:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, adam
+from torchrl_bail.algo_schemas import NetConfig, algo_schema, schema_block
+from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, TwinCriticVAEConfig, adam
+from torchrl_bail.config import at_least, learning_rate, non_negative, positive
 from torchrl_bail.modules import make_sac_actor
 from torchrl_bail.objectives.bear import BEARLoss
 
 __all__ = ["BEAR"]
+
+
+# -- the schema (conf/algo/bear.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@schema_block
+class BEARActorConfig(NetConfig):
+    noise_clip: float = positive()
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+
+
+@algo_schema("bear")
+class BEARConfig(TwinCriticVAEConfig):
+    column = 6
+    tiny = ("warm_start_updates=2",)
+    description = ("BEAR v0 (arXiv:1906.00949): Laplacian MMD (σ = {kernel_sigma:g}, {num_samples_match} samples, "
+                   "ε = {epsilon:g}), Lagrange α, warm start")
+    losses = ("torchrl_bail.objectives.BEARLoss", "torchrl_bail.objectives.VAELoss")
+
+    kernel_sigma: float = positive()
+    num_samples_match: int = at_least(1)
+    mmd_stabilizer: float = non_negative()
+    epsilon: float = non_negative()
+    log_alpha_init: Optional[float] = None
+    log_alpha_min: float = MISSING
+    log_alpha_max: float = MISSING
+    lagrange_lr: float = learning_rate()
+    warm_start_updates: int = at_least(0)
+    actor: BEARActorConfig = MISSING
+
+    def check(self) -> None:
+        super().check()
+        self._ordered("log_alpha_min", "log_alpha_max")
 
 
 class BEAR(TwinCriticVAEAlgorithm):

@@ -54,6 +54,7 @@ from __future__ import annotations
 import math
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -62,12 +63,50 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives import IQLLoss, ValueEstimators
 
+from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import Algorithm, PrepareContext
 from torchrl_bail.algorithms.twin_critic_vae import use_vmap
+from torchrl_bail.config import discount, non_negative, one_of, rule
 from torchrl_bail.data.returns import EPISODE_KEYS
 from torchrl_bail.modules import fused_soft_update, make_qvalue_network, mlp
 
 __all__ = ["IQL", "GaussianActorParams", "MeanAction", "episode_returns", "locomotion_reward_factor"]
+
+
+# -- the schema (conf/algo/iql.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@schema_block
+class IQLActorConfig(NetConfig):
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+    lr_schedule: str = one_of("cosine", "constant")
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@algo_schema("iql")
+class IQLConfig(AlgoConfig):
+    column = 8
+    cost = "offline_rl"
+    study = "none"
+    tiny = ()
+    description = ("IQL (arXiv:2110.06169): expectile value (τ = {expectile:g}), critics to r + γV(s'), "
+                   "advantage-weighted Gaussian actor (β = {beta:g}, weights clipped at {max_weight:g}) with a cosine "
+                   "learning rate; locomotion reward scaling; not in the BAIL paper")
+    losses = ("torchrl.objectives.IQLLoss",)
+
+    expectile: float = rule(lambda v: 0 < v < 1, "an expectile in (0, 1) (0.5: mean regression)")
+    beta: float = non_negative("a non-negative inverse temperature of the advantage weights")
+    # TorchRL's IQLLoss clips the advantage weights at 100 (a constant of its code): the one value it can train
+    max_weight: float = rule(lambda v: v == 100, "100, the clip of exp(beta A) that TorchRL's IQLLoss hard-codes")
+    gamma: float = discount()
+    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    reward_scale: str = one_of("locomotion", "none")
+    actor: IQLActorConfig = MISSING
+    critic: CriticConfig = MISSING
+    value: NetConfig = MISSING
 
 
 class GaussianActorParams(nn.Module):

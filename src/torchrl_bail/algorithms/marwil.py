@@ -25,15 +25,41 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
+from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import DeterministicActorAlgorithm
+from torchrl_bail.config import at_least, fraction, non_negative, positive
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.marwil import MARWILLoss
 
 __all__ = ["MARWIL"]
+
+
+# -- the schema (conf/algo/marwil.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@algo_schema("marwil")
+class MARWILConfig(AlgoConfig):
+    column = 4
+    study = "all"
+    paper_study = True
+    tiny = ()
+    description = "MARWIL (Wang et al., NeurIPS 2018): advantage-weighted imitation, β = {beta:g}, running c²"
+    losses = ("torchrl_bail.objectives.MARWILLoss",)
+
+    beta: float = non_negative()
+    c2_init: float = positive()
+    c2_rate: float = fraction()
+    vf_coeff: float = non_negative()
+    max_exponent: float = positive()
+    eps: float = non_negative()
+    value_warmup_updates: int = at_least(0)
+    value: NetConfig = MISSING
+    policy: NetConfig = MISSING
 
 
 class MARWIL(DeterministicActorAlgorithm):

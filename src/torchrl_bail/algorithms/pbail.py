@@ -32,11 +32,14 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
+from torchrl_bail.algo_schemas import AlgoConfig, EnvelopeConfig, NetConfig, SelectionConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import DeterministicActorAlgorithm, make_bc_loss
+from torchrl_bail.config import at_least, one_of
 from torchrl_bail.envelope import EarlyStoppingTracker, validation_loss
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
@@ -44,6 +47,34 @@ from torchrl_bail.stacking import SeedSlice
 from torchrl_bail.transforms.best_action import best_action_mask
 
 __all__ = ["ProgressiveBAIL"]
+
+
+# -- the schema (conf/algo/pbail.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@schema_block
+class PBAILEnvelopeConfig(EnvelopeConfig):
+    validate_every: int = at_least(1)
+
+
+@algo_schema("pbail")
+class PBAILConfig(AlgoConfig):
+    column = 2
+    study = "all"
+    paper_study = True
+    tiny = ("envelope.validate_every=2",)
+    description = ("Progressive BAIL (supp. Alg. 2): envelope step + in-batch top {selection.percentile:.0%} + policy "
+                   "step each iteration")
+    losses = ("torchrl_bail.objectives.UpperEnvelopeLoss", "torchrl_bail.transforms.best_action_mask",
+              "torchrl.objectives.BCLoss")
+
+    envelope: PBAILEnvelopeConfig = MISSING
+    selection: SelectionConfig = MISSING
+    best_envelope: str = one_of("paper", "as_coded")
+    selection_envelope: str = one_of("best", "training")
+    v_projection: bool = MISSING
+    validation: str = one_of("split", "with_replacement")
+    policy: NetConfig = MISSING
 
 VALIDATION_KEY = "envelope_validation"
 

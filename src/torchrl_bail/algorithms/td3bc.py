@@ -35,17 +35,45 @@ Examples:
 from __future__ import annotations
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3BCLoss, ValueEstimators
 
+from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import Algorithm, PrepareContext
 from torchrl_bail.algorithms.twin_critic_vae import adam, use_vmap
+from torchrl_bail.config import at_least, discount, non_negative, positive, rule
 from torchrl_bail.modules import fused_soft_update, make_deterministic_actor, make_qvalue_network
 
 __all__ = ["TD3BC", "Standardize", "StandardizedPolicy"]
+
+
+# -- the schema (conf/algo/td3bc.yaml), read by torchrl_bail.algo_schemas without importing this module --
+
+
+@algo_schema("td3bc")
+class TD3BCConfig(AlgoConfig):
+    column = 7
+    cost = "offline_rl"
+    study = "all"  # in the study since it landed (30 jobs): kept, now stated
+    tiny = ()
+    description = ("TD3+BC (arXiv:2106.06860): TD3 with a behaviour-cloning term in the actor loss (α = {alpha:g}), "
+                   "standardised observations; not in the BAIL paper")
+    losses = ("torchrl.objectives.TD3BCLoss",)
+
+    alpha: float = non_negative("a non-negative weight alpha of the Q term (0: behaviour cloning)")
+    policy_noise: float = non_negative("a non-negative std of the target policy's noise, times max_action")
+    noise_clip: float = non_negative("a non-negative clip of the target policy's noise, times max_action")
+    policy_delay: int = at_least(1, "a positive number of critic updates per actor update")
+    gamma: float = discount()
+    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    normalize_observations: bool = MISSING
+    normalize_eps: float = positive("a positive number added to the observations' standard deviation")
+    actor: NetConfig = MISSING
+    critic: CriticConfig = MISSING
 
 
 class Standardize(nn.Module):

@@ -11,15 +11,50 @@ from __future__ import annotations
 from abc import abstractmethod
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import TensorSpec
 
+from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, schema_block
 from torchrl_bail.algorithms.base import Algorithm
+from torchrl_bail.config import at_least, discount, non_negative, positive, rule
 from torchrl_bail.modules import fused_soft_update, make_qvalue_network, make_vae
 from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss
 
 __all__ = ["TwinCriticVAEAlgorithm", "adam", "build_vae_and_critics", "use_vmap"]
+
+
+# -- the schema BCQ's and BEAR's share, read by torchrl_bail.algo_schemas without importing this module --
+
+
+@schema_block
+class VAEConfig(NetConfig):
+    latent_per_action: int = at_least(1)
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@schema_block
+class TwinCriticVAEConfig(AlgoConfig):
+    """BCQ's and BEAR's shared keys; both are actor-critics the study runs on DDPG batches only (for cost), and
+    both are in the paper-scale study."""
+
+    cost = "offline_rl"
+    study = "ddpg"
+    paper_study = True
+
+    lmbda: float = rule(lambda v: 0 <= v <= 1, "a weight in [0, 1]")
+    num_samples: int = at_least(1)
+    kl_weight: float = non_negative()
+    latent_clip: float = positive()
+    gamma: float = discount()
+    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    vae: VAEConfig = MISSING
+    critic: CriticConfig = MISSING
 
 
 def use_vmap(setting, device: torch.device) -> bool:

@@ -1,0 +1,129 @@
+"""The algorithm registry read from the algorithms' own files: each schema sits in ``algorithms/<name>.py`` beside
+its class, is read there without importing the file, and importing the file gives back the same classes."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import textwrap
+import typing
+
+import pytest
+
+from torchrl_bail import algo_schemas
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS, SchemaReadError
+from torchrl_bail.config import ConfigError
+
+
+def _blocks(schema: type) -> list[type]:
+    """``schema`` and every dataclass block it nests, depth first."""
+    found = [schema]
+    for f in dataclasses.fields(schema):
+        block = typing.get_type_hints(schema)[f.name]
+        if dataclasses.is_dataclass(block):
+            found += _blocks(block)
+    return found
+
+
+def test_each_algorithm_is_one_file_whose_classes_are_the_schemas_read_without_it():
+    from torchrl_bail.algorithms import ALGORITHMS
+
+    for name, schema in ALGO_SCHEMAS.items():
+        assert ALGORITHMS[name].__module__ == schema.__module__
+        assert schema.__module__.startswith("torchrl_bail.algorithms.")
+        for block in _blocks(schema):  # the entry, its own blocks and those it inherits from a sibling or here
+            module = importlib.import_module(block.__module__)
+            assert getattr(module, block.__name__) is block, f"{block.__module__}.{block.__name__} defined twice"
+
+
+def _package(tmp_path, **files: str):
+    folder = tmp_path / "algorithms"
+    folder.mkdir()
+    for stem, text in files.items():
+        (folder / f"{stem}.py").write_text(textwrap.dedent(text))
+    return folder
+
+
+@pytest.fixture
+def empty_registry(monkeypatch):
+    """A registry of its own for the test's made-up algorithms."""
+    monkeypatch.setattr(algo_schemas, "ALGO_SCHEMAS", {})
+    monkeypatch.setattr(algo_schemas, "_DEFINED", {})
+    return algo_schemas
+
+
+HEAD = """\
+    from __future__ import annotations
+
+    import torch
+    from omegaconf import MISSING
+
+    from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema, schema_block
+    from torchrl_bail.config import discount
+"""
+
+
+def test_a_schema_is_read_with_its_files_imports_and_its_siblings_schema_classes(tmp_path, empty_registry):
+    folder = _package(tmp_path, shared=HEAD + """
+    @schema_block
+    class SharedConfig(AlgoConfig):
+        gamma: float = discount()
+    """, mine=HEAD + """
+    from torchrl_bail.algorithms.shared import SharedConfig, helper_that_needs_torch
+
+    SCALE = torch.tensor(2.0)  # never run: the reader runs the imports it knows and the schema classes only
+
+    @algo_schema("mine")
+    class MineConfig(SharedConfig):
+        column = 0.5
+        policy: NetConfig = MISSING
+    """)
+    namespaces = {}
+    empty_registry._read_module_schemas("mine", folder, namespaces)
+    schema = empty_registry.ALGO_SCHEMAS["mine"]
+    assert schema.__module__ == "torchrl_bail.algorithms.mine" and schema.column == 0.5
+    assert issubclass(schema, namespaces["shared"]["SharedConfig"])
+    assert [f.name for f in dataclasses.fields(schema)] == ["name", "batch_size", "epochs", "gamma", "policy"]
+    assert typing.get_type_hints(schema)["policy"] is algo_schemas.NetConfig  # annotations resolved, not strings
+    with pytest.raises(ConfigError, match="gamma"):
+        schema(name="mine", batch_size=1, epochs=1, gamma=1.5, policy=algo_schemas.NetConfig([8], 1e-3))
+
+
+def test_a_schema_using_what_the_reader_does_not_run_is_refused_naming_the_file_line_and_name(tmp_path,
+                                                                                            empty_registry):
+    folder = _package(tmp_path, bad=HEAD + """
+    SCALE = 2.0
+
+    @algo_schema("bad")
+    class BadConfig(AlgoConfig):
+        lr: float = SCALE
+    """)
+    expected = (r"bad\.py:12: schema BadConfig uses 'SCALE', which the torch-free reader does not define.*"
+                r"without importing torchrl_bail\.algorithms\.bad")
+    with pytest.raises(SchemaReadError, match=expected):
+        empty_registry._read_module_schemas("bad", folder, {})
+    assert empty_registry.ALGO_SCHEMAS == {}
+
+
+def test_schemas_importing_each_other_and_two_schemas_of_one_name_are_refused(tmp_path, empty_registry):
+    cycle = _package(tmp_path, a=HEAD + "    from torchrl_bail.algorithms.b import BConfig\n",
+                     b=HEAD + "    from torchrl_bail.algorithms.a import AConfig\n")
+    with pytest.raises(SchemaReadError, match=r"b\.py: its schemas import from a\.py, which imports from it"):
+        empty_registry._read_module_schemas("a", cycle, {})
+    twice = HEAD + """
+    @algo_schema("same")
+    class {0}(AlgoConfig):
+        pass
+    """
+    (tmp_path / "twice").mkdir()
+    folder = _package(tmp_path / "twice", one=twice.format("OneConfig"), two=twice.format("TwoConfig"))
+    empty_registry._read_module_schemas("one", folder, {})
+    with pytest.raises(ValueError, match=r"two schemas named 'same': torchrl_bail\.algorithms\.one\.OneConfig and "
+                                         r"torchrl_bail\.algorithms\.two\.TwoConfig"):
+        empty_registry._read_module_schemas("two", folder, {})
+
+
+def test_the_registry_is_in_column_order():
+    columns = [schema.column for schema in ALGO_SCHEMAS.values()]
+    assert columns == sorted(columns) and len(set(columns)) == len(columns)
+    assert list(ALGO_SCHEMAS)[:2] == ["bail", "pbail"]  # the report's first columns: BAIL, then Progressive BAIL
