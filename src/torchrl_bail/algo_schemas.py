@@ -5,20 +5,15 @@ algorithm besides its keys. The rules come from :mod:`torchrl_bail.config`; this
 algorithm has, the blocks several share and the registration (:func:`algo_schema`, :func:`schema_block`).
 
 A schema is written in its algorithm's module (``algorithms/<name>.py``), beside the update step, and read from
-there without importing it. The module imports torch, tensordict and torchrl, while a command line is checked
-against its schema before any of them loads, so that a bad one fails in about a second
-(:func:`torchrl_bail.cli.run_cli`): measured on the project's 2-core CPU (one core, the other busy, load ~4; best
-and median of five ``python -c "import ..."`` in a fresh process), the config modules import in 0.14 s / 0.18 s and
-``torchrl_bail.algorithms.iql`` in 6.0 s / 6.7 s (torch alone 2.8 s / 3.3 s, torchrl 5.1 s / 6.8 s). So on import
-this module parses each module of the package (:mod:`ast`) and runs only its schema classes and the torch-free
-imports they need (:func:`_read_package_schemas`); importing the module later gives back the same classes.
+there without importing it when this module is imported (:mod:`torchrl_bail.schema_reader`: why, and what a schema
+may use); importing the module later gives back the same classes.
 """
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
@@ -34,10 +29,10 @@ from torchrl_bail.config import (
     registry_name,
     rule,
 )
+from torchrl_bail.schema_reader import read_schemas, register_as, schema_block
 
-__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "CriticConfig", "EnvelopeConfig", "NetConfig", "SchemaReadError",
-           "SelectionConfig", "algo_schema", "blocks_with", "entry_gaps", "envelope_algorithm", "schema_block",
-           "study_algorithms"]
+__all__ = ["ALGO_SCHEMAS", "AlgoConfig", "CriticConfig", "EnvelopeConfig", "NetConfig", "SelectionConfig",
+           "algo_schema", "blocks_with", "entry_gaps", "envelope_algorithm", "schema_block", "study_algorithms"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -115,125 +110,38 @@ class CriticConfig(NetConfig):
 
 
 #: algorithm name -> its schema, in the report's column order (:attr:`AlgoConfig.column`); filled by
-#: :func:`algo_schema` as each ``algorithms/<name>.py`` is read (:func:`_read_package_schemas`) and kept equal to the
+#: :func:`algo_schema` as each ``algorithms/<name>.py`` is read (:func:`_read_algorithm_schemas`) and kept equal to the
 #: algorithm classes' registry, :data:`torchrl_bail.algorithms.ALGORITHMS`, by a test; each schema's class variables
 #: are its registry entry
 ALGO_SCHEMAS: dict[str, type[AlgoConfig]] = {}
-#: (module, class name) -> every schema class an algorithm module defines (its entry and its blocks), so that a
-#: module's classes are the ones its schemas were read as
-_DEFINED: dict[tuple[str, str], type] = {}
 
 
-def schema_block(cls: type) -> type:
-    """Declares a block of an algorithm's schema (a nested node such as ``actor``, or a base schema several
-    algorithms share) in the algorithm's module: a dataclass that the torch-free reader picks up with the entry
-    (:func:`algo_schema`). Defined once: importing the module later gives back the class the reader made."""
-    key = (cls.__module__, cls.__qualname__)
-    if key not in _DEFINED:
-        _DEFINED[key] = dataclass(cls)
-    return _DEFINED[key]
-
-
-def algo_schema(name: str):
+def algo_schema(name: str) -> Callable[[type], type]:
     """Registers the decorated class as algorithm ``name``'s schema and registry entry (``algo=<name>``,
-    ``conf/algo/<name>.yaml``) in :data:`ALGO_SCHEMAS`; the class is made a dataclass (:func:`schema_block`).
-
-    It is written in the algorithm's own module, beside its update step, and read from there without importing the
-    module (:func:`_read_package_schemas`), so a bad command line fails before torch loads. A module outside this
+    ``conf/algo/<name>.yaml``) in :data:`ALGO_SCHEMAS`, made a dataclass. It is written in the algorithm's own
+    module, beside its update step, and read from there without importing the module
+    (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads; a module outside this
     package registers the same way when it is imported.
 
     Examples:
-        >>> from torchrl_bail.algorithms import bcq
-        >>> ALGO_SCHEMAS["bcq"].__module__, ALGO_SCHEMAS["bcq"] is bcq.BCQConfig
-        ('torchrl_bail.algorithms.bcq', True)
+        >>> from torchrl_bail.algorithms import iql
+        >>> iql.IQLConfig is ALGO_SCHEMAS["iql"], iql.IQLActorConfig is iql.IQLConfig.__annotations__["actor"]
+        (True, True)
     """
-
-    def register(cls: type) -> type:
-        schema = schema_block(cls)
-        known = ALGO_SCHEMAS.setdefault(name, schema)
-        if known is not schema:
-            raise ValueError(f"two schemas named {name!r}: {known.__module__}.{known.__qualname__} and "
-                             f"{schema.__module__}.{schema.__qualname__}")
-        return schema
-
-    return register
+    return register_as(ALGO_SCHEMAS, name)
 
 
-class SchemaReadError(ImportError):
-    """An algorithm module's schema uses something the torch-free reader cannot give it."""
-
-
-_DECORATORS = {"algo_schema", "schema_block"}
-
-
-def _is_schema(node: ast.stmt) -> bool:
-    """A top-level class decorated with :func:`algo_schema` or :func:`schema_block`."""
-    def decorator_name(d: ast.expr) -> str | None:
-        target = d.func if isinstance(d, ast.Call) else d
-        return target.id if isinstance(target, ast.Name) else None
-
-    return isinstance(node, ast.ClassDef) and any(decorator_name(d) in _DECORATORS for d in node.decorator_list)
-
-
-#: the modules whose imports the reader runs: what a schema may use besides its siblings' schema classes
-TORCH_FREE_MODULES = frozenset({"typing", "dataclasses", "omegaconf", f"{__package__}.config", __name__})
-
-
-def _is_torch_free_import(node: ast.stmt) -> bool:
-    if isinstance(node, ast.ImportFrom):
-        return node.module in TORCH_FREE_MODULES and not node.level
-    return isinstance(node, ast.Import) and all(alias.name in TORCH_FREE_MODULES for alias in node.names)
-
-
-def _read_module_schemas(stem: str, folder: Path, namespaces: dict[str, dict], reading: tuple[str, ...] = ()) -> dict:
-    """Defines the schema classes of ``folder/<stem>.py`` (and first those of the sibling modules it imports from)
-    by running only its imports of :data:`TORCH_FREE_MODULES` and its schema class statements, with the sibling
-    schema classes it imports; returns that namespace. Nothing else of the module runs: no torch."""
-    if stem in namespaces:
-        return namespaces[stem]
-    module = f"{__package__}.algorithms.{stem}"
-    path = folder / f"{stem}.py"
-    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
-    namespace = {"__name__": module}
-    for node in tree.body:  # the module's own torch-free imports, and the schema classes it imports from siblings
-        if _is_torch_free_import(node):
-            exec(compile(ast.Module(body=[node], type_ignores=[]), str(path), "exec", dont_inherit=True), namespace)
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(f"{__package__}.algorithms."):
-            sibling = node.module.rsplit(".", 1)[-1]
-            if sibling in reading:
-                raise SchemaReadError(f"{path}: its schemas import from {sibling}.py, which imports from it")
-            theirs = _read_module_schemas(sibling, folder, namespaces, (*reading, stem))
-            namespace.update({alias.asname or alias.name: theirs[alias.name] for alias in node.names
-                              if isinstance(theirs.get(alias.name), type)})
-    for node in filter(_is_schema, tree.body):
-        code = compile(ast.Module(body=[node], type_ignores=[]), str(path), "exec", dont_inherit=True)
-        try:
-            exec(code, namespace)  # noqa: S102 -- one class statement of the package's own source
-        except NameError as e:
-            raise SchemaReadError(
-                f"{path}:{node.lineno}: schema {node.name} uses {e.name!r}, which the torch-free reader does not "
-                f"define: a schema may use what its module imports from {', '.join(sorted(TORCH_FREE_MODULES))} and "
-                f"the schema classes of its own and sibling modules (it is read without importing {module})"
-            ) from None
-    namespaces[stem] = namespace
-    return namespace
-
-
-def _read_package_schemas() -> None:
-    """Fills :data:`ALGO_SCHEMAS` from every module of :mod:`torchrl_bail.algorithms`, torch-free: each module's
-    classes decorated with :func:`algo_schema` / :func:`schema_block` are defined from its source (parsed with
-    :mod:`ast`, ~10 ms for the package), the rest of the module is not run; then orders the registry by
-    :attr:`AlgoConfig.column`. Importing a module afterwards gives back these same classes."""
-    folder = Path(__file__).with_name("algorithms")
-    namespaces: dict[str, dict] = {}
-    for path in sorted(folder.glob("*.py")):
-        _read_module_schemas(path.stem, folder, namespaces)
+def _read_algorithm_schemas() -> None:
+    """Fills :data:`ALGO_SCHEMAS` from the modules of :mod:`torchrl_bail.algorithms` without importing them (about
+    10 ms), in :attr:`AlgoConfig.column` order."""
+    read_schemas(Path(__file__).with_name("algorithms"), f"{__package__}.algorithms", {"algo_schema"})
     ordered = sorted(ALGO_SCHEMAS.items(), key=lambda item: (item[1].column, item[0]))
     ALGO_SCHEMAS.clear()
     ALGO_SCHEMAS.update(ordered)
 
 
-_read_package_schemas()
+_read_algorithm_schemas()
+
 
 
 def study_algorithms(batches: str) -> list[str]:

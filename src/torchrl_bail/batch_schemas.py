@@ -1,12 +1,16 @@
-"""The batch recipes' schemas (``conf/batch``): one per recipe, registered in :data:`BATCH_SCHEMAS` and named
-``batch/base_<recipe>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`). Torch-free, like every
-schema, so a bad command line fails before torch loads; the rules come from :mod:`torchrl_bail.config`.
+"""The batch recipes' registry (:data:`BATCH_SCHEMAS`, ``conf/batch``): one schema per recipe, named
+``batch/base_<recipe>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`); the rules come from
+:mod:`torchrl_bail.config`. This module holds the keys every batch has; a recipe's schema is written in its module of
+:mod:`torchrl_bail.behaviour` (``@batch_schema("<recipe>")``) beside the collection, and read from there without
+importing it (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
+from pathlib import Path
+from typing import Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
 from omegaconf import MISSING
 
@@ -14,20 +18,15 @@ from torchrl_bail.config import (
     Checked,
     at_least,
     discount,
-    is_number,
-    layers,
-    learning_rate,
     non_negative,
-    one_of,
     option_name,
     positive,
     registry_name,
-    rule,
 )
 from torchrl_bail.errors import ConfigError
+from torchrl_bail.schema_reader import read_schemas, register_as, schema_block
 
-__all__ = ["BATCH_SCHEMAS", "BatchConfig", "DDPGAgentConfig", "DDPGBatchConfig", "OracleConfig", "SACAgentConfig",
-           "SACBatchConfig", "SACExecBatchConfig"]
+__all__ = ["BATCH_SCHEMAS", "BatchConfig", "OracleConfig", "batch_schema", "schema_block"]
 
 
 @dataclass
@@ -60,68 +59,24 @@ class BatchConfig(Checked):
         self._registered_as("recipe", BATCH_SCHEMAS, "the recipe of this batch schema")
 
 
-@dataclass
-class DDPGAgentConfig(Checked):
-    actor_hidden: List[int] = layers()
-    critic_hidden: List[int] = layers()
-    critic_arch: str = one_of("late_action", "concat")
-    actor_lr: float = learning_rate()
-    critic_lr: float = learning_rate()
-    critic_weight_decay: float = non_negative("a non-negative L2 coefficient")
-    gamma: float = discount()
-    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
-    batch_size: int = at_least(1, "a positive mini-batch size")
+#: recipe name -> its schema, by name; filled by :func:`batch_schema` as the modules of
+#: :mod:`torchrl_bail.behaviour` are read (:func:`_read_recipe_schemas`), kept equal to
+#: :data:`torchrl_bail.behaviour.recipes.RECIPES` by a test
+BATCH_SCHEMAS: dict[str, type[BatchConfig]] = {}
 
 
-@dataclass
-class DDPGBatchConfig(BatchConfig):
-    sigma: float = non_negative("a non-negative noise std (absolute, not scaled by the action bound)")
-    start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
-    agent: DDPGAgentConfig = MISSING
+def batch_schema(name: str) -> Callable[[type], type]:
+    """Registers the decorated class as the schema of recipe ``name`` (``batch.recipe``) in :data:`BATCH_SCHEMAS`,
+    made a dataclass; written in the recipe's own module and read from there without importing it
+    (:mod:`torchrl_bail.schema_reader`)."""
+    return register_as(BATCH_SCHEMAS, name)
 
 
-@dataclass
-class SACAgentConfig(Checked):
-    actor_hidden: List[int] = layers()
-    critic_hidden: List[int] = layers()
-    actor_lr: float = learning_rate()
-    critic_lr: float = learning_rate()
-    alpha_lr: float = learning_rate()
-    gamma: float = discount()
-    polyak: float = rule(lambda v: 0 <= v < 1, "a target-network decay in [0, 1) (0.995)")
-    alpha_init: float = positive("a positive initial entropy coefficient")
-    target_entropy: Any = rule(lambda v: v == "auto" or is_number(v), "auto or a number")
-    log_std_min: float = MISSING
-    log_std_max: float = MISSING
-    batch_size: int = at_least(1)
-    loss_function: str = one_of("l2", "smooth_l1", "l1")
-    log_prob_on: str = one_of("tanh", "action")
-    start_steps: int = at_least(0)
-    train_steps: int = at_least(1)
-    eval_every: int = at_least(1)
-    eval_episodes: int = at_least(1)
-
-    def check(self) -> None:
-        self._ordered("log_std_min", "log_std_max")
+def _read_recipe_schemas() -> None:
+    read_schemas(Path(__file__).with_name("behaviour"), f"{__package__}.behaviour", {"batch_schema"})
+    ordered = sorted(BATCH_SCHEMAS.items())
+    BATCH_SCHEMAS.clear()
+    BATCH_SCHEMAS.update(ordered)
 
 
-@dataclass
-class SACBatchConfig(BatchConfig):
-    sac: SACAgentConfig = MISSING
-
-    def check(self) -> None:
-        super().check()
-        if self.steps > self.sac.train_steps:
-            raise ConfigError("steps", self.steps, f"at most sac.train_steps = {self.sac.train_steps} (the batch is "
-                              "the first steps transitions of the SAC run)")
-
-
-@dataclass
-class SACExecBatchConfig(BatchConfig):
-    sac: SACAgentConfig = MISSING
-    policy: str = one_of("mediocre", "optimal")
-    stochastic: bool = MISSING
-
-
-#: recipe name -> its schema (kept equal to :data:`torchrl_bail.behaviour.recipes.RECIPES` by a test)
-BATCH_SCHEMAS = {"ddpg": DDPGBatchConfig, "sac": SACBatchConfig, "sac_exec": SACExecBatchConfig}
+_read_recipe_schemas()

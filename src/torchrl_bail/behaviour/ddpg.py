@@ -35,9 +35,10 @@ import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, List
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import ValueOperator
@@ -45,6 +46,7 @@ from torchrl.objectives import DDPGLoss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td0_return_estimate
 
+from torchrl_bail.batch_schemas import BatchConfig, batch_schema, schema_block
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -57,6 +59,7 @@ from torchrl_bail.behaviour.loop import (
     seed_all,
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
+from torchrl_bail.config import Checked, at_least, discount, layers, learning_rate, non_negative, one_of, rule
 from torchrl_bail.data.cache import batch_name, behaviour_seed, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
@@ -66,6 +69,29 @@ from torchrl_bail.modules import (
 )
 
 __all__ = ["LateActionCritic", "make_ddpg_critic", "DDPGAgent", "collect_ddpg"]
+
+
+# -- the schema (conf/batch, recipe: ddpg), read by torchrl_bail.batch_schemas without importing this module --
+
+
+@schema_block
+class DDPGAgentConfig(Checked):
+    actor_hidden: List[int] = layers()
+    critic_hidden: List[int] = layers()
+    critic_arch: str = one_of("late_action", "concat")
+    actor_lr: float = learning_rate()
+    critic_lr: float = learning_rate()
+    critic_weight_decay: float = non_negative("a non-negative L2 coefficient")
+    gamma: float = discount()
+    tau: float = rule(lambda v: 0 < v <= 1, "a soft-update rate in (0, 1]")
+    batch_size: int = at_least(1, "a positive mini-batch size")
+
+
+@batch_schema("ddpg")
+class DDPGBatchConfig(BatchConfig):
+    sigma: float = non_negative("a non-negative noise std (absolute, not scaled by the action bound)")
+    start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
+    agent: DDPGAgentConfig = MISSING
 
 log = logging.getLogger("torchrl_bail")
 

@@ -11,9 +11,11 @@ Recipes (``cfg.batch.recipe``), each a :class:`Recipe` registered at the end of 
 
 :func:`~torchrl_bail.behaviour.catalogue.collect_batch` asks :func:`recipe_of` for the recipe of ``cfg.batch`` and
 calls its :meth:`Recipe.collect`, :meth:`Recipe.checkpoint` and :meth:`Recipe.remove_checkpoint`; it never names one.
-Adding a recipe is one module with a :class:`Recipe` subclass ending with ``register_recipe(MyRecipe())``, its
-batch schema (:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS`, kept equal to :data:`RECIPES` by a test) and its yamls;
-:mod:`torchrl_bail.behaviour` imports the recipe modules.
+Adding a recipe is one module and its yamls: its batch schema (a :class:`~torchrl_bail.batch_schemas.BatchConfig`
+subclass decorated with ``@batch_schema("<recipe>")``, read from the module without importing it, so that
+:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS` stays torch-free; kept equal to :data:`RECIPES` by a test) and a
+:class:`Recipe` subclass ending with ``register_recipe(MyRecipe())``; :mod:`torchrl_bail.behaviour` imports the
+recipe modules.
 
 Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, supp. D.1): see
 :class:`~torchrl_bail.behaviour.buffers.BatchSink`. Names, hashes and cache paths are those of

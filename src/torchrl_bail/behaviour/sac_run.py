@@ -33,13 +33,14 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, List
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_bail.batch_schemas import BatchConfig, SACBatchConfig
+from torchrl_bail.batch_schemas import BatchConfig, batch_schema, schema_block
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -53,6 +54,7 @@ from torchrl_bail.behaviour.loop import (
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac import SACAgent
+from torchrl_bail.config import Checked, at_least, discount, is_number, layers, learning_rate, one_of, positive, rule
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     batch_metadata,
@@ -66,6 +68,7 @@ from torchrl_bail.data.cache import (
     stable_hash,
 )
 from torchrl_bail.data.locks import LOCKS, clean_stale, file_lock, liveness_settings, owned_name, scratch_directory
+from torchrl_bail.errors import ConfigError
 from torchrl_bail.evaluation import Evaluator
 from torchrl_bail.io import atomic_path
 from torchrl_bail.modules import action_spec_from_bounds, make_sac_actor
@@ -81,6 +84,45 @@ __all__ = [
     "load_sac_run",
     "collect_sac",
 ]
+
+
+# -- the schema (conf/batch, recipe: sac), read by torchrl_bail.batch_schemas without importing this module --
+
+
+@schema_block
+class SACAgentConfig(Checked):
+    actor_hidden: List[int] = layers()
+    critic_hidden: List[int] = layers()
+    actor_lr: float = learning_rate()
+    critic_lr: float = learning_rate()
+    alpha_lr: float = learning_rate()
+    gamma: float = discount()
+    polyak: float = rule(lambda v: 0 <= v < 1, "a target-network decay in [0, 1) (0.995)")
+    alpha_init: float = positive("a positive initial entropy coefficient")
+    target_entropy: Any = rule(lambda v: v == "auto" or is_number(v), "auto or a number")
+    log_std_min: float = MISSING
+    log_std_max: float = MISSING
+    batch_size: int = at_least(1)
+    loss_function: str = one_of("l2", "smooth_l1", "l1")
+    log_prob_on: str = one_of("tanh", "action")
+    start_steps: int = at_least(0)
+    train_steps: int = at_least(1)
+    eval_every: int = at_least(1)
+    eval_episodes: int = at_least(1)
+
+    def check(self) -> None:
+        self._ordered("log_std_min", "log_std_max")
+
+
+@batch_schema("sac")
+class SACBatchConfig(BatchConfig):
+    sac: SACAgentConfig = MISSING
+
+    def check(self) -> None:
+        super().check()
+        if self.steps > self.sac.train_steps:
+            raise ConfigError("steps", self.steps, f"at most sac.train_steps = {self.sac.train_steps} (the batch is "
+                              "the first steps transitions of the SAC run)")
 
 log = logging.getLogger("torchrl_bail")
 

@@ -1,5 +1,6 @@
-"""The algorithm registry read from the algorithms' own files: each schema sits in ``algorithms/<name>.py`` beside
-its class, is read there without importing the file, and importing the file gives back the same classes."""
+"""The registries read from the code's own files: an algorithm's schema sits in ``algorithms/<name>.py`` beside its
+class, a recipe's in its ``behaviour/`` module beside its collection; each is read there without importing the file,
+and importing the file gives back the same classes (:mod:`torchrl_bail.schema_reader`)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ import typing
 
 import pytest
 
-from torchrl_bail import algo_schemas
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, SchemaReadError
+from torchrl_bail import algo_schemas, schema_reader
+from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.batch_schemas import BATCH_SCHEMAS
 from torchrl_bail.config import ConfigError
+from torchrl_bail.schema_reader import SchemaReadError, read_schemas
 
 
 def _blocks(schema: type) -> list[type]:
@@ -25,15 +28,28 @@ def _blocks(schema: type) -> list[type]:
     return found
 
 
+def _defined_once(schema: type) -> None:
+    for block in _blocks(schema):  # the entry, its own blocks and those it shares with a sibling or a registry
+        module = importlib.import_module(block.__module__)
+        assert getattr(module, block.__name__) is block, f"{block.__module__}.{block.__name__} defined twice"
+
+
 def test_each_algorithm_is_one_file_whose_classes_are_the_schemas_read_without_it():
     from torchrl_bail.algorithms import ALGORITHMS
 
     for name, schema in ALGO_SCHEMAS.items():
         assert ALGORITHMS[name].__module__ == schema.__module__
         assert schema.__module__.startswith("torchrl_bail.algorithms.")
-        for block in _blocks(schema):  # the entry, its own blocks and those it inherits from a sibling or here
-            module = importlib.import_module(block.__module__)
-            assert getattr(module, block.__name__) is block, f"{block.__module__}.{block.__name__} defined twice"
+        _defined_once(schema)
+
+
+def test_each_recipe_is_one_module_holding_its_schema():
+    from torchrl_bail.behaviour import RECIPES
+
+    assert list(BATCH_SCHEMAS) == sorted(RECIPES)
+    for name, schema in BATCH_SCHEMAS.items():
+        assert type(RECIPES[name]).__module__ == schema.__module__, name
+        _defined_once(schema)
 
 
 def _package(tmp_path, **files: str):
@@ -44,11 +60,15 @@ def _package(tmp_path, **files: str):
     return folder
 
 
+def _read(folder) -> None:
+    read_schemas(folder, "torchrl_bail.algorithms", {"algo_schema"})
+
+
 @pytest.fixture
 def empty_registry(monkeypatch):
     """A registry of its own for the test's made-up algorithms."""
     monkeypatch.setattr(algo_schemas, "ALGO_SCHEMAS", {})
-    monkeypatch.setattr(algo_schemas, "_DEFINED", {})
+    monkeypatch.setattr(schema_reader, "_DEFINED", {})
     return algo_schemas
 
 
@@ -78,11 +98,11 @@ def test_a_schema_is_read_with_its_files_imports_and_its_siblings_schema_classes
         column = 0.5
         policy: NetConfig = MISSING
     """)
-    namespaces = {}
-    empty_registry._read_module_schemas("mine", folder, namespaces)
+    _read(folder)
     schema = empty_registry.ALGO_SCHEMAS["mine"]
+    assert list(empty_registry.ALGO_SCHEMAS) == ["mine"]  # the shared block is no entry
     assert schema.__module__ == "torchrl_bail.algorithms.mine" and schema.column == 0.5
-    assert issubclass(schema, namespaces["shared"]["SharedConfig"])
+    assert schema.__mro__[1].__module__ == "torchrl_bail.algorithms.shared"
     assert [f.name for f in dataclasses.fields(schema)] == ["name", "batch_size", "epochs", "gamma", "policy"]
     assert typing.get_type_hints(schema)["policy"] is algo_schemas.NetConfig  # annotations resolved, not strings
     with pytest.raises(ConfigError, match="gamma"):
@@ -101,7 +121,7 @@ def test_a_schema_using_what_the_reader_does_not_run_is_refused_naming_the_file_
     expected = (r"bad\.py:12: schema BadConfig uses 'SCALE', which the torch-free reader does not define.*"
                 r"without importing torchrl_bail\.algorithms\.bad")
     with pytest.raises(SchemaReadError, match=expected):
-        empty_registry._read_module_schemas("bad", folder, {})
+        _read(folder)
     assert empty_registry.ALGO_SCHEMAS == {}
 
 
@@ -109,7 +129,7 @@ def test_schemas_importing_each_other_and_two_schemas_of_one_name_are_refused(tm
     cycle = _package(tmp_path, a=HEAD + "    from torchrl_bail.algorithms.b import BConfig\n",
                      b=HEAD + "    from torchrl_bail.algorithms.a import AConfig\n")
     with pytest.raises(SchemaReadError, match=r"b\.py: its schemas import from a\.py, which imports from it"):
-        empty_registry._read_module_schemas("a", cycle, {})
+        _read(cycle)
     twice = HEAD + """
     @algo_schema("same")
     class {0}(AlgoConfig):
@@ -117,10 +137,9 @@ def test_schemas_importing_each_other_and_two_schemas_of_one_name_are_refused(tm
     """
     (tmp_path / "twice").mkdir()
     folder = _package(tmp_path / "twice", one=twice.format("OneConfig"), two=twice.format("TwoConfig"))
-    empty_registry._read_module_schemas("one", folder, {})
     with pytest.raises(ValueError, match=r"two schemas named 'same': torchrl_bail\.algorithms\.one\.OneConfig and "
                                          r"torchrl_bail\.algorithms\.two\.TwoConfig"):
-        empty_registry._read_module_schemas("two", folder, {})
+        _read(folder)
 
 
 def test_the_registry_is_in_column_order():
