@@ -284,6 +284,21 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None,
     return job, rc, seconds, {"wall_s": seconds, **record, "end": conditions()}
 
 
+def whole_job_record(job: Job, record: dict, workdir: Path) -> dict:
+    """The ``timings.json`` record of a job that just finished. A run resumed from its checkpoint (an earlier call
+    was interrupted: a killed process, a session's end) is charged its accumulated training time, the summary's
+    ``wall_time_s`` (the checkpoint carries it across resumes; the minutes between the last checkpoint and a kill are
+    lost, and so is each start-up), not this call's last part alone, which ``last_part_s`` keeps with the iterations
+    it resumed from; ``start`` is then the last part's."""
+    run = run_dir_of(job, workdir / "outputs") if job.module == "torchrl_bail.train" else None
+    summary_path = run / "summary.json" if run is not None else None
+    summary = json.loads(summary_path.read_text()) if summary_path is not None and summary_path.is_file() else {}
+    if not summary.get("resumed_from_iteration"):
+        return record
+    return {**record, "wall_s": float(summary["wall_time_s"]), "last_part_s": record["wall_s"],
+            "resumed_from_iteration": summary["resumed_from_iteration"]}
+
+
 def machine_cpu() -> str:
     """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
     import platform
@@ -614,8 +629,8 @@ def main(argv: list[str] | None = None) -> int:
                     continue  # finished in an earlier call
                 # read again before each write: another runner (another CPU's job) may have recorded since
                 timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-                if rc == 0:  # a run resumed after an interruption records its last part (summary: wall_time_s)
-                    timings.setdefault(job.name, record)
+                if rc == 0:
+                    timings.setdefault(job.name, whole_job_record(job, record, args.workdir))
                 print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
                       f"in {seconds:.0f} s", flush=True)
                 if rc != 0:

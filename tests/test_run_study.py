@@ -226,6 +226,22 @@ def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_ru
     assert "| hopper_ddpg05_b1/bail/seed2 | 42 of 50 | 1.25 % | 48.0 |  |" in text
 
 
+def test_a_resumed_job_is_charged_its_whole_training_time_not_its_last_part(run_study, tmp_path):
+    """A job killed (a session's end) and finished by a later call: its timings record takes the run's accumulated
+    wall_time_s, keeping the last part's seconds and where it resumed; an uninterrupted job keeps its own record."""
+    job = next(j for j in run_study.paper_hopper_jobs() if j.name == "hopper_ddpg05/bear/seed1")
+    named = dict(arg.split("=", 1) for arg in job.args)
+    extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=")))
+    run = tmp_path / "outputs" / "hopper_ddpg05_b1" / "bear" / ",".join([f"seed{named['seed']}", *extra])
+    run.mkdir(parents=True)
+    record = {"wall_s": 1200.0, "threads": 1, "start": {"load": [1.0, 1.0, 1.0]}}
+    (run / "summary.json").write_text(json.dumps({"wall_time_s": 4100.0, "resumed_from_iteration": []}))
+    assert run_study.whole_job_record(job, record, tmp_path) == record
+    (run / "summary.json").write_text(json.dumps({"wall_time_s": 4100.0, "resumed_from_iteration": [61000]}))
+    assert run_study.whole_job_record(job, record, tmp_path) == {
+        **record, "wall_s": 4100.0, "last_part_s": 1200.0, "resumed_from_iteration": [61000]}
+
+
 def test_each_marwil_claim_reads_its_own_group_when_both_variants_ran(run_study):
     """The report names ``value_warmup_updates`` on both MARWIL groups once one overrides it; the faithful one (the
     yaml's 0) must still be the group of "MARWIL above BC"."""

@@ -146,3 +146,12 @@ def test_the_registry_is_in_column_order():
     columns = [schema.column for schema in ALGO_SCHEMAS.values()]
     assert columns == sorted(columns) and len(set(columns)) == len(columns)
     assert list(ALGO_SCHEMAS)[:2] == ["bail", "pbail"]  # the report's first columns: BAIL, then Progressive BAIL
+
+
+def test_an_unstated_entry_is_pointed_to_in_its_algorithms_own_file(monkeypatch):
+    from torchrl_bail.config_builders import tiny_run_overrides
+
+    monkeypatch.setattr(ALGO_SCHEMAS["iql"], "tiny", None)
+    with pytest.raises(ValueError, match=r"IQLConfig\.tiny is not stated: .*state it on the schema in "
+                                         r"torchrl_bail\.algorithms\.iql\)"):
+        tiny_run_overrides("iql", 5, [16])

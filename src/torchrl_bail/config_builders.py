@@ -136,8 +136,9 @@ def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluatio
         ['algo.epochs=0.3', 'algo.policy.hidden=[32,32]', 'eval.every_epochs=0.03']
     """
     if ALGO_SCHEMAS[name].tiny is None:
-        raise ValueError(f"{ALGO_SCHEMAS[name].__name__}.tiny is not stated: the algo keys a run of a few updates "
-                         "needs besides small networks and its length, () if none (torchrl_bail.algo_schemas)")
+        schema = ALGO_SCHEMAS[name]
+        raise ValueError(f"{schema.__name__}.tiny is not stated: the algo keys a run of a few updates needs besides "
+                         f"small networks and its length, () if none (state it on the schema in {schema.__module__})")
     epochs = updates * algo_config(name).batch_size / OmegaConf.load(config_dir() / "config.yaml").samples_per_epoch
     width = "[" + ",".join(str(int(h)) for h in hidden) + "]"
     overrides = [f"algo.epochs={epochs:g}", *(f"algo.{block}.hidden={width}" for block in blocks_with(name, "hidden")),
