@@ -55,8 +55,8 @@ class AlgoConfig(Checked):
     ``losses`` have none, every schema states them (:func:`entry_gaps`; ``tests/test_contract.py`` fails without)."""
 
     #: its place among the report's columns and everywhere the algorithms are listed (:data:`ALGO_SCHEMAS`' order):
-    #: the paper's imitation methods, its actor-critics, then the later baselines; ties and unset (a module outside
-    #: the package) by name, after the package's
+    #: the paper's imitation methods, its actor-critics, then the later baselines; ties, and an entry that states
+    #: none, by name after the others
     column: ClassVar[float] = float("inf")
     #: which paper-scale schedule it takes (``results/run_study.PAPER_SCHEDULE``): ``"imitation"`` (the paper's own
     #: epochs) or ``"offline_rl"`` (an actor-critic at 10 % of its paper's 10^6 updates: ~10x an imitation run)
@@ -120,8 +120,7 @@ def algo_schema(name: str) -> Callable[[type], type]:
     """Registers the decorated class as algorithm ``name``'s schema and registry entry (``algo=<name>``,
     ``conf/algo/<name>.yaml``) in :data:`ALGO_SCHEMAS`, made a dataclass. It is written in the algorithm's own
     module, beside its update step, and read from there without importing the module
-    (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads; a module outside this
-    package registers the same way when it is imported.
+    (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads.
 
     Examples:
         >>> from torchrl_bail.algorithms import iql
