@@ -145,6 +145,39 @@ def test_training_loop_draws_each_seeds_single_seed_stream():
     _assert_close_per_seed(singles, stack)
 
 
+def test_a_subclass_overriding_prepare_is_called_not_bypassed_by_its_parents_prepare_seeds():
+    """The loop prepares every run's data through ``prepare_seeds``; a BAIL of a user's own that overrides
+    ``prepare`` alone must still have it called (it was bypassed by BAIL's ``prepare_seeds``)."""
+    from torchrl_bail.algorithms import BAIL
+
+    class Parent:
+        def prepare(self, data, ctx):
+            return "parent", ctx
+
+        @staticmethod
+        def prepare_seeds(algorithms, data, contexts):
+            return [("seeds", ctx) for ctx in contexts]
+
+    class Child(Parent):
+        def prepare(self, data, ctx):
+            return "child", ctx
+
+    class Both(Child):
+        @staticmethod
+        def prepare_seeds(algorithms, data, contexts):
+            return [("both", ctx) for ctx in contexts]
+
+    assert prepare_seeds([Parent(), Parent()], None, [1, 2]) == [("seeds", 1), ("seeds", 2)]
+    assert prepare_seeds([Child(), Child()], None, [1, 2]) == [("child", 1), ("child", 2)]
+    assert prepare_seeds([Both()], None, [1]) == [("both", 1)]
+
+    class MyBAIL(BAIL):
+        def prepare(self, data, ctx):
+            return "mine"
+
+    assert prepare_seeds([object.__new__(MyBAIL)], None, [None]) == ["mine"]
+
+
 def test_seed_batch_sampler_rows_and_checkpoint_state():
     a = loss_batch((10,), seed=0)
     b = loss_batch((4,), seed=1)

@@ -559,11 +559,19 @@ class StackedTrainee:
 def prepare_seeds(algorithms: Sequence[Any], data: TensorDictBase, contexts: Sequence[Any]) -> list[TensorDictBase]:
     """Each seed's training data (``S >= 1`` seeds): the algorithm class' ``prepare_seeds(algorithms, data, contexts)``
     when it has one (BAIL fits its ``S`` envelopes in one fit, and its ``prepare`` is that of a list of one), else
-    each algorithm's own ``prepare`` with its seed's context, as its single-seed run calls it."""
-    own = getattr(type(algorithms[0]), "prepare_seeds", None)
-    if own is not None:
+    each algorithm's own ``prepare`` with its seed's context, as its single-seed run calls it. A subclass that
+    overrides ``prepare`` below the class defining ``prepare_seeds`` (a BAIL of your own with another selection) has
+    its ``prepare`` called, seed by seed: the override is never bypassed."""
+    cls = type(algorithms[0])
+    own = getattr(cls, "prepare_seeds", None)
+    if own is not None and issubclass(_definer(cls, "prepare_seeds"), _definer(cls, "prepare")):
         return own(algorithms, data, contexts)
     return [algorithm.prepare(data, ctx) for algorithm, ctx in zip(algorithms, contexts, strict=True)]
+
+
+def _definer(cls: type, attribute: str) -> type:
+    """The class of ``cls``' MRO that defines ``attribute``."""
+    return next(c for c in cls.__mro__ if attribute in vars(c))
 
 
 def _same_tensors(a: TensorDictBase, b: TensorDictBase) -> bool:
