@@ -539,6 +539,9 @@ def paper_cell_report(results: Path, jobs: list[Job]) -> str:
 
     study = json.loads((results / "study.json").read_text()) if (results / "study.json").is_file() else {"groups": []}
     rows = {cell_label(row): row for row in study["groups"]}
+    if len(rows) != len(study["groups"]):  # two groups under one name: a claim would read either
+        labels = [cell_label(row) for row in study["groups"]]
+        raise ValueError(f"report groups share a cell label: {sorted({x for x in labels if labels.count(x) > 1})}")
     for row in rows.values():  # run_dirs are relative to the repository (report), or absolute
         row["per_seed"] = [json.loads((HERE.parent / d / "summary.json").read_text())["final_return"]
                            for d in row["run_dirs"]]

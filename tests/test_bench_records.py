@@ -157,8 +157,10 @@ def test_the_paper_scale_section_quotes_its_records():
             f"{meta['env_steps_per_s']:.0f} env steps/s: {meta['num_transitions']}") in section
     flat = " ".join(section.split())
     assert f"{meta['num_episodes']} episodes, mean return {meta['episode_return_mean']:.1f}" in flat
-    probe = {row["name"].split()[0]: row for record in ("bench_paper_cost.json", "bench_paper_cost_bear_envelope.json")
-             for row in json.loads((RECORDS_DIR / record).read_text())["rows"]}
+    rows = [row for record in ("bench_paper_cost.json", "bench_paper_cost_bear_envelope.json")
+            for row in json.loads((RECORDS_DIR / record).read_text())["rows"]]
+    probe = {row["name"].split()[0]: row for row in rows}
+    assert len(probe) == len(rows), "a probe measured in two records: say which one the page quotes"
     quoted = {"bc": "BC {:.1f} updates/s on one thread and {:.1f} on two (×{:.2f})",
               "bcq": "BCQ {:.1f} and {:.1f} (×{:.2f})", "bear": "BEAR {:.1f} and {:.1f} (×{:.2f})",
               "envelope": "envelope fit {:.2f} and {:.2f} epochs/s (×{:.2f})"}

@@ -118,7 +118,7 @@ def test_every_loss_and_algorithm_has_a_contract_case():
     assert list(ALGORITHMS) == list(ALGO_SCHEMAS), "every algorithm class needs its schema in ALGO_SCHEMAS and back"
     uncovered = sorted(set(ALGORITHMS) - set(ALGO_CASES))
     assert not uncovered, (f"no contract case for {uncovered}: each derives from its registry entry; state its "
-                           "schema's `tiny` in src/torchrl_bail/algo_schemas.py")
+                           "schema's `tiny` in its module (torchrl_bail/algorithms/<name>.py)")
 
 
 @pytest.mark.parametrize("name", list(ALGO_SCHEMAS))
@@ -126,7 +126,7 @@ def test_every_registry_entry_is_complete(name):
     """What the tiny runs and the docs' table read of an algorithm (``tiny``, ``description``, ``losses``) has no
     default: each schema states it, and each loss module it names imports."""
     gaps = entry_gaps(name)
-    assert not gaps, f"state {', '.join(gaps)} in src/torchrl_bail/algo_schemas.py (AlgoConfig says what each is)"
+    assert not gaps, f"state {', '.join(gaps)} in {ALGO_SCHEMAS[name].__module__} (AlgoConfig says what each is)"
     for path in ALGO_SCHEMAS[name].losses:
         module, _, attr = path.rpartition(".")
         assert hasattr(importlib.import_module(module), attr), f"{ALGO_SCHEMAS[name].__name__}.losses: {path}"

@@ -1,10 +1,15 @@
-"""Launcher configs compose, and side-by-side joblib jobs split the cores instead of oversubscribing them."""
+"""Launcher configs compose, side-by-side joblib jobs split the cores instead of oversubscribing them, and a joblib
+sweep runs its jobs in other processes."""
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 
 import pytest
+from _contract import ALGO_CASES, TINY_RUN
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -35,3 +40,17 @@ def test_slurm_gpu_launcher_asks_for_one_gpu():
     launcher = _compose("hydra/launcher=slurm_gpu").hydra.launcher
     assert launcher.gpus_per_node == 1 and "SlurmLauncher" in launcher._target_
     assert launcher.timeout_min == _compose("hydra/launcher=slurm").hydra.launcher.timeout_min  # the rest as slurm
+
+
+def test_a_joblib_sweep_trains_its_jobs_in_worker_processes(tiny_run_data_dir, tmp_path):
+    """The joblib launcher ships each job's config to a worker with cloudpickle; the schemas, read from their
+    modules without importing them, must arrive as the registered classes (they failed every job with a
+    StopIteration at the worker's config check until the command line imported their modules first)."""
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    cmd = [sys.executable, "-m", "torchrl_bail.train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+           *TINY_RUN, f"data_dir={tiny_run_data_dir}", "algo=bc", *ALGO_CASES["bc"].cli, "seed=1,2",
+           f"hydra.sweep.dir={tmp_path}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    summaries = sorted(tmp_path.rglob("summary.json"))
+    assert [json.loads(p.read_text())["seed"] for p in summaries] == [1, 2]

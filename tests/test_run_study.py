@@ -226,14 +226,21 @@ def test_the_paper_cell_report_gives_a_verdict_per_claim_and_the_cost_of_each_ru
     assert "| hopper_ddpg05_b1/bail/seed2 | 42 of 50 | 1.25 % | 48.0 |  |" in text
 
 
+def test_two_groups_under_one_cell_label_are_refused(run_study, tmp_path):
+    """A group at the yaml's value and one without the key both read "marwil": a claim would take either."""
+    groups = [{"algo": "marwil", "overrides": {"algo.value_warmup_updates": 0}}, {"algo": "marwil", "overrides": {}}]
+    (tmp_path / "study.json").write_text(json.dumps({"groups": groups}))
+    with pytest.raises(ValueError, match=r"report groups share a cell label: \['marwil'\]"):
+        run_study.paper_cell_report(tmp_path, run_study.paper_hopper_jobs())
+
+
 def test_a_resumed_job_is_charged_its_whole_training_time_not_its_last_part(run_study, tmp_path):
     """A job killed (a session's end) and finished by a later call: its timings record takes the run's accumulated
     wall_time_s, keeping the last part's seconds and where it resumed; an uninterrupted job keeps its own record."""
     job = next(j for j in run_study.paper_hopper_jobs() if j.name == "hopper_ddpg05/bear/seed1")
-    named = dict(arg.split("=", 1) for arg in job.args)
-    extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=")))
-    run = tmp_path / "outputs" / "hopper_ddpg05_b1" / "bear" / ",".join([f"seed{named['seed']}", *extra])
+    run = tmp_path / "outputs" / "hopper_ddpg05_b1" / "bear" / "seed1,algo.epochs=10,eval.every_epochs=0.5"
     run.mkdir(parents=True)
+    assert run_study.run_dir_of(job, tmp_path / "outputs") == run  # the job's own run directory
     record = {"wall_s": 1200.0, "threads": 1, "start": {"load": [1.0, 1.0, 1.0]}}
     (run / "summary.json").write_text(json.dumps({"wall_time_s": 4100.0, "resumed_from_iteration": []}))
     assert run_study.whole_job_record(job, record, tmp_path) == record

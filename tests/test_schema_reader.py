@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import re
+import subprocess
+import sys
 import textwrap
 import typing
 
@@ -125,10 +128,71 @@ def test_a_schema_using_what_the_reader_does_not_run_is_refused_naming_the_file_
     assert empty_registry.ALGO_SCHEMAS == {}
 
 
+@pytest.mark.parametrize("body, where", [
+    ("    def check(self) -> None:\n        assert self.lr < LIMIT\n", "BadConfig.check"),
+    ("    top: float = rule(lambda v: v < LIMIT, 'below the limit')\n", "BadConfig.<lambda>"),
+])
+def test_a_method_or_rule_using_what_the_reader_does_not_define_is_refused_when_read(tmp_path, empty_registry, body,
+                                                                                       where):
+    """A method or a rule's lambda keeps the reader's namespace as its globals: a name missing there would fail
+    only when a config is checked, as a NameError; it is refused when the schema is read."""
+    folder = _package(tmp_path, bad=HEAD + """
+    from torchrl_bail.config import rule
+
+    LIMIT = 1.0
+
+    @algo_schema("bad")
+    class BadConfig(AlgoConfig):
+        lr: float = 0.5
+""" + textwrap.indent(body, "    "))
+    with pytest.raises(SchemaReadError, match=rf"bad\.py:\d+: {re.escape(where)} uses 'LIMIT'"):
+        _read(folder)
+
+
+def test_relative_sibling_imports_attribute_decorators_and_the_package_init(tmp_path, empty_registry):
+    folder = _package(tmp_path, __init__="raise RuntimeError('never read: the package imports its modules')\n",
+                      shared=HEAD + """
+    @schema_block
+    class SharedConfig(AlgoConfig):
+        gamma: float = discount()
+    """, rel="""\
+    from __future__ import annotations
+
+    import torchrl_bail.algo_schemas as registry
+
+    from .shared import SharedConfig
+
+    @registry.algo_schema("rel")
+    class RelConfig(SharedConfig):
+        pass
+    """)
+    _read(folder)
+    assert [f.name for f in dataclasses.fields(empty_registry.ALGO_SCHEMAS["rel"])][-1] == "gamma"
+
+
+def test_a_sweeps_configs_travel_to_other_processes_as_the_registered_schemas(tmp_path):
+    """joblib's and submitit's launchers cloudpickle each job's config: a schema class read from a module that is
+    not imported would travel by value, and the worker's copy is no registered schema (StopIteration at its check);
+    the command line imports the modules first (cli.import_schema_modules)."""
+    cloudpickle = pytest.importorskip("cloudpickle")
+    blob = tmp_path / "config.pkl"
+    send = ("import sys, cloudpickle; from torchrl_bail.config_builders import algo_config; "
+            "from torchrl_bail.cli import import_schema_modules; import_schema_modules(); "
+            f"open({str(blob)!r}, 'wb').write(cloudpickle.dumps(algo_config('bail')))")
+    receive = ("import pickle; from omegaconf import OmegaConf; from torchrl_bail.algo_schemas import ALGO_SCHEMAS; "
+               f"cfg = pickle.load(open({str(blob)!r}, 'rb')); obj = OmegaConf.to_object(cfg); "
+               "print(type(obj) is ALGO_SCHEMAS['bail'], type(obj).__module__)")
+    for code in (send, receive):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "torchrl_bail.algorithms.bail"]
+    assert cloudpickle  # the worker side needs plain pickle only
+
+
 def test_schemas_importing_each_other_and_two_schemas_of_one_name_are_refused(tmp_path, empty_registry):
     cycle = _package(tmp_path, a=HEAD + "    from torchrl_bail.algorithms.b import BConfig\n",
                      b=HEAD + "    from torchrl_bail.algorithms.a import AConfig\n")
-    with pytest.raises(SchemaReadError, match=r"b\.py: its schemas import from a\.py, which imports from it"):
+    with pytest.raises(SchemaReadError, match=r"b\.py: imports from a\.py, which imports from it"):
         _read(cycle)
     twice = HEAD + """
     @algo_schema("same")

@@ -131,16 +131,12 @@ def algo_schema(name: str) -> Callable[[type], type]:
 
 
 def _read_algorithm_schemas() -> None:
-    """Fills :data:`ALGO_SCHEMAS` from the modules of :mod:`torchrl_bail.algorithms` without importing them (about
-    10 ms), in :attr:`AlgoConfig.column` order."""
+    """Fills :data:`ALGO_SCHEMAS` from the modules of :mod:`torchrl_bail.algorithms` without importing them, in
+    :attr:`AlgoConfig.column` order."""
     read_schemas(Path(__file__).with_name("algorithms"), f"{__package__}.algorithms", {"algo_schema"})
     ordered = sorted(ALGO_SCHEMAS.items(), key=lambda item: (item[1].column, item[0]))
     ALGO_SCHEMAS.clear()
     ALGO_SCHEMAS.update(ordered)
-
-
-_read_algorithm_schemas()
-
 
 
 def study_algorithms(batches: str) -> list[str]:
@@ -199,3 +195,6 @@ def _blocks_with(schema: type, key: str, prefix: str = "") -> list[str]:
             found += [prefix + f.name] if key in {g.name for g in dataclasses.fields(block)} else []
             found += _blocks_with(block, key, f"{prefix}{f.name}.")
     return found
+
+
+_read_algorithm_schemas()  # last: the modules read may import any name above

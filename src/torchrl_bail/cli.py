@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib
 import os
 import shlex
 import signal
@@ -100,6 +101,18 @@ def _precompose(argv: list[str]) -> None:
                 raise CommandLineError(f"the overrides {' '.join(overrides)!r} do not compose: {err}; expected "
                                        "key=value items (see --help)") from None
             validate_config(cfg)
+
+
+def import_schema_modules() -> None:
+    """Imports the modules that define the registries' schemas (every algorithm, every behaviour recipe): torch with
+    them, once, before a sweep's jobs are launched, after every job's config was checked.
+
+    The registries read the schemas without importing their modules (:mod:`torchrl_bail.schema_reader`). A launcher
+    that sends the jobs' configs to other processes (joblib, submitit) pickles them with cloudpickle, which copies a
+    class by value when its module is not imported; the worker's copy would be no registered schema, and the job
+    would fail. Imported, the classes pickle by reference, as the modules' own."""
+    importlib.import_module("torchrl_bail.algorithms")
+    importlib.import_module("torchrl_bail.behaviour")
 
 
 @contextlib.contextmanager
@@ -190,6 +203,8 @@ def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = N
         try:
             with exit_on_config_error():
                 _precompose(argv)
+                if {"-m", "--multirun"} & set(argv):
+                    import_schema_modules()
                 sys.argv = [sys.argv[0], *argv]
                 hydra_main()
         except Interrupted as err:

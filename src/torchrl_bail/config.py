@@ -9,9 +9,11 @@ Each group's yaml file names its schema in its defaults list (Hydra 1.3 "structu
 
 The yaml files hold every value (one default per constant, with its comment); a schema here holds the types and
 the allowed ranges, written with the rules of this module (:func:`positive`, :func:`one_of`, ...). The
-groups' schemas live beside what they configure: :mod:`torchrl_bail.batch_schemas` (batch recipes) and
-:mod:`torchrl_bail.algo_schemas` (algorithms, with their registry); :mod:`torchrl_bail.hydra_setup` registers them
-with Hydra. Hydra rejects a wrong type (``seed=abc``) or an unknown key (``algo.foo=1``) while it composes;
+groups' schemas live beside what they configure: each algorithm's in its module of :mod:`torchrl_bail.algorithms`,
+each batch recipe's in its module of :mod:`torchrl_bail.behaviour`, read torch-free into their registries,
+:mod:`torchrl_bail.algo_schemas` and :mod:`torchrl_bail.batch_schemas` (:mod:`torchrl_bail.schema_reader`);
+:mod:`torchrl_bail.hydra_setup` registers them with Hydra. Hydra rejects a wrong type (``seed=abc``) or an
+unknown key (``algo.foo=1``) while it composes;
 :func:`validate_config` then instantiates every schema node bottom-up, so each ``__post_init__`` range check runs
 and the first failure raises :class:`ConfigError` naming the full key and what was expected. The top level checks
 what spans groups: env/batch combinations from the catalogue, ``returns.augment=oracle``, and paths.

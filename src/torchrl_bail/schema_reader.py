@@ -24,6 +24,9 @@ Examples:
 from __future__ import annotations
 
 import ast
+import builtins
+import dis
+import types
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,13 +73,16 @@ def register_as(registry: dict[str, type], name: str) -> Callable[[type], type]:
 
 
 def read_schemas(folder: Path, package: str, decorators: Collection[str]) -> None:
-    """Defines the schema classes of every module ``folder/*.py`` of ``package`` without importing the modules:
-    the top-level classes decorated with one of ``decorators`` (the registry's, which registers them as they are
-    defined) or :func:`schema_block`. A module's schemas are read after those of the sibling modules it imports
-    from; a cycle is a :class:`SchemaReadError`."""
+    """Defines the schema classes of every module ``folder/*.py`` of ``package`` (``__init__.py`` aside) without
+    importing the modules: the top-level classes decorated with one of ``decorators`` (the registry's, which
+    registers them as they are defined; ``@name``, ``@name(...)`` or ``@module.name(...)``) or :func:`schema_block`.
+    A module's schemas are read after those of the sibling modules it imports from (absolute or ``from .sibling``
+    imports); a cycle of such imports is a :class:`SchemaReadError`. The classes run in source order: a block is
+    written before the schema that uses it."""
     namespaces: dict[str, dict] = {}
     for path in sorted(folder.glob("*.py")):
-        _read_module(path.stem, folder, package, {*decorators, "schema_block"}, namespaces, ())
+        if path.stem != "__init__":
+            _read_module(path.stem, folder, package, {*decorators, "schema_block"}, namespaces, ())
 
 
 def _read_module(stem: str, folder: Path, package: str, decorators: set[str], namespaces: dict[str, dict],
@@ -89,12 +95,13 @@ def _read_module(stem: str, folder: Path, package: str, decorators: set[str], na
     tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
     namespace: dict = {"__name__": module}
     for node in tree.body:
+        sibling = _sibling(node, package)
         if _is_torch_free_import(node):
             _run(node, path, namespace)
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(f"{package}."):
-            sibling = node.module.removeprefix(f"{package}.")
+        elif sibling is not None:
             if sibling in reading:
-                raise SchemaReadError(f"{path}: its schemas import from {sibling}.py, which imports from it")
+                raise SchemaReadError(f"{path}: imports from {sibling}.py, which imports from it; the reader follows "
+                                      "the imports between a package's modules to find the schema classes they share")
             theirs = _read_module(sibling, folder, package, decorators, namespaces, (*reading, stem))
             namespace.update({alias.asname or alias.name: theirs[alias.name] for alias in node.names
                               if isinstance(theirs.get(alias.name), type)})
@@ -103,13 +110,51 @@ def _read_module(stem: str, folder: Path, package: str, decorators: set[str], na
             try:
                 _run(node, path, namespace)
             except NameError as e:
-                raise SchemaReadError(
-                    f"{path}:{node.lineno}: schema {node.name} uses {e.name!r}, which the torch-free reader does not "
-                    f"define: a schema may use what its module imports from {', '.join(sorted(TORCH_FREE_MODULES))} "
-                    f"and the schema classes of its own and sibling modules (it is read without importing {module})"
-                ) from None
+                raise _unread(path, node.lineno, f"schema {node.name}", e.name, module) from None
+            _check_globals(namespace[node.name], namespace, path, module)
     namespaces[stem] = namespace
     return namespace
+
+
+def _check_globals(cls: type, namespace: dict, path: Path, module: str) -> None:
+    """Every global name that a function of the schema class ``cls`` reads (its methods, and the rules' lambdas of
+    its fields) must be defined for it by the reader: those functions keep the reader's namespace as their
+    globals for good, so a missing name would fail only when the config is checked."""
+    functions = [f for v in vars(cls).values() for f in _functions(v)]
+    functions += [f for field in getattr(cls, "__dataclass_fields__", {}).values()
+                  for f in _functions(field.metadata.get("check"))]
+    for function in functions:
+        if function.__globals__ is not namespace:  # defined elsewhere (a rule of torchrl_bail.config)
+            continue
+        for code in _code_objects(function.__code__):
+            for instruction in dis.get_instructions(code):
+                name = instruction.argval
+                if instruction.opname == "LOAD_GLOBAL" and name not in namespace and not hasattr(builtins, name):
+                    where = instruction.positions.lineno if instruction.positions else code.co_firstlineno
+                    raise _unread(path, where, f"{cls.__name__}.{function.__name__}", name, module)
+
+
+def _functions(value: object) -> list:
+    """The plain functions behind a class attribute or a rule: a method, a static or class method, a property's
+    accessors, a lambda."""
+    if isinstance(value, (staticmethod, classmethod)):
+        value = value.__func__
+    if isinstance(value, property):
+        return [f for f in (value.fget, value.fset, value.fdel) if f is not None]
+    return [value] if isinstance(value, types.FunctionType) else []
+
+
+def _code_objects(code: types.CodeType) -> list[types.CodeType]:
+    """``code`` and the code of every function and comprehension nested in it."""
+    nested = [c for c in code.co_consts if isinstance(c, types.CodeType)]
+    return [code, *(inner for c in nested for inner in _code_objects(c))]
+
+
+def _unread(path: Path, line: int, what: str, name: str, module: str) -> SchemaReadError:
+    return SchemaReadError(
+        f"{path}:{line}: {what} uses {name!r}, which the torch-free reader does not define: a schema may use what its "
+        f"module imports from {', '.join(sorted(TORCH_FREE_MODULES))} and the schema classes of its own module "
+        f"(defined above it) and of sibling modules (it is read without importing {module})")
 
 
 def _run(node: ast.stmt, path: Path, namespace: dict) -> None:
@@ -124,6 +169,21 @@ def _is_torch_free_import(node: ast.stmt) -> bool:
     return isinstance(node, ast.Import) and all(alias.name in TORCH_FREE_MODULES for alias in node.names)
 
 
+def _sibling(node: ast.stmt, package: str) -> str | None:
+    """The sibling module a ``from ... import`` statement imports from (``from package.x import`` or
+    ``from .x import``), else ``None``."""
+    if not isinstance(node, ast.ImportFrom) or node.module is None:
+        return None
+    if node.level == 1:
+        return node.module
+    if node.level == 0 and node.module.startswith(f"{package}."):
+        return node.module.removeprefix(f"{package}.")
+    return None
+
+
 def _name(decorator: ast.expr) -> str | None:
+    """A decorator's name: ``name`` of ``@name``, ``@name(...)``, ``@module.name(...)``."""
     target = decorator.func if isinstance(decorator, ast.Call) else decorator
+    if isinstance(target, ast.Attribute):
+        return target.attr
     return target.id if isinstance(target, ast.Name) else None

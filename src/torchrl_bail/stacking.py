@@ -570,8 +570,8 @@ def prepare_seeds(algorithms: Sequence[Any], data: TensorDictBase, contexts: Seq
 
 
 def _definer(cls: type, attribute: str) -> type:
-    """The class of ``cls``' MRO that defines ``attribute``."""
-    return next(c for c in cls.__mro__ if attribute in vars(c))
+    """The class of ``cls``' MRO that defines ``attribute`` (``object`` when none does)."""
+    return next((c for c in cls.__mro__ if attribute in vars(c)), object)
 
 
 def _same_tensors(a: TensorDictBase, b: TensorDictBase) -> bool:

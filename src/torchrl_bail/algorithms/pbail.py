@@ -76,6 +76,7 @@ class PBAILConfig(AlgoConfig):
     validation: str = one_of("split", "with_replacement")
     policy: NetConfig = MISSING
 
+
 VALIDATION_KEY = "envelope_validation"
 
 

@@ -93,6 +93,7 @@ class DDPGBatchConfig(BatchConfig):
     start_steps: int = at_least(0, "a non-negative number of uniformly random steps")
     agent: DDPGAgentConfig = MISSING
 
+
 log = logging.getLogger("torchrl_bail")
 
 

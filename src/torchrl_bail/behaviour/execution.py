@@ -52,6 +52,7 @@ class SACExecBatchConfig(BatchConfig):
     policy: str = one_of("mediocre", "optimal")
     stochastic: bool = MISSING
 
+
 log = logging.getLogger("torchrl_bail")
 
 EXEC_SEED_OFFSET = 10_000  # execution envs are seeded apart from the SAC run's own env

@@ -124,6 +124,7 @@ class SACBatchConfig(BatchConfig):
             raise ConfigError("steps", self.steps, f"at most sac.train_steps = {self.sac.train_steps} (the batch is "
                               "the first steps transitions of the SAC run)")
 
+
 log = logging.getLogger("torchrl_bail")
 
 EVAL_SEED_OFFSET = 20_000  # evaluation envs too
