@@ -12,7 +12,12 @@ imported (:func:`read_schemas`): every module is parsed (:mod:`ast`) and only it
 decorated with the registry's decorator or :func:`schema_block` -- with the module's imports from
 :data:`TORCH_FREE_MODULES` and the schema classes it imports from its sibling modules. Nothing else of a module
 runs. A class is defined once, so importing the module later gives back the very classes read. A schema that uses
-anything else at its definition (a constant of its module, a torch type) is refused with its file, line and name.
+anything else (a constant of its module, a torch type), in its body, a method or a rule's lambda, is refused with
+its file, line and name.
+
+Reading both registries' schemas this way takes 0.045-0.055 s after ``torchrl_bail.config`` (5 fresh processes, one
+core, the other training), and ``python -m torchrl_bail.train +exp=hopper_ddpg05 algo=iql algo.batch_size=0``
+exits 2 with its one line in 0.46-0.55 s, torch never imported.
 
 Examples:
     >>> from torchrl_bail.algo_schemas import ALGO_SCHEMAS
