@@ -133,10 +133,8 @@ def algo_schema(name: str) -> Callable[[type], type]:
 def _read_algorithm_schemas() -> None:
     """Fills :data:`ALGO_SCHEMAS` from the modules of :mod:`torchrl_bail.algorithms` without importing them, in
     :attr:`AlgoConfig.column` order."""
-    read_schemas(Path(__file__).with_name("algorithms"), f"{__package__}.algorithms", {"algo_schema"})
-    ordered = sorted(ALGO_SCHEMAS.items(), key=lambda item: (item[1].column, item[0]))
-    ALGO_SCHEMAS.clear()
-    ALGO_SCHEMAS.update(ordered)
+    read_schemas(Path(__file__).with_name("algorithms"), f"{__package__}.algorithms", {"algo_schema"},
+                 ALGO_SCHEMAS, key=lambda name, schema: (schema.column, name))
 
 
 def study_algorithms(batches: str) -> list[str]:

@@ -73,10 +73,7 @@ def batch_schema(name: str) -> Callable[[type], type]:
 
 
 def _read_recipe_schemas() -> None:
-    read_schemas(Path(__file__).with_name("behaviour"), f"{__package__}.behaviour", {"batch_schema"})
-    ordered = sorted(BATCH_SCHEMAS.items())
-    BATCH_SCHEMAS.clear()
-    BATCH_SCHEMAS.update(ordered)
+    read_schemas(Path(__file__).with_name("behaviour"), f"{__package__}.behaviour", {"batch_schema"}, BATCH_SCHEMAS)
 
 
 _read_recipe_schemas()

@@ -35,6 +35,7 @@ import types
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 __all__ = ["TORCH_FREE_MODULES", "SchemaReadError", "read_schemas", "register_as", "schema_block"]
 
@@ -77,17 +78,23 @@ def register_as(registry: dict[str, type], name: str) -> Callable[[type], type]:
     return register
 
 
-def read_schemas(folder: Path, package: str, decorators: Collection[str]) -> None:
+def read_schemas(folder: Path, package: str, decorators: Collection[str], registry: dict[str, type] | None = None,
+                 key: Callable[[str, type], Any] | None = None) -> None:
     """Defines the schema classes of every module ``folder/*.py`` of ``package`` (``__init__.py`` aside) without
     importing the modules: the top-level classes decorated with one of ``decorators`` (the registry's, which
     registers them as they are defined; ``@name``, ``@name(...)`` or ``@module.name(...)``) or :func:`schema_block`.
     A module's schemas are read after those of the sibling modules it imports from (absolute or ``from .sibling``
     imports); a cycle of such imports is a :class:`SchemaReadError`. The classes run in source order: a block is
-    written before the schema that uses it."""
+    written before the schema that uses it. Then ``registry`` (the one the decorators fill), given, is put in
+    ``key(name, schema)`` order, by name without ``key``."""
     namespaces: dict[str, dict] = {}
     for path in sorted(folder.glob("*.py")):
         if path.stem != "__init__":
             _read_module(path.stem, folder, package, {*decorators, "schema_block"}, namespaces, ())
+    if registry is not None:
+        ordered = sorted(registry.items(), key=lambda item: key(*item) if key else item[0])
+        registry.clear()
+        registry.update(ordered)
 
 
 def _read_module(stem: str, folder: Path, package: str, decorators: set[str], namespaces: dict[str, dict],
