@@ -95,6 +95,26 @@ def test_report_figures(tree, tmp_path):
         assert (tmp_path / name).stat().st_size > 1000, name
 
 
+@pytest.mark.parametrize("bcq_epochs, scale", [(0.03, "linear"), (0.006, "log")])
+def test_curves_use_a_log_epoch_axis_when_schedules_differ_fourfold(tmp_path, monkeypatch, bcq_epochs, scale):
+    """BCQ at 10 epochs beside BC at 100 (the paper cell) must not be squeezed against the left edge."""
+    import torchrl_bail.report as report
+
+    for seed in (1, 2):
+        _write_run(tmp_path, "hopper_ddpg05_b1", "bc", seed, 800.0)
+        run = tmp_path / f"hopper_ddpg05_b1_bcq_envelope_s{seed}"
+        _write_run(tmp_path, "hopper_ddpg05_b1", "bcq", seed, 900.0)
+        (run / "logs" / "scalars" / "eval" / "epoch.csv").write_text(
+            "".join(f"{s},{bcq_epochs * s / 30}\n" for s in (10, 20, 30)))
+    saved = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: saved.append(fig) or path)
+    report._plot_curves(group_runs(find_runs([tmp_path])), tmp_path / "c.png")
+    (ax,) = saved[0].axes
+    assert ax.get_xscale() == scale and ("log scale" in ax.get_xlabel()) == (scale == "log")
+    saved[0].canvas.draw()  # the legend sits below the axes, over no curve
+    assert ax.get_legend().get_window_extent().y1 < ax.get_window_extent().y0
+
+
 @pytest.mark.parametrize("content, expected", [("{not json", "unreadable"), ('{"algo": "bc", "seed": 1}',
                                                                              "missing final_return, best_return")])
 def test_bad_summary_is_one_line_naming_the_file(tmp_path, capsys, content, expected):

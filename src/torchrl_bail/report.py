@@ -405,6 +405,9 @@ def _json_safe(value: Any) -> Any:
 
 #: panels per row of the learning-curve figure (one panel per batch)
 CURVE_COLUMNS = 3
+#: a panel whose longest curve ends at least this many times later than its shortest gets a log x-axis, so that a
+#: short schedule (BCQ's 10 epochs beside BC's 100 at the paper's scale) is not squeezed against the left edge
+LOG_EPOCH_AXIS_SPAN = 4.0
 
 
 def _plot_curves(groups, path: Path) -> Path | None:
@@ -422,7 +425,7 @@ def _plot_curves(groups, path: Path) -> Path | None:
         return None
     cols = min(len(panels), CURVE_COLUMNS)
     rows = math.ceil(len(panels) / cols)
-    fig = new_figure(figsize=(5.0 * cols, 3.8 * rows), layout="constrained")
+    fig = new_figure(figsize=(5.0 * cols, 4.8 * rows), layout="constrained")
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax in axes[len(panels):]:
         ax.set_visible(False)
@@ -430,11 +433,16 @@ def _plot_curves(groups, path: Path) -> Path | None:
         for label, n, x, mean, half in lines:
             ax.plot(x, mean, label=f"{label} ({n} seeds)")
             ax.fill_between(x, mean - half, mean + half, alpha=0.2)
+        ends = [x[-1] for _, _, x, _, _ in lines]
+        log_axis = min(x[0] for _, _, x, _, _ in lines) > 0 and max(ends) >= LOG_EPOCH_AXIS_SPAN * min(ends)
+        if log_axis:
+            ax.set_xscale("log")
         ax.set_title(batch[0])
-        ax.set_xlabel("epoch (10^6 samples)")
+        ax.set_xlabel("epoch (10^6 samples)" + (", log scale" if log_axis else ""))
         ax.set_ylabel("evaluation return (mean over seeds)")
         ax.grid(alpha=0.3)
-        ax.legend(loc="best", fontsize="small")
+        # below the axes, where it hides no curve
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize="small")
     return save_figure(fig, path)
 
 
