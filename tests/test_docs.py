@@ -386,3 +386,21 @@ def test_the_home_pages_headline_result_is_the_results_own():
     assert seeds == [5, 5], "the study's runs of the cell without overrides"
     assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and "over 5 seeds" in page
     assert "2054 ± 158" in page and cell["bail"]["published (gym v2)"] == "2054 ± 158"
+
+
+def test_getting_started_quotes_the_kept_run_of_the_first_command():
+    """Getting started's numbers are those of ``results/getting_started`` (the run behind its figures)."""
+    page = (ROOT / "docs" / "getting-started.md").read_text()
+    kept = ROOT / "results" / "getting_started"
+    summary = json.loads((kept / "summary.json").read_text())
+    batch = json.loads((kept / "batch_metadata.json").read_text())
+    collect = json.loads((ROOT / "results" / "study" / "timings.json").read_text())["collect/hopper_ddpg05"]
+    assert summary["batch_path"].endswith(f"{batch['name']}-{batch['recipe_hash']}")
+    assert (kept / "config.yaml").is_file() and (kept / "logs" / "scalars" / "eval" / "return.csv").is_file()
+    quoted = (f"`final_return` {summary['final_return']:.1f}, best evaluation\n{summary['best_return']:.1f}, "
+              f"batch mean episode return {summary['dataset_mean_episode_return']:.1f})")
+    assert quoted in page
+    assert f"Its training took {summary['wall_time_s']:.0f} s there" in page
+    assert f"{collect:.0f} s and {batch['collection_wall_time_s']:.0f} s in two collections" in page
+    for figure in ("learning_curve.png", "envelope.png"):
+        assert (kept / figure).is_file() and f"](assets/getting_started/{figure})" in page
