@@ -79,7 +79,8 @@ def render_ratios(records: dict[str, dict]) -> str:
                 cells = [medians, "—", row["unit"], "—", str(min(len(v) for v in row["rounds"].values()))]
             else:
                 continue
-            lines.append(f"| `{stem}.py` | {case_name(row['name'])} | " + " | ".join(cells) + " |")
+            # the script that wrote the record: a second record of one script has a file name of its own
+            lines.append(f"| `{record['script']}` | {case_name(row['name'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -56,6 +56,13 @@ def test_a_planted_wrong_number_is_found(tmp_path):
     assert render_records.stale(records, d3rlpy) == [table]
 
 
+def test_the_ratio_table_names_scripts_that_exist():
+    """A record saved under another name (``--json ..._bear_envelope.json``) is still shown as its script's row."""
+    scripts = re.findall(r"^\| `([^`]+)` \|", (RECORDS_DIR / "ratios.md").read_text(), re.MULTILINE)
+    assert "bench_paper_cost.py" in scripts
+    assert [s for s in scripts if not (ROOT / "benchmarks" / s).is_file()] == []
+
+
 @pytest.mark.parametrize("path", RECORDS, ids=[p.stem for p in RECORDS])
 def test_a_record_states_its_run_and_every_round(path):
     record = json.loads(path.read_text())
