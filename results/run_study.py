@@ -647,7 +647,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.study == "paper_hopper":
         paper_cell_report(args.results, STUDIES[args.study]())
     reports = "study.md, ablations.md" if args.study == "study" else "study.md, cell.md"
-    print(f"{len(copied)} runs in {args.results / 'runs'}; reports in {args.results}: {reports}")
+    kept = len(list((args.results / "runs").glob("*/*/*/summary.json")))
+    print(f"{len(copied)} runs copied from {args.workdir / 'outputs'}; {kept} runs in {args.results / 'runs'}; "
+          f"reports in {args.results}: {reports}")
     if failed:
         print("failed (see their logs in " f"{args.workdir / 'logs'}): " + ", ".join(failed), file=sys.stderr)
     return 1 if failed else 0

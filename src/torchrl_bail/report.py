@@ -431,7 +431,7 @@ def _plot_curves(groups, path: Path) -> Path | None:
         ax.set_visible(False)
     for ax, (batch, lines) in zip(axes, panels, strict=False):
         for label, n, x, mean, half in lines:
-            ax.plot(x, mean, label=f"{label} ({n} seeds)")
+            ax.plot(x, mean, label=f"{label} ({n} seed{'s' if n != 1 else ''})")
             ax.fill_between(x, mean - half, mean + half, alpha=0.2)
         ends = [x[-1] for _, _, x, _, _ in lines]
         log_axis = min(x[0] for _, _, x, _, _ in lines) > 0 and max(ends) >= LOG_EPOCH_AXIS_SPAN * min(ends)
