@@ -65,7 +65,7 @@ def case_name(name: str) -> str:
 
 def render_ratios(records: dict[str, dict]) -> str:
     lines = ["| script | case | torchrl_bail | reference | unit | ratio | rounds |", "|---|---|---|---|---|---|---|"]
-    for stem, record in records.items():
+    for record in records.values():
         for row in record["rows"]:
             if "ratio_of" in row:
                 numerator, denominator = row["ratio_of"]
