@@ -20,6 +20,10 @@ checkpoint), or after the end (the restart reports the run complete). ``--target
   from its last checkpoint (``<data_dir>/.partial``) and must give the reference's bytes.
   ``benchmarks/_collection_drill.py`` runs the same check for the SAC run too.
 
+Its record (``--json``; default ``results/benchmarks/kill_drill.json``, a drill of another algorithm or signal
+belongs in ``kill_drill_<what>.json``) keeps the command, checkout, machine and load, and every trial: when each
+signal landed, what the run resumed from, and what differed.
+
 Extra Hydra overrides follow ``--`` (e.g. ``-- algo.epochs=0.5``). A target is a class with ``command``,
 ``setup``, ``outputs`` and a ``progress_file``; registering another one in :data:`TARGETS` is all the drill needs.
 """
@@ -38,7 +42,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+from _bench import Record, add_record_argument
 
 ROOT = Path(__file__).resolve().parents[1]
 #: a batch of 1500 Hopper steps from a tiny agent, short evaluations: seconds per job
@@ -51,9 +58,10 @@ TINY = [
 VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 
 
-#: the drilled run's length and evaluations, and its networks' width: a few hundred updates with an evaluation (and
-#: checkpoint) every tenth of them, so that kills land before, between and after checkpoints
-DRILL_UPDATES, DRILL_EVALUATIONS, DRILL_HIDDEN = 300, 10, (32, 32)
+#: the drilled run's length and evaluations, and its networks' width: enough updates that training, not the process's
+#: start-up (3-4 s of imports), fills most of the kill window, with an evaluation (and checkpoint) every tenth of them,
+#: so that most kills land between checkpoints (300 updates took 0.5 s of a 6 s run: 2 kills in 16 landed mid-run)
+DRILL_UPDATES, DRILL_EVALUATIONS, DRILL_HIDDEN = 3000, 10, (32, 32)
 
 
 def _checkout(module: str):
@@ -88,6 +96,8 @@ class TrainingTarget:
     name = "training"
     #: a file whose appearance marks the first point a restart can resume from
     progress_file = "checkpoint.pt"
+    #: a file whose appearance marks a finished run (a restart reports it complete)
+    done_pattern = "summary.json"
 
     def __init__(self, algo: str, overrides: list[str], data_dir: Path) -> None:
         self.algo = algo
@@ -123,6 +133,7 @@ class CollectionTarget:
 
     name = "collection"
     progress_file = "data/.partial"  # appears with the first checkpoint
+    done_pattern = "data/*/metadata.json"  # the finished batch
     #: metadata entries that legitimately differ between runs
     VOLATILE_METADATA = ("created_at", "collection_wall_time_s", "env_steps_per_s", "updates_per_s",
                          "resumed_from_step")
@@ -159,6 +170,17 @@ class CollectionTarget:
 
 TARGETS = {"training": TrainingTarget, "collection": CollectionTarget}
 
+#: where a signal can land, judged from what the run directory holds right after it
+STAGES = ("before the first checkpoint", "mid-run", "after the end")
+
+
+def stage(target, run_dir: Path) -> str:
+    """Where the signal just sent landed: before ``target``'s first checkpoint, between checkpoints, or after the
+    run had finished (its last output written, the process still exiting)."""
+    if any(run_dir.glob(target.done_pattern)):
+        return STAGES[2]
+    return STAGES[1] if (run_dir / target.progress_file).exists() else STAGES[0]
+
 
 def _default_sigint() -> None:
     """A drill started in the background hands its children SIGINT ignored, which they keep: put Ctrl-C back."""
@@ -185,15 +207,15 @@ def interrupt_fault(sig: int, returncode: int, stderr: str) -> str | None:
     return None
 
 
-def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None = None,
-         sig: int = signal.SIGKILL) -> tuple[bool, float, float, str | None]:
+def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Callable[[], str] | None = None,
+         sig: int = signal.SIGKILL) -> tuple[bool, float, dict[str, float], str | None]:
     """Runs ``cmd`` (output to ``log``); sends it ``sig`` (SIGKILL) after ``kill_after`` s.
 
-    Returns ``(signalled, seconds, seconds until `watch` appeared or nan, what was wrong with how it ended after
-    SIGINT/SIGTERM or None)``; a job that finished before the signal counts as not signalled.
+    Returns ``(signalled, seconds, {stage: seconds until `watch()` first returned it}, what was wrong with how it
+    ended after SIGINT/SIGTERM or None)``; a job that finished before the signal counts as not signalled.
     """
     start = time.perf_counter()
-    appeared = float("nan")
+    appeared: dict[str, float] = {}
     err_path = log.with_suffix(".stderr")
     with open(log, "a") as f, open(err_path, "w") as err:
         proc = subprocess.Popen(cmd, stdout=f, stderr=err, env=_env(), cwd=ROOT, preexec_fn=_default_sigint)
@@ -203,8 +225,8 @@ def _run(cmd: list[str], log: Path, kill_after: float | None, watch: Path | None
                 proc.send_signal(sig)
                 proc.wait(timeout=None if sig == signal.SIGKILL else 600)
                 break
-            if watch is not None and appeared != appeared and watch.exists():
-                appeared = elapsed
+            if watch is not None:
+                appeared.setdefault(watch(), elapsed)
             time.sleep(0.05)
     stderr = err_path.read_text()
     with open(log, "a") as f:
@@ -236,28 +258,34 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
     """Reference run + ``trials`` runs interrupted by ``sig`` and resumed; returns ``(matches, per-trial records)``."""
     target.setup()
     ref_dir = workdir / "reference"
-    _, ref_seconds, first, _ = _run(target.command(ref_dir), workdir / "reference.log", None,
-                                    watch=ref_dir / target.progress_file)
+    _, ref_seconds, appeared, _ = _run(target.command(ref_dir), workdir / "reference.log", None,
+                                       watch=lambda: stage(target, ref_dir))
     reference = target.outputs(ref_dir)
-    first = ref_seconds / 2 if first != first else first
-    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s) "
+    # the kill window: from shortly before the first checkpoint to the last output (what a process does after it,
+    # exiting, a kill cannot harm); a stage the polling missed falls back to the whole run
+    first = appeared.get(STAGES[1], ref_seconds / 2)
+    last = appeared.get(STAGES[2], ref_seconds)
+    report(f"reference {target.name} run: {ref_seconds:.1f} s ({target.progress_file} after {first:.1f} s, "
+           f"done after {last:.1f} s) "
            f"-> {ref_dir}")
     rng = random.Random(seed)
     records, matches = [], 0
     for trial in range(1, trials + 1):
         run_dir = workdir / f"trial{trial:02d}"
         log = workdir / f"trial{trial:02d}.log"
-        kills, faults = [], []
+        kills, stages, faults = [], [], []
         for _ in range(rng.randint(1, max_kills)):
             # most kills land after the first checkpoint (training, evaluation, writing), some before it
-            delay = rng.uniform(0.7 * first, ref_seconds)
+            delay = rng.uniform(0.7 * first, last)
             killed, seconds, _, fault = _run(target.command(run_dir), log, delay, sig=sig)
             kills.append(f"{seconds:.1f}s" if killed else "(finished first)")
+            stages += [stage(target, run_dir)] if killed else []
             faults += [] if fault is None else [fault]
         _run(target.command(run_dir), log, None)
         diffs = [*faults, *_differences(reference, target.outputs(run_dir))]
         matches += not diffs
-        record = {"trial": trial, "kills": kills, "resumed_from": target.resumed_from(run_dir), "diffs": diffs}
+        record = {"trial": trial, "kills": kills, "stages": stages, "resumed_from": target.resumed_from(run_dir),
+                  "diffs": diffs}
         records.append(record)
         report(f"trial {trial:2d}: {signal.Signals(sig).name} at {', '.join(kills):<26} resumed from "
                f"{record['resumed_from'] or '-'} -> {'match' if not diffs else 'MISMATCH ' + ', '.join(diffs)}")
@@ -277,7 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="what interrupts the jobs: SIGKILL (default), SIGINT (Ctrl-C) or SIGTERM")
     parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary directory, removed")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides (after --)")
+    add_record_argument(parser, __file__)
     args = parser.parse_args(argv)
+    record = Record(__file__, args.json, reference="the uninterrupted run",
+                    settings={k: v for k, v in vars(args).items() if k not in ("json", "workdir")})
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="kill_drill_"))
     workdir.mkdir(parents=True, exist_ok=True)
     target = TARGETS[args.target](args.algo, list(args.overrides), workdir / "data")
@@ -287,11 +318,18 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
-    kills = sum(len([k for k in r["kills"] if k != "(finished first)"]) for r in records)
+    landed = {where: sum(r["stages"].count(where) for r in records) for where in STAGES}
+    kills = sum(landed.values())
     resumed = sum(bool(r["resumed_from"]) for r in records)
     label = args.algo if args.target == "training" else "collection"
-    print(f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIG{args.signal}s; "
-          f"{resumed} trials resumed from a checkpoint, the others restarted before the first one)")
+    line = (f"{label}: {matches}/{args.trials} trials matched the uninterrupted run ({kills} SIG{args.signal}s: "
+            + ", ".join(f"{n} {where}" for where, n in landed.items())
+            + f"; {resumed} trials resumed from a checkpoint)")
+    print(line)
+    record.write([], drill={"target": args.target, "label": label, "signal": args.signal, "trials": args.trials,
+                            "matched": matches, "signals_sent": kills, "landed": landed, "resumed": resumed,
+                            "result": line,
+                            "per_trial": records})
     return 0 if matches == args.trials else 1
 
 
