@@ -254,8 +254,9 @@ def _differences(a: dict, b: dict) -> list[str]:
 
 
 def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int = 2, sig: int = signal.SIGKILL,
-          report=print) -> tuple[int, list[dict]]:
-    """Reference run + ``trials`` runs interrupted by ``sig`` and resumed; returns ``(matches, per-trial records)``."""
+          report=print) -> tuple[int, list[dict], dict[str, float]]:
+    """Reference run + ``trials`` runs interrupted by ``sig`` and resumed; returns ``(matches, per-trial records,
+    the reference run's seconds: whole, until its first checkpoint, until its last output)``."""
     target.setup()
     ref_dir = workdir / "reference"
     _, ref_seconds, appeared, _ = _run(target.command(ref_dir), workdir / "reference.log", None,
@@ -289,7 +290,7 @@ def drill(target, workdir: Path, *, trials: int, seed: int = 0, max_kills: int =
         records.append(record)
         report(f"trial {trial:2d}: {signal.Signals(sig).name} at {', '.join(kills):<26} resumed from "
                f"{record['resumed_from'] or '-'} -> {'match' if not diffs else 'MISMATCH ' + ', '.join(diffs)}")
-    return matches, records
+    return matches, records, {"run_s": ref_seconds, "first_checkpoint_s": first, "done_s": last}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -313,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir.mkdir(parents=True, exist_ok=True)
     target = TARGETS[args.target](args.algo, list(args.overrides), workdir / "data")
     try:
-        matches, records = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills,
+        matches, records, reference = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills,
                                  sig=getattr(signal, f"SIG{args.signal}"))
     finally:
         if args.workdir is None:
@@ -327,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
             + f"; {resumed} trials resumed from a checkpoint)")
     print(line)
     record.write([], drill={"target": args.target, "label": label, "signal": args.signal, "trials": args.trials,
-                            "matched": matches, "signals_sent": kills, "landed": landed, "resumed": resumed,
+                            "reference": reference, "matched": matches, "signals_sent": kills, "landed": landed,
+                            "resumed": resumed,
                             "result": line,
                             "per_trial": records})
     return 0 if matches == args.trials else 1

@@ -202,3 +202,16 @@ def test_a_case_name_shows_its_floats_at_their_shortest():
     assert render_records.case_name("bcq (algo.epochs 0.2 vs 0.6000000000000001)") == "bcq (algo.epochs 0.2 vs 0.6)"
     assert render_records.case_name("x 1.2345678901234 y 0.3") == "x 1.23456789012 y 0.3"
     assert "0.6000000000000001" not in render_records.render_ratios(render_records.load_records())
+
+
+@pytest.mark.parametrize("name", ["kill_drill", "kill_drill_bcq"])
+def test_the_interrupted_runs_guide_quotes_each_kill_drill_record(name):
+    drill = json.loads((RECORDS_DIR / f"{name}.json").read_text())["drill"]
+    landed = drill["landed"]
+    assert sum(landed.values()) == drill["signals_sent"] == sum(len(t["stages"]) for t in drill["per_trial"])
+    assert drill["matched"] == sum(not t["diffs"] for t in drill["per_trial"]) == drill["trials"]
+    quoted = (f"{drill['matched']}/{drill['trials']} trials matched ({drill['signals_sent']} SIG{drill['signal']}s: "
+              f"{landed['before the first checkpoint']} before the\nfirst checkpoint, {landed['mid-run']} mid-run, "
+              f"{landed['after the end']} after the end; {drill['resumed']} trials resumed from a checkpoint)")
+    page = " ".join((ROOT / "docs" / "guides" / "interrupted-runs.md").read_text().split())
+    assert " ".join(quoted.split()) in page and f"{name}.json`" in page
