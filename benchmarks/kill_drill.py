@@ -314,8 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     workdir.mkdir(parents=True, exist_ok=True)
     target = TARGETS[args.target](args.algo, list(args.overrides), workdir / "data")
     try:
-        matches, records, reference = drill(target, workdir, trials=args.trials, seed=args.seed, max_kills=args.max_kills,
-                                 sig=getattr(signal, f"SIG{args.signal}"))
+        matches, records, reference = drill(target, workdir, trials=args.trials, seed=args.seed,
+                                            max_kills=args.max_kills, sig=getattr(signal, f"SIG{args.signal}"))
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
