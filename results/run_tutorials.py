@@ -5,7 +5,7 @@
 
 Each script (``docs/tutorials/<name>.py``) runs in a fresh temporary folder (removed afterwards) with its default
 ``--work-dir``; its stdout and stderr together are kept as ``results/tutorials/<name>.txt``, with that folder's
-path taken out, so the kept output names the same relative paths as the page. ``results/tutorials/record.json``
+path written ``…`` as the pages write it. ``results/tutorials/record.json``
 holds per script: the command, exit status, wall seconds, the load average at its start and end, the UTC start
 time, the CPUs it could run on, and the commit of the checkout (with the files of ``src/``, ``conf/`` and
 ``docs/tutorials/`` that differed from it). The tutorial pages quote these outputs and the index
@@ -47,7 +47,7 @@ def run(name: str, cwd: Path) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.run(command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     seconds = time.perf_counter() - t0
-    text = proc.stdout.replace(f"{cwd}{os.sep}", "")
+    text = proc.stdout.replace(str(cwd), "…")
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = OUT / f".{name}.txt.tmp"
     tmp.write_text(text)

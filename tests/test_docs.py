@@ -404,3 +404,41 @@ def test_getting_started_quotes_the_kept_run_of_the_first_command():
     assert f"{collect:.0f} s and {batch['collection_wall_time_s']:.0f} s in two collections" in page
     for figure in ("learning_curve.png", "envelope.png"):
         assert (kept / figure).is_file() and f"](assets/getting_started/{figure})" in page
+
+
+KEPT_TUTORIALS = ROOT / "results" / "tutorials"
+TUTORIAL_PAGES = sorted(p for p in TUTORIALS.glob("*.md") if p.name != "index.md")
+
+
+def _tutorial_script(page: Path) -> str:
+    return re.search(r'--8<-- "docs/tutorials/(\w+)\.py"', page.read_text()).group(1)
+
+
+def _exact_line(line: str) -> re.Pattern:
+    """An expected line as a pattern that keeps every word and number: only ``…`` stands for anything."""
+    parts = re.split(r"(…|\s+)", " ".join(line.replace("**", "").split()))
+    return re.compile("".join(".*" if p == "…" else r"\s+" if p.isspace() else re.escape(p) for p in parts))
+
+
+@pytest.mark.parametrize("page", TUTORIAL_PAGES, ids=[p.stem for p in TUTORIAL_PAGES])
+def test_a_tutorial_page_quotes_its_kept_run(page):
+    """The numbers a page shows are those its script printed at the default scale (``results/run_tutorials.py``)."""
+    script = _tutorial_script(page)
+    assert json.loads((KEPT_TUTORIALS / "record.json").read_text())[script]["exit_status"] == 0
+    kept = [" ".join(line.replace("**", "").split())
+            for line in (KEPT_TUTORIALS / f"{script}.txt").read_text().splitlines()]
+    missing = [e for e in expected_output(page) if not any(_exact_line(e).fullmatch(line) for line in kept)]
+    assert not missing, f"{page.name} shows lines its kept run (results/tutorials/{script}.txt) lacks: {missing}"
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min"
+
+
+def test_the_tutorial_index_quotes_the_kept_runs_times():
+    record = json.loads((KEPT_TUTORIALS / "record.json").read_text())
+    rows = (TUTORIALS / "index.md").read_text().splitlines()
+    for page in TUTORIAL_PAGES:
+        entry = record[_tutorial_script(page)]
+        (row,) = [r for r in rows if r.startswith("| [") and f"]({page.name})" in r]
+        assert row.endswith(f"| {_duration(entry['wall_s'])} |"), (row, entry["wall_s"])

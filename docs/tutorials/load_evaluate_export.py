@@ -42,7 +42,7 @@ def main() -> None:
     policy = load_policy(args.run_dir)                   # policy.pt; best=True for policy_best.pt
     record = read_policy_file(args.run_dir)
     obs_dim = record["obs_dim"]
-    observation = torch.randn(4, obs_dim)
+    observation = torch.randn(4, obs_dim, generator=torch.Generator().manual_seed(0))  # the same 4 every run
     with torch.no_grad():
         action = policy(TensorDict({"observation": observation}, [4]))["action"]
     print(f"{record['algo']} policy for {record['env_id']}: observation {obs_dim} -> action {action.shape[-1]}")

@@ -1,6 +1,6 @@
 """Reproduce one row of the paper's comparison: BAIL against BC on Hopper's DDPG sigma = 0.5 batch (B1).
 
-    python docs/tutorials/reproduce_a_row.py                      # the results study's row, about 20 min on 2 cores
+    python docs/tutorials/reproduce_a_row.py                      # the results study's row
     python docs/tutorials/reproduce_a_row.py --seeds 1,2,3,4,5 preset=paper   # the paper's scale (hours)
 
 Any further argument is a Hydra override added to every run (``algo.epochs=1``, ``data_dir=/scratch``...).
