@@ -35,7 +35,8 @@ Its ``cell.{md,json}`` (:func:`paper_cell_report`) sets the DDPG σ = 0.5 cell b
 verdict per claim of the paper and the measured cost of every run. A job whose summary is already kept in
 ``--results`` is done: it neither runs again nor needs the workdir that made it.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
-with the checkpoint's progress (updates done / scheduled) where one exists.
+with the checkpoint's progress (updates done / scheduled) where one exists and the time the updates left take at
+the run's pace so far.
 """
 
 from __future__ import annotations
@@ -244,8 +245,20 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
         import torch
 
         state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
-        progress = f" ({state['iteration']}/{state['iterations']} updates)"
+        progress = f" ({state['iteration']}/{state['iterations']} updates{_time_left(state, run, running)})"
     return ("running" if running else "left") + progress
+
+
+def _time_left(state: dict, run: Path, running: bool) -> str:
+    """``, about N min left``: the updates left at the run's own pace so far (its checkpoint's training seconds per
+    update, evaluations included), less what a running job has done since that checkpoint; empty before any."""
+    done, wall = state["iteration"], state.get("wall_time_s")
+    if not done or not wall:
+        return ""
+    left = (state["iterations"] - done) * wall / done
+    if running:
+        left -= time.time() - (run / "checkpoint.pt").stat().st_mtime
+    return f", about {max(left, 0.0) / 60:.0f} min left"
 
 
 def conditions() -> dict:
@@ -613,7 +626,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.status:
         states = [(j.name, job_status(j, args.workdir, args.data_dir, args.results)) for j in jobs]
-        print("\n".join(f"{state:<32} {name}" for name, state in states))
+        width = max(len(state) for _, state in states)
+        print("\n".join(f"{state:<{width}}  {name}" for name, state in states))
         counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")
         return 0

@@ -6,6 +6,7 @@ import importlib.util
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -163,6 +164,18 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "left (2500/10000 updates)"
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")  # written just now
     assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "running (2500/10000 updates)"
+    # with the training seconds its checkpoint records: the updates left at the run's pace (7500 x 0.2 s = 25 min)
+    torch.save({"iteration": 2500, "iterations": 10000, "wall_time_s": 500.0}, half / "checkpoint.pt")
+    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+        "running (2500/10000 updates, about 25 min left)")
+    os.utime(half / "checkpoint.pt", (time.time() - 600, time.time() - 600))  # saved 10 min ago, still running
+    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+        "running (2500/10000 updates, about 15 min left)")
+    (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")
+    os.utime(tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log", (time.time() - 900, time.time() - 900))
+    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+        "left (2500/10000 updates, about 25 min left)")  # nothing runs: the whole remainder
+    (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")
     assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path) == "done"
     results = tmp_path / "results"
     assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path),
