@@ -159,6 +159,14 @@ def test_the_paper_scale_section_quotes_its_records():
     assert f"BAIL's jobs of seeds 2-5 took {min(bail)}-{max(bail)} s and BC's jobs {min(bc)}-{max(bc)} s" in section
     assert f"**{wall['hopper_ddpg05/bail/seed5']} s**" in section
     assert f"BAIL seed 1's {wall['hopper_ddpg05/bail/seed1']} s" in section
+    flat_section = " ".join(section.split())
+    for algo in ("BCQ", "BEAR"):  # 10^5 updates each, 20 evaluations
+        seconds = sorted(wall[job] for job in wall if job.startswith(f"hopper_ddpg05/{algo.lower()}/"))
+        rates = sorted(f"{10**5 / s:.1f}" for s in seconds)
+        span = f"{seconds[0]}-{seconds[-1]} s" if len(seconds) > 1 else f"{seconds[0]} s"
+        pace = f"{rates[0]}-{rates[-1]}" if len(rates) > 1 else rates[0]
+        jobs = f"{len(seconds)} jobs" if len(seconds) > 1 else "job"
+        assert f"{algo}'s {jobs} took {span} ({pace} updates/s" in flat_section, algo
     meta = json.loads((results / "paper_hopper" / "batches" / "hopper_ddpg05_b1-dcc2994b.metadata.json").read_text())
     assert (f"{meta['collection_wall_time_s']:.0f} s (2 h {meta['collection_wall_time_s'] / 60 - 120:.0f} min) at "
             f"{meta['env_steps_per_s']:.0f} env steps/s: {meta['num_transitions']}") in section
