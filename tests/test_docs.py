@@ -442,3 +442,15 @@ def test_the_tutorial_index_quotes_the_kept_runs_times():
         entry = record[_tutorial_script(page)]
         (row,) = [r for r in rows if r.startswith("| [") and f"]({page.name})" in r]
         assert row.endswith(f"| {_duration(entry['wall_s'])} |"), (row, entry["wall_s"])
+
+
+def test_readme_quotes_the_paper_scale_cell():
+    """The README's paper-scale sentence is the cell's report (``results/paper_hopper/cell.json``) as it stands."""
+    cell = json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    for label, g in cell["groups"].items():
+        spread = f" ± {g['final_return_std']:.0f}" if g["seeds"] > 1 else ""
+        seeds = f"{g['seeds']} seeds" if g["seeds"] > 1 else "1 seed"
+        assert f"{label} {g['final_return_mean']:.0f}{spread} ({seeds})" in readme, label
+    for claim in cell["claims"]:
+        assert f"{claim['claim']}: {claim['verdict'].split(' (')[0]}" in readme, claim["claim"]
