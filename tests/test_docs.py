@@ -454,3 +454,7 @@ def test_readme_quotes_the_paper_scale_cell():
         assert f"{label} {g['final_return_mean']:.0f}{spread} ({seeds})" in readme, label
     for claim in cell["claims"]:
         assert f"{claim['claim']}: {claim['verdict'].split(' (')[0]}" in readme, claim["claim"]
+    results = " ".join((ROOT / "docs" / "results.md").read_text().split())
+    bcq, bail = cell["groups"]["bcq"], cell["groups"]["bail"]
+    assert (f"BCQ {bcq['final_return_mean']:.0f} ± {bcq['final_return_std']:.0f} ({bcq['seeds']} seeds) vs BAIL "
+            f"{bail['final_return_mean']:.0f} ± {bail['final_return_std']:.0f} ({bail['seeds']} seeds)") in results
