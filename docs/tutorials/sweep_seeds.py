@@ -58,18 +58,28 @@ def main() -> None:
     # 5. One table over the sweep (the report prints it and writes seeds.md), and each seed's score alone and
     #    stacked: equal to float rounding in a short run; the rounding grows over a long one (the page says how far).
     sh(sys.executable, "-m", "torchrl_bail.report", str(sweep), "--out", str(args.work_dir / "seeds"), "--reps", "200")
+    #    Where they part: the envelope fits agree (best epoch, selection border), the first evaluation already differs.
     for seed in args.seeds.split(","):
-        one = summary(sweep, seed)
-        print(f"seed {seed}: final_return {one:.2f} alone, {summary(stacked, seed):.2f} stacked")
+        (one, one_dir), (stack, stack_dir) = summary(sweep, seed), summary(stacked, seed)
+        print(f"seed {seed}: final_return {one['final_return']:.2f} alone, {stack['final_return']:.2f} stacked")
+        print(f"  envelope best epoch {one['envelope_best_epoch']} / {stack['envelope_best_epoch']}, selection border "
+              f"{one['selection_border']:.5f} / {stack['selection_border']:.5f}, first evaluation "
+              f"{first_evaluation(one_dir):.1f} / {first_evaluation(stack_dir):.1f} (alone / stacked)")
 
 
-def summary(root: Path, seed: str) -> float:
-    """``final_return`` of the run of ``seed`` below ``root``."""
+def summary(root: Path, seed: str) -> tuple[dict, Path]:
+    """The ``summary.json`` of the run of ``seed`` below ``root``, and its run directory."""
     for path in root.rglob("summary.json"):
         values = json.loads(path.read_text())
         if str(values["seed"]) == seed:
-            return values["final_return"]
+            return values, path.parent
     raise FileNotFoundError(f"no summary.json of seed {seed} below {root}")
+
+
+def first_evaluation(run_dir: Path) -> float:
+    """The return of a run's first evaluation (its CSV log ``eval/return.csv``: ``iteration,value`` rows)."""
+    first_row = (run_dir / "logs" / "scalars" / "eval" / "return.csv").read_text().splitlines()[0]
+    return float(first_row.split(",")[1])
 
 
 if __name__ == "__main__":
