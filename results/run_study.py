@@ -127,32 +127,47 @@ def study_jobs() -> list[Job]:
     return jobs
 
 
-#: the paper-scale schedules: imitation and BAIL's envelope at the paper's own (``preset=paper``, nothing overridden:
-#: 50 envelope passes over the 0.8 training split with the C = 4 revert rule, supp. B.1 Alg. 1, which changes the
-#: weights but never ends a fit, so the 50-epoch cap always does; the imitation epochs of conf/algo); BCQ/BEAR:
-#: 10^5 updates of 100, 10 % of the paper's 10^6, with 20 evaluations
-PAPER_SCHEDULE = {
-    "imitation": [],
-    "offline_rl": ["algo.epochs=10", "eval.every_epochs=0.5"],
-}
+#: the paper-scale schedule of an actor-critic (``cost = "offline_rl"``): 10^5 updates, 10 % of the 10^6 of BCQ's,
+#: BEAR's and TD3+BC's papers, with 20 evaluations (see :func:`paper_schedule`)
+OFFLINE_RL_UPDATES, OFFLINE_RL_EVALUATIONS = 10**5, 20
+
+
+def paper_schedule(algo: str) -> list[str]:
+    """The overrides of ``algo``'s paper-scale jobs. Imitation and BAIL's envelope run the paper's own schedules
+    (``preset=paper``, nothing overridden: 50 envelope passes over the 0.8 training split with the C = 4 revert rule,
+    supp. B.1 Alg. 1, which changes the weights but never ends a fit, so the 50-epoch cap always does; the imitation
+    epochs of conf/algo). An actor-critic runs :data:`OFFLINE_RL_UPDATES` updates of its own batch size, in epochs of
+    10^6 samples: ``algo.epochs=10`` for BCQ and BEAR (batches of 100), ``algo.epochs=25.6`` for TD3+BC (256), so
+    that every actor-critic of the cell has had as many updates."""
+    from torchrl_bail.config_builders import algo_config
+
+    if ALGO_SCHEMAS[algo].cost == "imitation":
+        return []
+    epochs = OFFLINE_RL_UPDATES * algo_config(algo).batch_size / 10**6
+    return [f"algo.epochs={epochs:g}", f"eval.every_epochs={epochs / OFFLINE_RL_EVALUATIONS:g}"]
+
+
 #: the paper-scale study's design (which algorithms: each schema's ``paper_study`` line): :data:`HEADLINE_PAIR` runs
 #: first on each batch, with 5 seeds on the DDPG sigma=0.5 and SAC batches, every other algorithm 3; MARWIL also runs
 #: with V fitted first; BCQ also runs on opt_det. A newly registered algorithm lands after the pair with 3 seeds
 PAPER_FIVE_SEED_KINDS = ("ddpg05", "sac")
 PAPER_VARIANTS = {"marwil": (["algo.value_warmup_updates=1000"], "/value_warmup")}
 PAPER_EXTRA_CELLS = [("opt_det", "bcq", 3)]
+#: algorithms outside the paper run on the headline batch as reference points, right after the paper's cell
+PAPER_REFERENCE_CELLS = [("ddpg05", "td3bc", 3)]
 
 
 def paper_hopper_jobs() -> list[Job]:
     """The paper-scale Hopper study, most important first: (a) the DDPG sigma=0.5 final buffer with BAIL and BC x 5
-    seeds, Progressive BAIL, MARWIL and MARWIL with V fitted first x 3, BCQ and BEAR x 3; (b) the 10^6-step SAC
+    seeds, Progressive BAIL, MARWIL and MARWIL with V fitted first x 3, BCQ and BEAR x 3, then TD3+BC x 3 as a
+    reference point outside the paper (:data:`PAPER_REFERENCE_CELLS`); (b) the 10^6-step SAC
     run's training batch and its execution batches opt_det and med_stoch (BAIL and BC x 5 on sac, x 3 elsewhere);
     (c) med_det, opt_stoch, ddpg01, and BCQ on opt_det."""
     def collect(kind):
         return Job(f"collect/hopper_{kind}", [f"+exp=hopper_{kind}"], "torchrl_bail.collect")
 
     def train(kind, algo, seeds, extra=(), tag=""):
-        schedule = PAPER_SCHEDULE[ALGO_SCHEMAS[algo].cost]
+        schedule = paper_schedule(algo)
         return [Job(f"hopper_{kind}/{algo}{tag}/seed{s}", [f"+exp=hopper_{kind}", f"algo={algo}", f"seed={s}",
                                                             *schedule, *extra]) for s in range(1, seeds + 1)]
 
@@ -168,6 +183,7 @@ def paper_hopper_jobs() -> list[Job]:
         return jobs
 
     jobs = [collect("ddpg05"), *cells("ddpg05", ("all", "ddpg"))]
+    jobs += [j for kind, algo, seeds in PAPER_REFERENCE_CELLS for j in train(kind, algo, seeds)]
     jobs += [collect("sac"), collect("opt_det"), collect("med_stoch")]
     for kind in ("sac", "opt_det", "med_stoch"):
         jobs += cells(kind, ("all",))

@@ -71,7 +71,7 @@ def test_one_registry_line_puts_an_algorithm_in_the_study_or_keeps_it_out(run_st
     monkeypatch.setattr(ALGO_SCHEMAS["iql"], "paper_study", True)
     paper = [j for j in run_study.paper_hopper_jobs() if "/iql/" in j.name]
     assert [j.name for j in paper] == [f"hopper_ddpg05/iql/seed{s}" for s in (1, 2, 3)]  # DDPG batches only, 3 seeds
-    assert "algo.epochs=10" in paper[0].args  # its cost class: the offline-RL schedule
+    assert "algo.epochs=25.6" in paper[0].args  # its cost class: 10^5 updates (of 256, its yaml's batch size)
 
 
 def _run(root: Path, name: str, returns: list[float], algo: str = "bail", envelope_best_epoch: int | None = None,
@@ -127,10 +127,31 @@ def test_the_paper_hopper_study_lands_the_final_buffer_first(run_study):
     assert sum(n.startswith("hopper_ddpg05/marwil/value_warmup/") for n in ddpg05) == 3
     by_name = {j.name: j for j in jobs}
     assert "algo.epochs=10" in by_name["hopper_ddpg05/bcq/seed1"].args  # 10^5 updates of 100
+    assert [n for n in names[:first_other_batch] if "td3bc" in n] == [f"hopper_ddpg05/td3bc/seed{s}" for s in (1, 2, 3)]
+    assert names.index("hopper_ddpg05/td3bc/seed1") > max(names.index(f"hopper_ddpg05/{a}/seed3") for a in seeds)
     assert by_name["hopper_ddpg05/bail/seed5"].args == ["+exp=hopper_ddpg05", "algo=bail", "seed=5"]  # the paper's
     assert all("preset=study" not in j.args for j in jobs)
     assert {f"hopper_sac/{a}/seed5" for a in ("bail", "bc")} <= set(names)
     assert "hopper_opt_det/bcq/seed3" in names and "collect/hopper_med_det" in names
+
+
+@pytest.mark.parametrize("algo", ["bcq", "bear", "td3bc"])
+def test_every_actor_critic_of_the_paper_cell_gets_10_5_updates_and_20_evaluations(run_study, algo):
+    """Epochs count 10^6 samples, so an equal number of updates is a different number of epochs for TD3+BC's
+    batches of 256 than for BCQ's and BEAR's of 100: the schedule is computed from each yaml's batch size, and the
+    trainer's own arithmetic turns it into 10^5 updates with an evaluation every 5000."""
+    import math
+
+    from torchrl_bail.config_builders import algo_config
+
+    overrides = dict(arg.split("=") for arg in run_study.paper_schedule(algo))
+    batch_size = algo_config(algo).batch_size
+    updates = math.ceil(float(overrides["algo.epochs"]) * 10**6 / batch_size)
+    every = round(float(overrides["eval.every_epochs"]) * 10**6 / batch_size)
+    assert (updates, every) == (10**5, 5000)
+    if batch_size == 100:  # the names of the kept runs: BCQ's and BEAR's jobs must stay done
+        assert overrides == {"algo.epochs": "10", "eval.every_epochs": "0.5"}
+    assert run_study.paper_schedule("bail") == []
 
 
 def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study, tmp_path, capsys):
@@ -180,7 +201,7 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     results = tmp_path / "results"
     assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path),
                            "--results", str(results)]) == 0
-    assert "2 done, 1 running, 117 left of 120 jobs" in capsys.readouterr().out
+    assert "2 done, 1 running, 120 left of 123 jobs" in capsys.readouterr().out
     # a run gathered into the results by an earlier call (its workdir gone) is done, and does not run again
     kept = results / "runs" / "hopper_ddpg05_b1" / "bail" / "seed2"
     kept.mkdir(parents=True)

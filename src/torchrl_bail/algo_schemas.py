@@ -58,7 +58,7 @@ class AlgoConfig(Checked):
     #: the paper's imitation methods, its actor-critics, then the later baselines; ties, and an entry that states
     #: none, by name after the others
     column: ClassVar[float] = float("inf")
-    #: which paper-scale schedule it takes (``results/run_study.PAPER_SCHEDULE``): ``"imitation"`` (the paper's own
+    #: which paper-scale schedule it takes (``results/run_study.paper_schedule``): ``"imitation"`` (the paper's own
     #: epochs) or ``"offline_rl"`` (an actor-critic at 10 % of its paper's 10^6 updates: ~10x an imitation run)
     cost: ClassVar[str] = "imitation"
     #: the batch kinds the study runs it on: ``"all"``, ``"ddpg"`` (the two DDPG batches of each env only, for
