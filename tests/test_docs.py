@@ -458,3 +458,30 @@ def test_readme_quotes_the_paper_scale_cell():
     bcq, bail = cell["groups"]["bcq"], cell["groups"]["bail"]
     assert (f"BCQ {bcq['final_return_mean']:.0f} ± {bcq['final_return_std']:.0f} ({bcq['seeds']} seeds) vs BAIL "
             f"{bail['final_return_mean']:.0f} ± {bail['final_return_std']:.0f} ({bail['seeds']} seeds)") in results
+
+
+def _pm(group: dict) -> str:
+    return f"{group['final_return_mean']:.0f} ± {group['final_return_std']:.0f}"
+
+
+def test_the_paper_cells_reading_is_its_report():
+    """The Results page's "What the cell says" and the README's BEAR clause quote ``results/paper_hopper/cell.json``:
+    every mean ± std, BEAR's seed range, the batch's mean return and BAIL's mean best evaluation."""
+    cell = json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())
+    g = cell["groups"]
+    page = (ROOT / "docs" / "results.md").read_text()
+    reading = " ".join(page[page.index("**What the cell says.**"):].split("\n\n")[0].split())
+    bear = [f"{r:.0f}" for r in sorted(g["bear"]["per_seed"])]
+    for quoted in (f"BAIL ≫ BC ({_pm(g['bail'])} vs {_pm(g['bc'])})", f"BAIL ≈ BAIL ({_pm(g['pbail'])})",
+                   f"BCQ ends above BAIL ({_pm(g['bcq'])})", f"({bear[0]} to {bear[-1]})",
+                   f"above or below BAIL ({_pm(g['bear'])})", f"ends below BC ({_pm(g['marwil'])})",
+                   f"mean episode return ({g['bail']['dataset_mean_episode_return']:.1f})",
+                   f"does not lift it ({_pm(g['marwil (value_warmup_updates=1000)'])})",
+                   f"BAIL: {g['bail']['final_return_mean']:.0f} against a mean best of "
+                   f"{g['bail']['best_return_mean']:.0f}"):
+        assert quoted in reading, quoted
+    verdicts = {c["b"] if c["a"] == "bail" else c["a"]: c["verdict"] for c in cell["claims"]}
+    assert verdicts["bcq"].startswith("does not hold (below") and verdicts["bear"].startswith("does not hold (no")
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert f"BEAR's three seeds ({bear[0]} to {bear[-1]}) straddle BAIL's" in readme
+    assert min(g["bear"]["per_seed"]) < min(g["bail"]["per_seed"]) < max(g["bear"]["per_seed"])
