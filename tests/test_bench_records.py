@@ -172,13 +172,15 @@ def test_the_paper_scale_section_quotes_its_records():
             f"{meta['env_steps_per_s']:.0f} env steps/s: {meta['num_transitions']}") in section
     flat = " ".join(section.split())
     assert f"{meta['num_episodes']} episodes, mean return {meta['episode_return_mean']:.1f}" in flat
-    rows = [row for record in ("bench_paper_cost.json", "bench_paper_cost_bear_envelope.json")
+    rows = [row for record in ("bench_paper_cost.json", "bench_paper_cost_bear_envelope.json",
+                               "bench_paper_cost_td3bc.json")
             for row in json.loads((RECORDS_DIR / record).read_text())["rows"]]
     probe = {row["name"].split()[0]: row for row in rows}
     assert len(probe) == len(rows), "a probe measured in two records: say which one the page quotes"
     quoted = {"bc": "BC {:.1f} updates/s on one thread and {:.1f} on two (×{:.2f})",
               "bcq": "BCQ {:.1f} and {:.1f} (×{:.2f})", "bear": "BEAR {:.1f} and {:.1f} (×{:.2f})",
-              "envelope": "envelope fit {:.2f} and {:.2f} epochs/s (×{:.2f})"}
+              "envelope": "envelope fit {:.2f} and {:.2f} epochs/s (×{:.2f})",
+              "td3bc": "TD3+BC {:.1f} and {:.1f} (×{:.2f})"}
     for algo, text in quoted.items():
         row = probe[algo]
         assert text.format(row["threads=1"], row["threads=2"], row["ratio"]) in flat, algo
@@ -186,6 +188,9 @@ def test_the_paper_scale_section_quotes_its_records():
     assert (f"BCQ's 10^5 updates take about {minutes['bcq']:.0f} min and BEAR's about {minutes['bear']:.0f} min "
             "before their evaluations") in flat
     assert f"50 epochs take about {50 / probe['envelope']['threads=1'] / 60:.1f} min" in flat
+    assert f"its 10^5 updates of 256 take about {10**5 / probe['td3bc']['threads=1'] / 60:.0f} min" in flat
+    ratios = sorted(row["ratio"] for row in rows)
+    assert f"A second thread pays (×{ratios[0]:.2f}-{ratios[-1]:.2f})" in flat
     sac = sorted(round(t) for job, t in json.loads((results / "study" / "timings.json").read_text()).items()
                  if job.startswith("collect/") and job.endswith("_sac"))
     assert f"SAC runs took {sac[0]}-{sac[-1]} s" in flat
