@@ -10,6 +10,7 @@ version of the drill with real processes is ``benchmarks/kill_drill.py``.
 
 from __future__ import annotations
 
+import copy
 import io
 import json
 import os
@@ -101,6 +102,22 @@ def test_checkpoint_round_trip_continues_bit_for_bit(name):
     _assert_same(_updates(restored, restored_data, 6, seed=2), _updates(original, train_data, 6, seed=2))
     _assert_same(restored.state_dict(), original.state_dict())
     _assert_same(restored.summary(), original.summary())
+
+
+@pytest.mark.parametrize("name", sorted(ALGOS))
+def test_a_state_loaded_from_a_live_algorithm_shares_nothing_with_it(name):
+    """``b.load_state_dict(a.state_dict())`` without a trip through disk: torch's ``Optimizer.load_state_dict`` keeps
+    the given moment tensors, so without a copy ``a``'s later updates would move ``b``'s Adam moments too."""
+    data = _data()
+    torch.manual_seed(0)
+    original = ALGOS[name]()
+    train_data = original.prepare(data, PrepareContext(generator=torch.Generator().manual_seed(5)))
+    _updates(original, train_data, 7, seed=1)
+    loaded = ALGOS[name]()
+    loaded.load_state_dict(original.state_dict())
+    snapshot = copy.deepcopy(loaded.state_dict())
+    _updates(original, train_data, 3, seed=2)
+    _assert_same(loaded.state_dict(), snapshot)
 
 
 class _Kill(BaseException):

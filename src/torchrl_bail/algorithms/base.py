@@ -217,11 +217,13 @@ class Algorithm(ABC):
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Loads :meth:`state_dict` into this algorithm's modules and optimizers, in place."""
+        """Loads :meth:`state_dict` into this algorithm's modules and optimizers, in place; it shares no tensor
+        with ``state`` (torch's ``Optimizer.load_state_dict`` keeps the moment tensors it is given, so loading from a
+        live algorithm would tie the two algorithms' Adam moments together: they are copied here)."""
         for k, m in self.modules.items():
             m.load_state_dict(state["modules"][k])
         for k, o in self.optimizers.items():
-            o.load_state_dict(state["optimizers"][k])
+            o.load_state_dict(copy.deepcopy(state["optimizers"][k]))
         for k, v in state.get("attributes", {}).items():
             setattr(self, k, copy.deepcopy(v))
 
