@@ -6,12 +6,14 @@
 * ``assets/data_flow.svg``, the Concepts page's figure, drawn by ``docs/gen_data_flow.py``;
 * ``assets/<study>/*.png``: the figures of ``results/study``, ``results/paper_hopper``, ``results/marwil_stall``
   and ``results/getting_started``, served from where their scripts (or the run) wrote them, so the Results page, Getting
-  started and the README show the same files.
+  started and the README show the same files; and the envelope plots the paper cell's report names
+  (``assets/paper_hopper/envelope_<run>.png``).
 """
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -43,6 +45,12 @@ def on_files(files, config):
     for study in ("study", "paper_hopper", "marwil_stall", "getting_started"):
         for figure in sorted((ROOT / "results" / study).glob("*.png")):
             files.append(File.generated(config, f"assets/{study}/{figure.name}", abs_src_path=str(figure)))
+    cell = json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())
+    for fit in cell["envelope_fits"]:  # the envelope plots its report names, under the run's name
+        if fit["plot"]:
+            name = "envelope_" + fit["run"].replace("/", "_") + ".png"
+            files.append(File.generated(config, f"assets/paper_hopper/{name}",
+                                        abs_src_path=str(ROOT / "results" / "paper_hopper" / fit["plot"])))
     return files
 
 
