@@ -485,3 +485,17 @@ def test_the_paper_cells_reading_is_its_report():
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert f"BEAR's three seeds ({bear[0]} to {bear[-1]}) straddle BAIL's" in readme
     assert min(g["bear"]["per_seed"]) < min(g["bail"]["per_seed"]) < max(g["bear"]["per_seed"])
+
+
+def test_the_sweep_tutorials_spread_over_seeds_is_its_kept_runs():
+    """The sweep page's "654.3 ± 79.5 alone, 675.7 ± 68.1 stacked" are the mean ± sample std of the three seeds' final
+    returns its kept run printed, each way."""
+    import statistics
+
+    kept = (KEPT_TUTORIALS / "sweep_seeds.txt").read_text()
+    runs = re.findall(r"seed \d: final_return ([\d.]+) alone, ([\d.]+) stacked", kept)
+    assert len(runs) == 3
+    alone, stacked = ([float(r[i]) for r in runs] for i in (0, 1))
+    page = " ".join((TUTORIALS / "sweep-seeds.md").read_text().split())
+    assert (f"here {statistics.mean(alone):.1f} ± {statistics.stdev(alone):.1f} alone, "
+            f"{statistics.mean(stacked):.1f} ± {statistics.stdev(stacked):.1f} stacked") in page
