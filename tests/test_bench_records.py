@@ -160,8 +160,8 @@ def test_the_paper_scale_section_quotes_its_records():
     assert f"**{wall['hopper_ddpg05/bail/seed5']} s**" in section
     assert f"BAIL seed 1's {wall['hopper_ddpg05/bail/seed1']} s" in section
     flat_section = " ".join(section.split())
-    for algo in ("BCQ", "BEAR"):  # 10^5 updates each, 20 evaluations
-        seconds = sorted(wall[job] for job in wall if job.startswith(f"hopper_ddpg05/{algo.lower()}/"))
+    for algo, name in (("BCQ", "bcq"), ("BEAR", "bear"), ("TD3+BC", "td3bc")):  # 10^5 updates each, 20 evaluations
+        seconds = sorted(wall[job] for job in wall if job.startswith(f"hopper_ddpg05/{name}/"))
         rates = sorted(f"{10**5 / s:.1f}" for s in seconds)
         span = f"{seconds[0]}-{seconds[-1]} s" if len(seconds) > 1 else f"{seconds[0]} s"
         pace = f"{rates[0]}-{rates[-1]}" if len(rates) > 1 else rates[0]
@@ -228,3 +228,15 @@ def test_the_interrupted_runs_guide_quotes_each_kill_drill_record(name):
               f"{landed['after the end']} after the end; {drill['resumed']} trials resumed from a checkpoint)")
     page = " ".join((ROOT / "docs" / "guides" / "interrupted-runs.md").read_text().split())
     assert " ".join(quoted.split()) in page and f"{name}.json`" in page
+
+
+def test_the_fail_fast_figures_are_the_records():
+    """Adding an algorithm's "fails in X s, where importing one algorithm's module takes Y s (×R)" is
+    ``bench_fail_fast.json``'s medians, and the bad command line is the faster by far."""
+    record = json.loads((RECORDS_DIR / "bench_fail_fast.json").read_text())
+    (row,) = [r for r in record["rows"] if r["name"].startswith("bad command line")]
+    guide = " ".join((ROOT / "docs" / "guides" / "adding-an-algorithm.md").read_text().split())
+    rounds = len(row["rounds"]["bad command line"])
+    assert (f"it fails in {row['bad command line']:.2f} s, where importing one algorithm's module takes "
+            f"{row['algorithm module']:.2f} s (×{row['ratio']:.2f}; medians of {rounds} fresh processes") in guide
+    assert row["ratio"] < 0.5

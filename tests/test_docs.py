@@ -477,6 +477,7 @@ def test_the_paper_cells_reading_is_its_report():
                    f"above or below BAIL ({_pm(g['bear'])})", f"ends below BC ({_pm(g['marwil'])})",
                    f"mean episode return ({g['bail']['dataset_mean_episode_return']:.1f})",
                    f"does not lift it ({_pm(g['marwil (value_warmup_updates=1000)'])})",
+                   f"10^5 updates, ends at {_pm(g['td3bc'])}: between BEAR and BCQ",
                    f"BAIL: {g['bail']['final_return_mean']:.0f} against a mean best of "
                    f"{g['bail']['best_return_mean']:.0f}"):
         assert quoted in reading, quoted
@@ -485,6 +486,7 @@ def test_the_paper_cells_reading_is_its_report():
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert f"BEAR's three seeds ({bear[0]} to {bear[-1]}) straddle BAIL's" in readme
     assert min(g["bear"]["per_seed"]) < min(g["bail"]["per_seed"]) < max(g["bear"]["per_seed"])
+    assert g["bear"]["final_return_mean"] < g["td3bc"]["final_return_mean"] < g["bcq"]["final_return_mean"]
 
 
 def test_the_sweep_tutorials_spread_over_seeds_is_its_kept_runs():
