@@ -139,12 +139,11 @@ def paper_schedule(algo: str) -> list[str]:
     epochs of conf/algo). An actor-critic runs :data:`OFFLINE_RL_UPDATES` updates of its own batch size, in epochs of
     10^6 samples: ``algo.epochs=10`` for BCQ and BEAR (batches of 100), ``algo.epochs=25.6`` for TD3+BC (256), so
     that every actor-critic of the cell has had as many updates."""
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.config_builders import run_length_overrides
 
     if ALGO_SCHEMAS[algo].cost == "imitation":
         return []
-    epochs = OFFLINE_RL_UPDATES * algo_config(algo).batch_size / 10**6
-    return [f"algo.epochs={epochs:g}", f"eval.every_epochs={epochs / OFFLINE_RL_EVALUATIONS:g}"]
+    return run_length_overrides(algo, OFFLINE_RL_UPDATES, OFFLINE_RL_EVALUATIONS)
 
 
 #: the paper-scale study's design (which algorithms: each schema's ``paper_study`` line): :data:`HEADLINE_PAIR` runs

@@ -17,7 +17,8 @@ from torchrl_bail.config import Checked, EnvConfig, validate_config
 from torchrl_bail.errors import ConfigError
 from torchrl_bail.hydra_setup import config_dir
 
-__all__ = ["CollectionConfig", "algo_config", "checked_algo_config", "collection_config", "tiny_run_overrides"]
+__all__ = ["CollectionConfig", "algo_config", "checked_algo_config", "collection_config", "run_length_overrides",
+           "tiny_run_overrides"]
 
 
 
@@ -120,13 +121,28 @@ def _checked_algo(node: DictConfig) -> DictConfig:
     return node
 
 
+def run_length_overrides(name: str, updates: int, evaluations: Optional[int] = None) -> list[str]:
+    """The command-line overrides that make a run of algorithm ``name`` last ``updates`` mini-batches of its yaml's
+    size: ``algo.epochs`` (epochs count ``conf/config.yaml``'s ``samples_per_epoch``), and, given ``evaluations``,
+    ``eval.every_epochs`` for an evaluation every ``1 / evaluations`` of the run.
+
+    Examples:
+        >>> run_length_overrides("bcq", 10**5, evaluations=20)  # batches of 100
+        ['algo.epochs=10', 'eval.every_epochs=0.5']
+        >>> run_length_overrides("td3bc", 10**5, evaluations=20)  # batches of 256
+        ['algo.epochs=25.6', 'eval.every_epochs=1.28']
+    """
+    epochs = updates * algo_config(name).batch_size / OmegaConf.load(config_dir() / "config.yaml").samples_per_epoch
+    return [f"algo.epochs={epochs:g}"] + ([f"eval.every_epochs={epochs / evaluations:g}"] if evaluations else [])
+
+
 def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluations: Optional[int] = None) -> list[str]:
     """The command-line overrides of a run of algorithm ``name`` that takes seconds on a tiny batch: ``algo.epochs``
     for ``updates`` mini-batches of its yaml's size (at ``conf/config.yaml``'s ``samples_per_epoch``), every network
     :func:`~torchrl_bail.algo_schemas.blocks_with` a ``hidden`` key ``hidden`` wide, its registry entry's
-    ``tiny``, and, given ``evaluations``, an evaluation every ``1 / evaluations`` of the run. The contract suite's
-    tiny runs (``tests/_contract.py``: 5 updates) and the kill drill (``benchmarks/kill_drill.py``: 300) are this at
-    two lengths.
+    ``tiny``, and, given ``evaluations``, an evaluation every ``1 / evaluations`` of the run (its length:
+    :func:`run_length_overrides`). The contract suite's tiny runs (``tests/_contract.py``: 5 updates) and the kill
+    drill (``benchmarks/kill_drill.py``: 300) are this at two lengths.
 
     Examples:
         >>> tiny_run_overrides("bear", 5, [16, 16])  # doctest: +NORMALIZE_WHITESPACE
@@ -139,8 +155,8 @@ def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluatio
         schema = ALGO_SCHEMAS[name]
         raise ValueError(f"{schema.__name__}.tiny is not stated: the algo keys a run of a few updates needs besides "
                          f"small networks and its length, () if none (state it on the schema in {schema.__module__})")
-    epochs = updates * algo_config(name).batch_size / OmegaConf.load(config_dir() / "config.yaml").samples_per_epoch
+    length, *evaluation = run_length_overrides(name, updates, evaluations)
     width = "[" + ",".join(str(int(h)) for h in hidden) + "]"
-    overrides = [f"algo.epochs={epochs:g}", *(f"algo.{block}.hidden={width}" for block in blocks_with(name, "hidden")),
+    overrides = [length, *(f"algo.{block}.hidden={width}" for block in blocks_with(name, "hidden")),
                  *(f"algo.{override}" for override in ALGO_SCHEMAS[name].tiny)]
-    return overrides + ([f"eval.every_epochs={epochs / evaluations:g}"] if evaluations else [])
+    return overrides + evaluation
