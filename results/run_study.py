@@ -191,15 +191,53 @@ def paper_hopper_jobs() -> list[Job]:
     return jobs + [j for kind, algo, seeds in PAPER_EXTRA_CELLS for j in train(kind, algo, seeds)]
 
 
-STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs}
+#: the cross-batch study (``--study paper_batches``): three more 10^6-transition training batches, in the order they
+#: run, each as (exp, batch index, the BAIL authors' published figure on it: their repository's README table, gym -v2
+#: envs, mean ± std over seeds). Hopper DDPG sigma=0.5 B2 is the headline batch's recipe with another seed: how much of
+#: a verdict is the batch itself
+PAPER_BATCHES = [("walker_ddpg05", 1, "2522 ± 51"), ("hopper_ddpg01", 1, "2173 ± 291"),
+                 ("hopper_ddpg05", 2, "2623 ± 282")]
+#: the central algorithms of the cross-batch study, with their seeds, in the order they run on each batch
+PAPER_BATCH_CELLS = [("bail", 5), ("bc", 5), ("bcq", 3), ("pbail", 3)]
+#: when every batch has its central cells: the paper's other actor-critic and two modern reference points (no claim
+#: rests on these)
+PAPER_BATCH_EXTRA_CELLS = [("bear", 3), ("td3bc", 3), ("iql", 3)]
+
+
+def batch_args(exp: str, index: int) -> list[str]:
+    """The overrides that name a batch: its experiment and, past B1, its index."""
+    return [f"+exp={exp}"] + ([f"batch.index={index}"] if index != 1 else [])
+
+
+def paper_batches_jobs() -> list[Job]:
+    """The cross-batch study at the paper's scale (results in ``results/paper_batches``): for each of
+    :data:`PAPER_BATCHES` in turn, its collection (``collect``, 10^6 env steps) and then :data:`PAPER_BATCH_CELLS`
+    (BAIL and BC x 5 seeds, BCQ x 3 at the paper-scale actor-critic schedule of :func:`paper_schedule`, Progressive
+    BAIL x 3); then :data:`PAPER_BATCH_EXTRA_CELLS` on every batch, seed 1 of every cell first. Job names carry the
+    batch label (``walker_ddpg05_b1/bail/seed1``)."""
+    def train(exp, index, algo, seeds):
+        return [Job(f"{exp}_b{index}/{algo}/seed{s}", [*batch_args(exp, index), f"algo={algo}", f"seed={s}",
+                                                        *paper_schedule(algo)]) for s in seeds]
+
+    jobs = []
+    for exp, index, _ in PAPER_BATCHES:
+        jobs.append(Job(f"collect/{exp}_b{index}", batch_args(exp, index), "torchrl_bail.collect"))
+        jobs += [j for algo, seeds in PAPER_BATCH_CELLS for j in train(exp, index, algo, range(1, seeds + 1))]
+    extra = [train(exp, index, algo, range(1, seeds + 1)) for algo, seeds in PAPER_BATCH_EXTRA_CELLS
+             for exp, index, _ in PAPER_BATCHES]
+    return jobs + [cell[i] for i in range(max(len(c) for c in extra)) for cell in extra if i < len(cell)]
+
+
+STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs, "paper_batches": paper_batches_jobs}
 
 
 def run_dir_of(job: Job, runs: Path) -> Path | None:
     """The run directory of a training job under ``runs`` (the workdir's ``outputs``, or the results' ``runs``, which
     keeps the same layout: ``<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
     named = dict(arg.split("=", 1) for arg in job.args)
-    extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=")))
-    for run in sorted((runs / f"{named['+exp']}_b1" / named["algo"]).glob(f"seed{named['seed']}*")):
+    extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=", "batch.index=")))
+    label = f"{named['+exp']}_b{named.get('batch.index', 1)}"  # batch.index is in the path, not the suffix
+    for run in sorted((runs / label / named["algo"]).glob(f"seed{named['seed']}*")):
         if run.name.split(",")[0] == f"seed{named['seed']}" and sorted(run.name.split(",")[1:]) == extra:
             return run
     return None
@@ -224,7 +262,8 @@ def _collected_steps(job: Job, data_dir: Path | None) -> str:
     from torchrl_bail.data.cache import default_data_dir
     from torchrl_bail.data.locks import PARTIAL
 
-    batch = job.name.split("/", 1)[1] + "_b1"
+    named = dict(arg.split("=", 1) for arg in job.args)
+    batch = f"{named['+exp']}_b{named.get('batch.index', 1)}"
     partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch}-*")
     steps = [s for s in (CollectionCheckpoint(p, every_s=None).steps for p in partials) if s is not None]
     return f" ({max(steps)} steps collected)" if steps else ""
