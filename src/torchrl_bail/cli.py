@@ -165,24 +165,42 @@ def _preemption_signal() -> int | None:
     return sig if sig is not None and callable(signal.getsignal(sig)) else None
 
 
+#: the exit status of a Slurm job that saved its work on SIGTERM (128 + 15, as a shell reports a SIGTERM'd process)
+SIGTERM_EXIT = 128 + signal.SIGTERM
+
+
 @contextlib.contextmanager
 def checkpoint_before_requeue() -> Iterator[None]:
-    """In a Slurm job (hydra-submitit launcher): submitit's preemption / time-limit signal first makes the running
-    loop write its checkpoint at its next safe point (:mod:`torchrl_bail.interrupts`), then goes to submitit's own
-    handler, which requeues the job and exits. Elsewhere a no-op (the entry point's :func:`run_cli` handles
-    SIGINT and SIGTERM)."""
+    """In a Slurm job (hydra-submitit launcher), both ways Slurm stops a job save the work first: the running loop
+    writes its checkpoint at its next safe point (:mod:`torchrl_bail.interrupts`: within one update, or one episode of
+    a collection), then
+
+    - on submitit's signal (USR2, ``signal_delay_s`` before the **time limit**): submitit's own handler requeues the
+      job (``scontrol requeue``) and exits;
+    - on **SIGTERM** (a preemption under ``PreemptMode=REQUEUE``, ``scontrol requeue``, ``scancel``): the job exits at
+      once with status 143 and no traceback, so that Slurm's own requeue starts it again (or, after a plain
+      ``scancel``, the next launch of the same sweep resumes it). submitit ignores SIGTERM; left to it, the job would
+      run on until Slurm's SIGKILL (``KillWait`` later) and lose the work since its last checkpoint. No result is
+      written for submitit (``SystemExit`` passes its error handler), so the launcher keeps waiting for the
+      requeued job.
+
+    Elsewhere a no-op (the entry point's :func:`run_cli` handles SIGINT and SIGTERM)."""
     sig = _preemption_signal()
     if sig is None:
         yield
         return
     try:
-        with handled([sig]):
+        with handled([sig, signal.SIGTERM]):
             yield
     except Interrupted as err:
-        if err.signum != sig:
+        if err.signum not in (sig, signal.SIGTERM):
             raise
-        print(f"torchrl_bail: {signal_name(sig)} from Slurm: "
-              f"{'saved ' + err.saved if err.saved else 'nothing new saved'}; handing over to submitit's requeue",
+        saved = "saved " + err.saved if err.saved else "nothing new saved"
+        if err.signum == signal.SIGTERM:
+            print(f"torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): {saved}; exiting for Slurm's "
+                  "requeue", file=sys.stderr, flush=True)
+            raise SystemExit(SIGTERM_EXIT) from None
+        print(f"torchrl_bail: {signal_name(sig)} from Slurm: {saved}; handing over to submitit's requeue",
               file=sys.stderr, flush=True)
         signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
         raise
