@@ -32,8 +32,8 @@ from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
 from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
 from torchrl_bail.config_builders import algo_config, tiny_run_overrides
-from torchrl_bail.modules import make_deterministic_actor, make_value_network
-from torchrl_bail.objectives import MARWILLoss, UpperEnvelopeLoss, VAELoss
+from torchrl_bail.modules import make_deterministic_actor, make_qvalue_network, make_value_network
+from torchrl_bail.objectives import FQELoss, MARWILLoss, UpperEnvelopeLoss, VAELoss
 from torchrl_bail.transforms import BestActionFilter
 
 
@@ -118,6 +118,10 @@ LOSS_CASES = [
              {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
     LossCase("bear", lambda reduction="mean": bear_loss(reduction=reduction, warm_start_updates=0),
              {**_TWIN_CRITIC_TERMS, "loss_alpha": _groups("log_alpha")}, rename=_BOOTSTRAP_RENAME, stochastic=True),
+    # the evaluated policy is frozen (buffers): only the Q network trains
+    LossCase("fqe", lambda reduction="mean": FQELoss(make_qvalue_network(OBS, SPEC.shape[-1], HIDDEN), _actor(),
+                                                     reduction=reduction),
+             {"loss_qvalue": _groups("qvalue_network_params")}, rename=_BOOTSTRAP_RENAME),
 ]
 
 

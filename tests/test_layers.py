@@ -15,7 +15,8 @@ import pytest
 import torchrl_bail
 
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
-ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate"}
+ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate",
+                "torchrl_bail.ope"}
 # the atomic writes, the one-line error classes and the interrupt requests: part of the bottom layer, they import
 # nothing from the package
 BOTTOM = {"torchrl_bail.io", "torchrl_bail.errors", "torchrl_bail.interrupts"}

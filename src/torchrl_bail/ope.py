@@ -1,0 +1,467 @@
+"""Score trained policies without the simulator: ``python -m torchrl_bail.ope RUN_DIR... [--updates N] [--seed S]``.
+
+For each run directory, Fitted Q Evaluation (:class:`~torchrl_bail.objectives.fqe.FQELoss`, Le et al. 2019; used
+for policy selection by Paine et al. 2020): the run's policy (``policy.pt``; ``--best``: ``policy_best.pt``, loaded
+with :func:`~torchrl_bail.policy.load_policy`) is held fixed and a Q network is fitted on the run's own batch (the
+data cache its ``config.yaml`` names: the generated batch of its ``env`` x ``batch``, or its ``dataset=``; nothing
+is collected here) by :func:`fit_fqe`. The estimate is the mean of ``Q(s_0, pi(s_0))`` over the batch's episode
+starts, a discounted value (``--gamma``) meant for ranking policies trained on the same batch.
+
+Beside the run it writes ``ope.json`` (``ope_best.json`` with ``--best``), atomically: the estimate, the settings
+and seed, the number of updates, the policy file's SHA-1, the batch, and the fitting curve (the estimate and the
+mean TD loss every ``--log-every`` updates). A finished ``ope.json`` is kept unless ``--force``. The fit shows a
+tqdm bar (ETA) and checkpoints into ``ope_checkpoint.pt`` every ``--checkpoint-every-s`` seconds and on Ctrl-C or
+SIGTERM; the same command continues from it, to the same numbers as an uninterrupted fit (the checkpoint is used only
+when its settings, seed, policy and batch are the command's; it is removed once ``ope.json`` is written).
+
+A bad argument or path stops the command before anything is loaded, with one line (exit status 2); a run whose
+policy or batch cannot be read is reported in one line and the others are still scored (exit status 2 at the end).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import hashlib
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ["FQESettings", "OPEError", "fit_fqe", "score_run", "main"]
+
+OPE_FORMAT = 1
+#: the entries of a batch the fit reads
+_KEYS = ("observation", "action", "episode", ("next", "observation"), ("next", "reward"), ("next", "terminated"))
+
+
+class OPEError(ValueError):
+    """A run cannot be scored (its batch is not in the cache, sizes do not match...); the message names the run."""
+
+
+@dataclass(frozen=True)
+class FQESettings:
+    """How :func:`fit_fqe` fits FQE; the defaults and their sources are in :class:`~torchrl_bail.objectives.fqe.FQELoss`
+    (d3rlpy's ``FQEConfig`` and its off-policy-evaluation reference page).
+
+    Attributes:
+        updates: gradient updates. Defaults to ``100_000``.
+        batch_size: transitions per mini-batch, drawn uniformly with replacement. Defaults to ``100``.
+        lr: Adam's learning rate. Defaults to ``1e-4``.
+        hidden: the Q network's hidden sizes (ReLU). Defaults to ``(256, 256)``.
+        target_update_period: the target network is copied from the network every this many updates.
+            Defaults to ``100``.
+        gamma: discount. Defaults to ``0.99``.
+        log_every: a point of the fitting curve (estimate, mean TD loss) every this many updates, and at the last.
+            Defaults to ``1000``.
+
+    Examples:
+        >>> FQESettings()  # doctest: +NORMALIZE_WHITESPACE
+        FQESettings(updates=100000, batch_size=100, lr=0.0001, hidden=(256, 256), target_update_period=100,
+                    gamma=0.99, log_every=1000)
+        >>> FQESettings(updates=0).check()
+        Traceback (most recent call last):
+        ...
+        ValueError: updates = 0: expected an integer >= 1
+    """
+
+    updates: int = 100_000
+    batch_size: int = 100
+    lr: float = 1e-4
+    hidden: tuple[int, ...] = (256, 256)
+    target_update_period: int = 100
+    gamma: float = 0.99
+    log_every: int = 1000
+
+    def check(self) -> FQESettings:
+        """Raises :class:`ValueError` naming the first value out of range; returns the settings."""
+        for name in ("updates", "batch_size", "target_update_period", "log_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} = {value!r}: expected an integer >= 1")
+        if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr = {self.lr!r}: expected a positive learning rate")
+        if not (isinstance(self.gamma, (int, float)) and 0.0 <= self.gamma <= 1.0):
+            raise ValueError(f"gamma = {self.gamma!r}: expected a discount in [0, 1]")
+        if not self.hidden or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in self.hidden):
+            raise ValueError(f"hidden = {self.hidden!r}: expected one or more positive layer sizes")
+        return self
+
+
+def _as_float(value) -> float:
+    return float(value.item() if hasattr(value, "item") else value)
+
+
+def _read_checkpoint(path: Path | None, identity: dict) -> dict | None:
+    """The fit checkpoint at ``path`` when it is this fit's (same ``identity``), else ``None`` (with a line on
+    stderr when one is there but not usable)."""
+    import torch
+
+    if path is None or not path.exists():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - an unreadable checkpoint is set aside: the fit starts over
+        print(f"torchrl_bail.ope: ignoring unreadable {path} ({type(err).__name__}); fitting from the start",
+              file=sys.stderr)
+        return None
+    if not isinstance(state, dict) or state.get("format") != OPE_FORMAT or state.get("identity") != identity:
+        print(f"torchrl_bail.ope: {path} is another fit's (settings, seed, policy or batch differ); fitting from "
+              f"the start", file=sys.stderr)
+        return None
+    return state
+
+
+def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
+            progress: bool = False, checkpoint_path: str | Path | None = None, checkpoint_every_s: float = 300.0,
+            identity: dict | None = None, desc: str = "fqe") -> dict[str, Any]:
+    """Fits FQE for the fixed ``policy`` on ``data`` and returns its estimate and fitting curve.
+
+    Seeded with ``seed``: torch's global generator draws the Q network's initial weights, then the policy's actions
+    at every state and next state (computed once: :meth:`~torchrl_bail.objectives.fqe.FQELoss.add_policy_actions`;
+    only a sampling policy such as BCQ's draws here); a generator of its own draws the mini-batches. The same seed,
+    data, settings, device and thread count give the same numbers.
+
+    Args:
+        policy (TensorDictModule): the policy to evaluate (``"observation" -> "action"``).
+        data (TensorDictBase): a ``[N]`` TED batch with ``observation``, ``action``, ``episode`` and ``("next",
+            "observation" | "reward" | "terminated")``; it is copied to ``device``, the rest is left out.
+        settings (FQESettings, optional): defaults to :class:`FQESettings`'s defaults.
+
+    Keyword Args:
+        seed (int): see above. Defaults to ``0``.
+        device (str | torch.device): where the fit runs. Defaults to ``"cpu"``.
+        progress (bool): a tqdm bar (ETA, the current estimate and TD loss). Defaults to ``False``.
+        checkpoint_path (str | Path, optional): where the fit checkpoints (every ``checkpoint_every_s`` seconds
+            and when Ctrl-C or SIGTERM arrives through :mod:`torchrl_bail.interrupts`) and what it continues from
+            when that file holds a checkpoint of the same ``identity``.
+        checkpoint_every_s (float): seconds between checkpoints. Defaults to ``300``.
+        identity (dict, optional): what a checkpoint must match to be continued (settings and seed are added).
+        desc (str): the bar's label.
+
+    Returns:
+        ``{"estimate", "updates", "curve", "num_episode_starts", "num_transitions", "wall_time_s",
+        "resumed_at"}``; ``curve`` is a list of ``{"update", "estimate", "td_loss"}`` (``td_loss``: the mean squared
+        TD error over the updates since the previous point), ``resumed_at`` the update a checkpoint continued from
+        (``0`` when the fit started afresh).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+        >>> policy = make_deterministic_actor(3, action_spec_from_bounds([-1.0], [1.0]), (8,))
+        >>> n = 20
+        >>> data = TensorDict({"observation": torch.randn(n, 3), "action": torch.rand(n, 1),
+        ...                    "episode": torch.arange(n) // 5,  # 4 episodes of 5 steps
+        ...                    "next": {"observation": torch.randn(n, 3), "reward": torch.ones(n, 1),
+        ...                             "terminated": torch.zeros(n, 1, dtype=torch.bool)}}, [n])
+        >>> settings = FQESettings(updates=20, hidden=(16,), log_every=10)
+        >>> result = fit_fqe(policy, data, settings, seed=1)
+        >>> [point["update"] for point in result["curve"]], result["num_episode_starts"]
+        ([10, 20], 4)
+        >>> result["estimate"] == fit_fqe(policy, data, settings, seed=1)["estimate"]  # same seed, same numbers
+        True
+    """
+    import torch
+    from torchrl.objectives import HardUpdate
+    from tqdm.auto import tqdm
+
+    from torchrl_bail import interrupts
+    from torchrl_bail.io import write_atomic
+    from torchrl_bail.modules import make_qvalue_network
+    from torchrl_bail.objectives.fqe import FQELoss, episode_starts
+
+    settings = (settings or FQESettings()).check()
+    device = torch.device(device)
+    checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
+    identity = {**(identity or {}), "settings": dataclasses.asdict(settings), "seed": int(seed),
+                "device": device.type}
+    identity["settings"]["hidden"] = list(settings.hidden)
+    data = data.select(*_KEYS).to_tensordict().to(device)
+    num = int(data.batch_size[0])
+    obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
+
+    torch.manual_seed(int(seed))
+    loss = FQELoss(make_qvalue_network(obs_dim, act_dim, settings.hidden), policy, gamma=settings.gamma).to(device)
+    # TorchRL's HardUpdate copies on the (interval + 1)-th step(): every target_update_period-th update here
+    updater = HardUpdate(loss, value_network_update_interval=settings.target_update_period - 1)
+    loss.add_policy_actions(data)
+    starts = data[episode_starts(data["episode"])]
+    optimizer = torch.optim.Adam(loss.parameters(), lr=settings.lr)
+    generator = torch.Generator(device=device).manual_seed(int(seed))
+
+    done, curve, prior_wall_time = 0, [], 0.0
+    td_sum, td_count = torch.zeros((), dtype=torch.float64, device=device), 0
+    state = _read_checkpoint(checkpoint_path, identity)
+    if state is not None:
+        loss.load_state_dict(state["loss"])
+        optimizer.load_state_dict(state["optimizer"])
+        generator.set_state(state["generator"])
+        updater.counter = int(state["target_counter"])
+        done, curve, prior_wall_time = int(state["update"]), list(state["curve"]), float(state["wall_time_s"])
+        td_sum, td_count = state["td_sum"].to(device), int(state["td_count"])
+    resumed_at = done
+    start = time.perf_counter()
+
+    def save(update: int) -> str:
+        with interrupts.saving():
+            checkpoint = {"format": OPE_FORMAT, "identity": identity, "update": update, "loss": loss.state_dict(),
+                          "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
+                          "target_counter": updater.counter, "curve": curve, "td_sum": td_sum.cpu(),
+                          "td_count": td_count, "wall_time_s": prior_wall_time + time.perf_counter() - start}
+            write_atomic(checkpoint_path, lambda f: torch.save(checkpoint, f))
+        return f"the FQE fit at update {update} in {checkpoint_path}"
+
+    bar = tqdm(total=settings.updates, initial=done, desc=desc, unit="update", disable=not progress,
+               dynamic_ncols=True, mininterval=0.5)
+    # signals wait for the end of an update (interrupts.safe_points); the bar is closed on every way out
+    with interrupts.safe_points(), contextlib.closing(bar):
+        last_save = time.monotonic()
+        for update in range(done + 1, settings.updates + 1):
+            index = torch.randint(num, (settings.batch_size,), generator=generator, device=device)
+            loss_value, _ = loss.qvalue_loss(data[index])
+            optimizer.zero_grad(set_to_none=True)
+            loss_value.backward()
+            optimizer.step()
+            updater.step()
+            td_sum += loss_value.detach()
+            td_count += 1
+            if update % settings.log_every == 0 or update == settings.updates:
+                estimate = _as_float(loss.policy_value(starts))
+                curve.append({"update": update, "estimate": estimate, "td_loss": _as_float(td_sum) / td_count})
+                td_sum.zero_()
+                td_count = 0
+                bar.set_postfix(estimate=f"{estimate:.2f}", td_loss=f"{curve[-1]['td_loss']:.3g}")
+            bar.update(1)
+            stopping = interrupts.requested() is not None  # Ctrl-C/SIGTERM: the checkpoint at this update, then stop
+            saved = None
+            if checkpoint_path is not None and (stopping or (
+                    update < settings.updates and time.monotonic() - last_save >= checkpoint_every_s)):
+                saved = save(update)
+                last_save = time.monotonic()
+            if stopping:
+                interrupts.stop(saved)
+    return {"estimate": curve[-1]["estimate"], "updates": settings.updates, "curve": curve,
+            "num_episode_starts": int(starts.batch_size[0]), "num_transitions": num,
+            "wall_time_s": prior_wall_time + time.perf_counter() - start, "resumed_at": resumed_at}
+
+
+# -- a run directory ----------------------------------------------------------------------------------------------
+def _sha1(path: Path) -> str:
+    digest = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def run_batch(run_dir: Path, cfg, data_dir: str | Path | None = None):
+    """The batch run ``run_dir`` (its config ``cfg``) trained on, from the data cache (``data_dir``: else the
+    config's ``data_dir``, else ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``); never collected here."""
+    from torchrl_bail.config_builders import collection_config
+    from torchrl_bail.data.cache import batch_path, load_cached_batch
+
+    if cfg.get("dataset"):
+        from torchrl_bail.data.importers import import_dataset
+
+        return import_dataset(Path(str(cfg.dataset)).expanduser(), env_id=cfg.env.id,
+                              data_dir=data_dir if data_dir is not None else cfg.get("data_dir"))
+    collection = collection_config(cfg)
+    path = batch_path(collection, data_dir)
+    batch = load_cached_batch(path, remedy="it cannot be scored")
+    if batch is None:
+        raise OPEError(f"{run_dir}: its batch {path} is not in the data cache; collect it (python -m "
+                       f"torchrl_bail.collect with the run's +exp/env/batch) or point --data-dir at the cache that "
+                       f"holds it")
+    return batch
+
+
+def output_path(run_dir: str | Path, *, best: bool = False) -> Path:
+    """``<run_dir>/ope.json`` (``ope_best.json`` for the best-evaluated policy)."""
+    return Path(run_dir) / ("ope_best.json" if best else "ope.json")
+
+
+def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
+              best: bool = False, data_dir: str | Path | None = None, force: bool = False, progress: bool = False,
+              checkpoint_every_s: float = 300.0) -> tuple[dict[str, Any], bool]:
+    """Scores one run directory: ``(record, fitted)``, the record written to :func:`output_path` (or the one
+    already there, ``fitted = False``, unless ``force``). Arguments as in :func:`fit_fqe` and the command line."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.data.batch import library_versions
+    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.policy import load_policy
+
+    settings = (settings or FQESettings()).check()
+    run_dir = Path(run_dir)
+    out = output_path(run_dir, best=best)
+    if out.exists() and not force:
+        import json
+
+        return json.loads(out.read_text()), False
+    device = torch.device(device)
+    policy = load_policy(run_dir, device=device, best=best)
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    batch = run_batch(run_dir, cfg, data_dir)
+    record = policy.record
+    if (batch.obs_dim, batch.act_dim) != (int(record["obs_dim"]), int(record["act_dim"])):
+        raise OPEError(f"{run_dir}: its batch {batch.path} has observation/action sizes ({batch.obs_dim}, "
+                       f"{batch.act_dim}) where its policy has ({record['obs_dim']}, {record['act_dim']})")
+    policy_file = Path(record["path"])
+    identity = {"policy_sha1": _sha1(policy_file), "batch": str(batch.path), "num_transitions": batch.num_transitions}
+    checkpoint = out.with_name(out.stem + "_checkpoint.pt")
+    result = fit_fqe(policy, batch.data, settings, seed=seed, device=device, progress=progress,
+                     checkpoint_path=checkpoint, checkpoint_every_s=checkpoint_every_s, identity=identity,
+                     desc=run_dir.name)
+    ope = {
+        "format": OPE_FORMAT,
+        "estimator": "fqe",
+        "estimate": result["estimate"],
+        "gamma": settings.gamma,
+        "updates": result["updates"],
+        "seed": int(seed),
+        "settings": {**dataclasses.asdict(settings), "hidden": list(settings.hidden)},
+        "algo": record["algo"],
+        "policy": policy_file.name,
+        "policy_sha1": identity["policy_sha1"],
+        "batch": str(batch.path),
+        "num_transitions": result["num_transitions"],
+        "num_episode_starts": result["num_episode_starts"],
+        "device": device.type,
+        "threads": torch.get_num_threads(),
+        "wall_time_s": result["wall_time_s"],
+        "resumed_at": result["resumed_at"],
+        "curve": result["curve"],
+        "versions": library_versions(),
+    }
+    write_json_atomic(out, ope)
+    checkpoint.unlink(missing_ok=True)
+    return ope, True
+
+
+# -- the command line -------------------------------------------------------------------------------------------
+def _hidden(text: str) -> tuple[int, ...]:
+    try:
+        sizes = tuple(int(part) for part in text.replace(" ", "").split(",") if part)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected layer sizes like 256,256") from None
+    if not sizes or any(size < 1 for size in sizes):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected one or more positive layer sizes like 256,256")
+    return sizes
+
+
+def _parser() -> argparse.ArgumentParser:
+    defaults = FQESettings()
+    parser = argparse.ArgumentParser(prog="python -m torchrl_bail.ope", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="finished run directories")
+    parser.add_argument("--updates", type=int, default=defaults.updates,
+                        help=f"gradient updates of the fit (default {defaults.updates})")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the Q network, the policy's draws and the "
+                        "mini-batches (default 0)")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu",
+                        help="where the fit runs (default cpu; auto: cuda when available)")
+    parser.add_argument("--best", action="store_true", help="score policy_best.pt into ope_best.json")
+    parser.add_argument("--force", action="store_true", help="refit a run whose ope.json exists")
+    parser.add_argument("--data-dir", type=Path, help="the data cache holding the runs' batches (default: each "
+                        "run's data_dir, else $TORCHRL_BAIL_DATA_DIR or ~/.cache/torchrl_bail)")
+    parser.add_argument("--batch-size", type=int, default=defaults.batch_size,
+                        help=f"transitions per update (default {defaults.batch_size})")
+    parser.add_argument("--lr", type=float, default=defaults.lr, help=f"Adam's learning rate (default {defaults.lr})")
+    parser.add_argument("--hidden", type=_hidden, default=defaults.hidden,
+                        help="the Q network's hidden sizes (default " + ",".join(map(str, defaults.hidden)) + ")")
+    parser.add_argument("--target-update-period", type=int, default=defaults.target_update_period,
+                        help=f"updates between target copies (default {defaults.target_update_period})")
+    parser.add_argument("--gamma", type=float, default=defaults.gamma,
+                        help=f"discount of the estimate (default {defaults.gamma})")
+    parser.add_argument("--log-every", type=int, default=defaults.log_every,
+                        help=f"updates between points of the fitting curve (default {defaults.log_every})")
+    parser.add_argument("--checkpoint-every-s", type=float, default=300.0,
+                        help="seconds between checkpoints of a fit (default 300)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def _check_run_dir(path: Path, best: bool) -> str | None:
+    """Why ``path`` cannot be scored (a missing directory, config or policy), or ``None``."""
+    if not path.is_dir():
+        return f"{path}: no such run directory"
+    if not (path / "config.yaml").is_file():
+        return f"{path}: not a run directory (no config.yaml)"
+    policy = path / ("policy_best.pt" if best else "policy.pt")
+    if not policy.is_file():
+        return f"{path}: no {policy.name} (a finished run directory holds it)"
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    settings = FQESettings(updates=args.updates, batch_size=args.batch_size, lr=args.lr, hidden=tuple(args.hidden),
+                           target_update_period=args.target_update_period, gamma=args.gamma,
+                           log_every=args.log_every)
+    try:
+        settings.check()
+    except ValueError as err:  # "updates = 0: expected ..." -> "--updates 0: expected ..."
+        name, _, rest = str(err).partition(" = ")
+        parser.error(f"--{name.replace('_', '-')} {rest}")
+    if args.threads < 1:
+        parser.error(f"--threads {args.threads}: expected a positive number of threads")
+    if not args.checkpoint_every_s > 0:
+        parser.error(f"--checkpoint-every-s {args.checkpoint_every_s}: expected a positive number of seconds")
+    if args.data_dir is not None and not args.data_dir.is_dir():
+        print(f"torchrl_bail.ope: --data-dir {args.data_dir}: no such directory", file=sys.stderr)
+        return 2
+    run_dirs = list(dict.fromkeys(args.run_dirs))
+    for problem in filter(None, (_check_run_dir(path, args.best) for path in run_dirs)):
+        print(f"torchrl_bail.ope: {problem}", file=sys.stderr)
+        return 2
+
+    import torch
+
+    from torchrl_bail.cli import describe_interrupt
+    from torchrl_bail.errors import USER_ERRORS
+    from torchrl_bail.interrupts import Interrupted, handled
+    from torchrl_bail.io import FileSystemError
+    from torchrl_bail.policy import PolicyFileError
+
+    device = args.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        print("torchrl_bail.ope: --device cuda: no CUDA device is available (use --device cpu)", file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    status = 0
+    with handled():
+        for run_dir in run_dirs:
+            try:
+                ope, fitted = score_run(run_dir, settings, seed=args.seed, device=device, best=args.best,
+                                        data_dir=args.data_dir, force=args.force, progress=not args.no_progress,
+                                        checkpoint_every_s=args.checkpoint_every_s)
+            except Interrupted as err:
+                command = " ".join(["python -m torchrl_bail.ope", *(argv if argv is not None else sys.argv[1:])])
+                print(f"torchrl_bail.ope: {describe_interrupt(err, command)}", file=sys.stderr)
+                return err.exit_status
+            except (OPEError, PolicyFileError, FileSystemError, *USER_ERRORS) as err:
+                print(f"torchrl_bail.ope: {err}", file=sys.stderr)
+                status = 2
+                continue
+            out = output_path(run_dir, best=args.best)
+            if fitted:
+                print(f"{run_dir}: FQE estimate {ope['estimate']:.3f} (discounted, gamma {ope['gamma']}; "
+                      f"{ope['updates']} updates, {ope['num_episode_starts']} episode starts) -> {out}")
+            else:
+                same = ope.get("settings") == {**dataclasses.asdict(settings), "hidden": list(settings.hidden)} \
+                    and ope.get("seed") == args.seed
+                note = "" if same else " (fitted with other settings or seed: --force refits)"
+                print(f"{run_dir}: kept {out}, FQE estimate {ope.get('estimate')}{note}")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

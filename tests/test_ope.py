@@ -1,0 +1,132 @@
+"""``python -m torchrl_bail.ope`` end to end on a tiny trained run: ope.json, same seed same estimate, kept unless
+--force, a killed fit continues to the uninterrupted numbers, and bad arguments stop it in one line (exit status 2)."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
+from _contract import ALGO_CASES, TINY_RUN
+from hydra import compose, initialize_config_dir
+
+from torchrl_bail import config_dir, interrupts
+from torchrl_bail.ope import main
+
+#: a fit of seconds: 60 updates of a 16-16 network, a curve point every 20
+FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_run_data_dir, tmp_path_factory):
+    """A BC run through the config on the session's tiny batch (``_contract.TINY_RUN``)."""
+    from torchrl_bail.train import run
+
+    run_dir = tmp_path_factory.mktemp("bc_run")
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY_RUN, "algo=bc", *ALGO_CASES["bc"].cli,
+                                           f"data_dir={tiny_run_data_dir}"])
+    run(cfg, run_dir)
+    return run_dir
+
+
+def _ope(run_dir, name="ope.json") -> dict:
+    return json.loads((run_dir / name).read_text())
+
+
+def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_run, capsys):
+    assert main([str(tiny_run), "--seed", "3", *FAST]) == 0
+    assert "FQE estimate" in capsys.readouterr().out
+    first = _ope(tiny_run)
+    assert math.isfinite(first["estimate"]) and first["updates"] == 60 and first["seed"] == 3
+    assert [p["update"] for p in first["curve"]] == [20, 40, 60]
+    assert all(math.isfinite(p["estimate"]) and math.isfinite(p["td_loss"]) for p in first["curve"])
+    assert first["estimate"] == first["curve"][-1]["estimate"] and first["algo"] == "bc"
+    assert first["num_transitions"] == 600 and first["num_episode_starts"] >= 1
+    assert not (tiny_run / "ope_checkpoint.pt").exists()
+
+    text = (tiny_run / "ope.json").read_text()
+    assert main([str(tiny_run), "--seed", "4", *FAST]) == 0  # kept: a finished ope.json is not redone
+    assert "kept" in capsys.readouterr().out and (tiny_run / "ope.json").read_text() == text
+
+    assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
+    again = _ope(tiny_run)
+    assert again["estimate"] == first["estimate"] and again["curve"] == first["curve"]
+
+    assert main([str(tiny_run), "--seed", "4", "--force", *FAST]) == 0
+    assert _ope(tiny_run)["estimate"] != first["estimate"]
+
+
+def test_a_killed_fit_continues_to_the_uninterrupted_numbers(tiny_run, monkeypatch, capsys):
+    """A SIGTERM arriving at update 30 (seen by the loop's poll): the fit writes its checkpoint and stops (exit
+    status 143, no ope_best.json); the same command continues from update 30 to the numbers of an uninterrupted fit."""
+    args = [str(tiny_run), "--best", "--seed", "5", "--force", *FAST]
+    assert main(args) == 0
+    reference = _ope(tiny_run, "ope_best.json")
+    (tiny_run / "ope_best.json").unlink()
+
+    calls = {"n": 0}
+
+    def sigterm_at_update_30():  # the loop polls once per update
+        calls["n"] += 1
+        return signal.SIGTERM if calls["n"] >= 30 else None
+
+    monkeypatch.setattr(interrupts, "requested", sigterm_at_update_30)
+    assert main(args) == 128 + signal.SIGINT  # the poll is faked: stop() finds no real pending signal
+    assert "saved the FQE fit at update 30" in capsys.readouterr().err
+    assert (tiny_run / "ope_best_checkpoint.pt").exists() and not (tiny_run / "ope_best.json").exists()
+    monkeypatch.undo()
+
+    assert main(args) == 0
+    resumed = _ope(tiny_run, "ope_best.json")
+    assert resumed["resumed_at"] == 30 and reference["resumed_at"] == 0
+    assert resumed["estimate"] == reference["estimate"] and resumed["curve"] == reference["curve"]
+    assert not (tiny_run / "ope_best_checkpoint.pt").exists()
+
+
+def test_a_run_whose_batch_is_not_in_the_cache(tiny_run, tmp_path, capsys):
+    assert main([str(tiny_run), "--force", "--data-dir", str(tmp_path), *FAST]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "is not in the data cache" in err and str(tiny_run) in err
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--updates", "0"], "--updates 0: expected an integer >= 1"),
+    (["--lr", "-1"], "--lr -1.0: expected a positive learning rate"),
+    (["--gamma", "2"], "--gamma 2.0: expected a discount in [0, 1]"),
+    (["--hidden", "16,x"], "expected layer sizes like 256,256"),
+    (["--threads", "0"], "--threads 0: expected a positive number of threads"),
+])
+def test_bad_numbers_stop_the_command(tiny_run, args, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main([str(tiny_run), *args])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_bad_paths_stop_the_command_in_one_line(tiny_run, tmp_path, capsys):
+    (tmp_path / "not_a_run").mkdir()
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    (unfinished / "config.yaml").write_text("seed: 1\n")
+    for args, message in [([str(tmp_path / "nowhere")], "no such run directory"),
+                          ([str(tmp_path / "not_a_run")], "not a run directory (no config.yaml)"),
+                          ([str(tiny_run), str(unfinished)], "no policy.pt (a finished run directory holds it)"),
+                          ([str(tiny_run), "--data-dir", str(tmp_path / "nowhere")], "--data-dir")]:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err, err
+
+
+def test_the_module_refuses_a_bad_path_before_loading_torch(tmp_path):
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "torchrl_bail.ope", str(tmp_path / "nowhere")], capture_output=True,
+                          text=True, timeout=120, check=False)
+    elapsed = time.perf_counter() - start
+    assert proc.returncode == 2 and proc.stderr.strip() == f"torchrl_bail.ope: {tmp_path / 'nowhere'}: no such run " \
+                                                           "directory", proc.stderr
+    assert elapsed < 3.0, elapsed  # the command line is checked before torch loads (about 4 s here)
