@@ -14,6 +14,34 @@ owner's :data:`HEARTBEAT` thread touches them every ``heartbeat_every_s``. :func
 the process must exist with the same start time; another host's owner is presumed alive until its heartbeat is
 older than ``stale_after_s`` (:func:`liveness_settings`; compared on the file server's clock). :func:`clean_stale`
 removes only what a gone owner left; a waiter takes over a gone owner's lock and logs whom it waited for.
+
+How a lock is taken over (the design; it uses only what is atomic on NFS as on a local disk: creating a name by
+``link()`` of a file written aside (a link count of 2 confirming an ``EEXIST`` that NFS may answer to a retried
+``link()``), or ``O_EXCL`` where there are no hard links, ``unlink()``, reads and ``utime``; no ``fcntl``/``flock``):
+
+1. *Judge.* A waiter opens the lock once and reads owner record and heartbeat (mtime) from that one open file, so
+   it never judges one owner by the heartbeat of the next. The owner is gone when :func:`owner_alive` says so, with
+   a grace of ``max(stale_after_s, 3 x the heartbeat period the owner recorded in its file)``.
+2. *Claim.* The waiter creates, the same atomic way, a take-over claim ``.<lock>.takeover.<instance>.<n>`` where
+   ``<instance>`` names the judged lock (a hash of its random token). One job at a time holds the claim of an
+   instance; the others wait for it. A claim whose holder is gone (killed mid-take-over; judged like a lock's owner)
+   is superseded by creating claim ``n + 1``, never removed by another job, so there is nothing to race on there
+   either.
+3. *Verify, then remove.* The claim holder reads the lock again and unlinks it only if it still carries the judged
+   token; then it removes its claims and, like every waiter, races to create the lock: exactly one create wins.
+
+Nothing moves a lock aside and puts it back. (The mechanism before did: a waiter that had read a gone owner's
+record moved the lock aside -- by then a live job's lock -- and linked it back when it saw another token; in between
+a third job could create the lock, and the live owner's heartbeat found its lock missing: two owners, or a live
+owner told it lost its lock. Issue 37.)
+
+Guarantees, as long as no live owner is judged gone: at most one job holds a lock at any moment, and an owner keeps
+its lock until it releases it. A token is never reused, so once the judged lock is gone no claim of it can remove
+anything; while it is there only its (gone) owner or the one live claim holder could. On one host the judgement is
+exact (pid and start time; no heartbeat, load or clock is involved); between hosts it holds while a live owner's
+heartbeat is never older than the grace (600 s against a 30 s heartbeat by default). A job stopped for longer than
+that (a suspended job: the one way to be misjudged) learns it from its heartbeat (:class:`LockLost`) and writes
+nothing more. The private files of a killed taker (claims, files being written) are removed by the lock's next owner.
 The ``batch`` keys that tune this and the checkpoints (:data:`~torchrl_bail.data.cache.OPERATIONAL_KEYS`) are outside
 the recipe hash.
 """
@@ -22,6 +50,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import json
 import logging
 import os
@@ -125,7 +154,7 @@ def liveness_settings(cfg=None) -> tuple[float, float]:
 def _fs_now(directory: Path) -> float:
     """The file system's clock: the mtime of a probe file just touched in ``directory`` (hosts' clocks differ;
     heartbeats are compared on the clock of the file server that stamps them)."""
-    probe = directory / f".clock.{host_name()}.{os.getpid()}"
+    probe = directory / owned_name(".clock")
     try:
         probe.touch()
         return probe.stat().st_mtime
@@ -204,20 +233,18 @@ class Heartbeat:
             self._paths.pop(Path(path), None)
 
     def beat(self) -> None:
-        """Touches every registered path once now."""
+        """Touches every registered path once now (a lock only while it still carries our token)."""
         with self._lock:
             items = list(self._paths.items())
         for path, (token, _) in items:
-            try:
-                if token is not None and _read_owner(path).get("token") != token:
-                    log.error("lock %s was taken over by another job (our heartbeat was late); "
-                              "this job no longer owns it", path)
-                    self.unregister(path)
-                    self.lost.add(path)
-                    continue
-                os.utime(path, None)
-            except OSError:
-                pass
+            if token is None:
+                with contextlib.suppress(OSError):
+                    os.utime(path, None)
+            elif _touch_if_ours(path, token) is False:
+                log.error("lock %s was taken over by another job (this job was judged gone: its heartbeat was "
+                          "older than the staleness timeout); this job no longer owns it", path)
+                self.unregister(path)
+                self.lost.add(path)
 
     def check(self, path: Path | None = None) -> None:
         """Raises :class:`LockLost` if a lock of this process (or the lock ``path``) was taken over (e.g. the job
@@ -225,7 +252,7 @@ class Heartbeat:
         with self._lock:
             items = [(p, v) for p, v in self._paths.items() if path is None or p == Path(path)]
         for lock, (token, _) in items:
-            if token is not None and _read_owner(lock).get("token") != token:
+            if token is not None and _holds(lock, token) is False:
                 self.unregister(lock)
                 self.lost.add(lock)
         lost = sorted(str(p) for p in self.lost if path is None or p == Path(path))
@@ -327,8 +354,11 @@ def _create_exclusively(path: Path, text: str) -> bool:
     try:
         os.link(tmp, path)
         return True
-    except FileExistsError:
-        return False
+    except FileExistsError:  # NFS: a retransmitted link() that had succeeded answers EEXIST; the link count tells
+        try:
+            return os.stat(tmp).st_nlink == 2
+        except OSError:
+            return False
     except OSError:  # no hard links here: O_EXCL create (readers skip an empty file while it is written)
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -342,18 +372,171 @@ def _create_exclusively(path: Path, text: str) -> bool:
             tmp.unlink()
 
 
-def _take_over(path: Path, stale_token: str | None) -> None:
-    """Moves a stale lock aside; puts it back if it turns out to be a fresh one created meanwhile."""
-    aside = path.with_name(f".{path.name}.{owned_name('stale')}")
+def _read_lock(path: Path) -> tuple[dict[str, Any], os.stat_result] | None:
+    """Owner record and ``stat`` of the lock file ``path``, both from one open file (one instance of the lock:
+    never the record of one and the heartbeat of the next); ``None`` when there is no lock. A record that cannot be
+    read or parsed is ``{}``."""
     try:
-        os.rename(path, aside)
+        fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
-        return
-    if _read_owner(aside).get("token") != stale_token:  # somebody else took it over first: restore theirs
+        return None
+    except OSError:
+        try:
+            return {}, os.stat(path)
+        except FileNotFoundError:
+            return None
+    try:
+        st = os.fstat(fd)
+        chunks = []
+        with contextlib.suppress(OSError):  # a file server's read error: an unreadable record
+            while chunk := os.read(fd, 1 << 16):
+                chunks.append(chunk)
+    except OSError:
+        return None  # e.g. a stale NFS handle: the lock was replaced; judge again
+    finally:
+        os.close(fd)
+    try:
+        owner = json.loads(b"".join(chunks))
+    except ValueError:
+        owner = {}
+    return (owner if isinstance(owner, dict) else {}), st
+
+
+def _holds(path: Path, token: str) -> bool | None:
+    """Whether the lock ``path`` still carries ``token``: ``False`` when it is gone or carries another token,
+    ``None`` when it could not be read just now (a passing file-server error is not a lost lock)."""
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return None
+    try:
+        owner = json.loads(raw)
+    except ValueError:
+        return None
+    return isinstance(owner, dict) and owner.get("token") == token
+
+
+def _touch_if_ours(path: Path, token: str) -> bool | None:
+    """The heartbeat of a lock: sets the mtime of ``path`` to now if (and only if, on that very file) it carries
+    ``token``. Returns :func:`_holds`'s answer."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return None
+    try:
+        chunks = []
+        while chunk := os.read(fd, 1 << 16):
+            chunks.append(chunk)
+        try:
+            owner = json.loads(b"".join(chunks))
+        except ValueError:
+            return None
+        if not (isinstance(owner, dict) and owner.get("token") == token):
+            return False
         with contextlib.suppress(OSError):
-            os.link(aside, path)
-    with contextlib.suppress(OSError):
-        aside.unlink()
+            os.utime(fd if os.utime in os.supports_fd else path, None)
+        return True
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+
+
+def _grace(owner: Mapping[str, Any], stale_after_s: float) -> float:
+    """How old another host's heartbeat must be before its owner is gone: ``stale_after_s``, but at least three of
+    the heartbeat periods the owner recorded (a waiter with a shorter timeout than the owner's heartbeat would
+    otherwise judge a live owner gone between two beats)."""
+    beat = owner.get("heartbeat_every_s")
+    return max(stale_after_s, 3.0 * beat) if isinstance(beat, (int, float)) and beat > 0 else stale_after_s
+
+
+def _instance(owner: Mapping[str, Any], st: os.stat_result) -> str:
+    """A name for one instance of a lock file: a hash of its token (never reused), or for a lock without one (an
+    unreadable file, an older version's) of its inode and mtime."""
+    token = owner.get("token")
+    ident = f"token:{token}" if isinstance(token, str) and token else f"inode:{st.st_dev}:{st.st_ino}:{st.st_mtime_ns}"
+    return hashlib.sha1(ident.encode()).hexdigest()[:16]
+
+
+def _claim(path: Path, instance: str, generation: int) -> Path:
+    """The take-over claim number ``generation`` of the lock instance ``instance`` of ``path``."""
+    return path.with_name(f".{path.name}.takeover.{instance}.{generation}")
+
+
+#: test hook: called by a take-over between holding its claim and removing the judged lock
+_BEFORE_REMOVING = None
+
+
+def _take_over(path: Path, instance: str, stale_after_s: float) -> bool | None:
+    """Removes the lock ``path`` if it still is the instance ``instance`` that was judged gone, holding that
+    instance's take-over claim (module docstring). Returns ``True`` when this job removed it, ``False`` when it is
+    not there any more (taken over by another job, or released), ``None`` when another live job is taking it over
+    (wait a moment and judge again)."""
+    generation = 1
+    while not _create_exclusively(_claim(path, instance, generation), json.dumps(owner_record())):
+        state = _read_lock(_claim(path, instance, generation))
+        if state is None:
+            continue  # its holder just finished: try the same claim again
+        holder, st = state
+        if owner_alive(holder, _fs_now(path.parent) - st.st_mtime, stale_after_s):
+            return None
+        generation += 1  # its holder was killed mid-take-over: supersede its claim (never remove another's)
+    try:
+        if _claim(path, instance, generation + 1).exists():
+            return None  # somebody judged *us* gone meanwhile (suspended?): it goes on, we step back
+        if _BEFORE_REMOVING is not None:
+            _BEFORE_REMOVING(path)
+        state = _read_lock(path)
+        if state is None or _instance(*state) != instance:
+            return False  # gone, or a new lock: not the one judged
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            return False
+        return True
+    finally:
+        for n in range(generation, 0, -1):  # ours, then any superseded claim of a killed taker
+            with contextlib.suppress(OSError):
+                os.unlink(_claim(path, instance, n))
+
+
+def _sweep_debris(path: Path, stale_after_s: float) -> None:
+    """Removes what killed jobs left next to the lock ``path``: take-over claims, files being written (``.new.``),
+    an older version's moved-aside locks (``.stale.``) and clock probes, each only when its owner is gone."""
+    name = re.escape(path.name)
+    owned = r"(?P<host>[A-Za-z0-9-]+)\.(?P<pid>\d+)"
+    claims = r"(?:\.takeover\.[0-9a-f]{16}\.\d+)?"
+    private = [re.compile(rf"^\.{{1,2}}{name}{claims}\.(?:new|stale)\.{owned}\.[0-9a-f]{{8}}$"),
+               re.compile(rf"^\.clock\.{owned}(?:\.[0-9a-f]{{8}})?$")]
+    claim = re.compile(rf"^\.{name}\.takeover\.[0-9a-f]{{16}}\.\d+$")
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return
+    now = None
+    for entry in entries:
+        m = next((m for m in (p.match(entry.name) for p in private) if m), None)
+        if m:
+            owner: dict[str, Any] = {"host": m["host"], "pid": int(m["pid"])}
+        elif claim.match(entry.name):
+            state = _read_lock(Path(entry.path))
+            if state is None:
+                continue
+            owner = state[0]
+        else:
+            continue
+        now = _fs_now(path.parent) if now is None else now
+        try:
+            age = now - entry.stat(follow_symlinks=False).st_mtime
+        except OSError:
+            continue
+        if not owner_alive(owner, age, stale_after_s):
+            with contextlib.suppress(OSError):
+                os.unlink(entry.path)
 
 
 @contextlib.contextmanager
@@ -362,11 +545,12 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
     """An exclusive lock across processes *and hosts* sharing ``data_dir``: concurrent jobs wanting the same
     batch collect it once; the others wait (logging ``waiting for <host>:<pid>``) and then reuse it.
 
-    The lock is an owner file (host, pid, process start time, a random token) created atomically; its owner's
-    :data:`HEARTBEAT` touches it every ``heartbeat_every_s``. A waiter takes it over when the owner is gone
-    (:func:`owner_alive`: a dead pid on this host at once; on another host once the heartbeat is older than
-    ``stale_after_s``, default :func:`liveness_settings`). A killed owner leaves the file behind; nothing else
-    needs cleaning.
+    The lock is an owner file (host, pid, process start time, heartbeat period, a random token) created atomically;
+    its owner's :data:`HEARTBEAT` touches it every ``heartbeat_every_s``. A waiter takes it over when the owner is
+    gone (:func:`owner_alive`: a dead pid on this host at once; on another host once the heartbeat is older than
+    ``stale_after_s``, default :func:`liveness_settings`, and than three of the owner's heartbeat periods), through
+    a take-over claim that serializes take-overs and removes only the very lock that was judged (module docstring).
+    A killed owner leaves the file behind; its next owner removes what killed jobs left around it.
 
     ``wait=False`` (a run directory's lock) does not wait for a live owner to finish: it raises
     :class:`LockHeld` as soon as the owner is known to be alive -- at once for a live process of this host, when
@@ -380,23 +564,30 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     token = secrets.token_hex(8)
-    record = json.dumps({**owner_record(), "token": token, "what": what or path.stem})
+    record = json.dumps({**owner_record(), "token": token, "heartbeat_every_s": heartbeat_every_s,
+                         "what": what or path.stem})
     waited_since = None
     first_beat = None
     last_log = 0.0
     delay = poll_s
     while not _create_exclusively(path, record):
-        owner = _read_owner(path)
-        try:
-            beat = path.stat().st_mtime
-        except FileNotFoundError:
-            continue
+        state = _read_lock(path)
+        if state is None:
+            continue  # released meanwhile: try again
+        owner, st = state
+        beat = st.st_mtime
         age = _fs_now(path.parent) - beat
-        if not owner_alive(owner, age, stale_after_s) and (owner or age >= stale_after_s):
-            log.warning("taking over the lock %s of %s:%s (%s)", path.name, owner.get("host", "?"),
-                        owner.get("pid", "?"), "process gone" if owner.get("host") == host_name()
-                        else f"no heartbeat for {age:.0f} s")
-            _take_over(path, owner.get("token"))
+        grace = _grace(owner, stale_after_s)
+        if not owner_alive(owner, age, grace) and (owner or age >= grace):
+            took = _take_over(path, _instance(owner, st), grace)
+            if took:
+                log.warning("taking over the lock %s of %s:%s (%s)", path.name, owner.get("host", "?"),
+                            owner.get("pid", "?"), "process gone" if owner.get("host") == host_name()
+                            else f"no heartbeat for {age:.0f} s")
+            if took is not None:
+                continue
+            stop_if_requested(None)
+            time.sleep(poll_s)  # another job is taking it over this very moment
             continue
         first_beat = beat if first_beat is None else first_beat
         if not wait and (owner.get("host") == host_name() or beat > first_beat):
@@ -411,7 +602,7 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
             else:
                 log.info("%s is locked by %s:%s, whose last heartbeat was %.0f s ago: taking it over if none comes "
                          "within %.0f s (a killed job's lock), stopping if one does", owner.get("what", path.stem),
-                         owner.get("host", "?"), owner.get("pid", "?"), age, stale_after_s - age)
+                         owner.get("host", "?"), owner.get("pid", "?"), age, grace - age)
             last_log = now
         stop_if_requested(None)  # Ctrl-C/SIGTERM (an entry point's request) while waiting: stop now, nothing to save
         time.sleep(delay)
@@ -419,10 +610,12 @@ def file_lock(path: Path, *, stale_after_s: float | None = None, heartbeat_every
     HEARTBEAT.lost.discard(path)
     HEARTBEAT.register(path, interval=heartbeat_every_s, token=token)
     try:
+        with contextlib.suppress(OSError):
+            _sweep_debris(path, stale_after_s)
         yield
     finally:
         HEARTBEAT.unregister(path)
         HEARTBEAT.lost.discard(path)
-        if _read_owner(path).get("token") == token:
+        if _holds(path, token):
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(path)
