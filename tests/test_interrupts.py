@@ -264,3 +264,33 @@ def test_a_slurm_preemption_signal_checkpoints_first_then_goes_to_submitits_requ
             signal.raise_signal(signal.SIGUSR2)
     finally:
         signal.signal(signal.SIGUSR2, previous)
+
+
+def test_under_submitit_sigterm_checkpoints_first_then_exits_143_for_slurms_requeue(monkeypatch, capsys):
+    """Preemption, ``scontrol requeue`` and ``scancel`` send SIGTERM, which submitit only logs: the loop checkpoints at
+    its next safe point, then the job exits 143 through ``SystemExit`` (which submitit's error handler lets pass, so no
+    result is written and the launcher waits for the requeued job), with one line and submitit's handlers back; after
+    a finished body, the time-limit signal is ignored."""
+    calls = []
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
+    monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
+    previous = {sig: signal.signal(sig, lambda signum, frame: calls.append(signum))
+                for sig in (signal.SIGUSR2, signal.SIGTERM)}
+    submitit_term = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            with checkpoint_before_requeue(), interrupts.safe_points():
+                signal.raise_signal(signal.SIGTERM)
+                assert interrupts.requested() == signal.SIGTERM
+                interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+        assert stopped.value.code == 143 and calls == [], "submitit's handlers were not called"
+        assert signal.getsignal(signal.SIGTERM) is submitit_term
+        assert capsys.readouterr().err.strip() == (
+            "torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): saved the checkpoint at iteration 4 of "
+            "9 in run/checkpoint.pt; exiting for Slurm's requeue")
+        with checkpoint_before_requeue():
+            pass
+        assert signal.getsignal(signal.SIGUSR2) is signal.SIG_IGN
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

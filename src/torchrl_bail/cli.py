@@ -184,6 +184,10 @@ def checkpoint_before_requeue() -> Iterator[None]:
       written for submitit (``SystemExit`` passes its error handler), so the launcher keeps waiting for the
       requeued job.
 
+    Once the body is done, the time-limit signal is ignored (a finished job that Slurm signals in its last minute
+    still ends COMPLETED). No named semaphore is left for Python's resource tracker, which Slurm's requeue kills with
+    the job step (:mod:`torchrl_bail.data.local_buffer`, :mod:`torchrl_bail.progress`).
+
     Elsewhere a no-op (the entry point's :func:`run_cli` handles SIGINT and SIGTERM)."""
     sig = _preemption_signal()
     if sig is None:
@@ -195,15 +199,19 @@ def checkpoint_before_requeue() -> Iterator[None]:
     except Interrupted as err:
         if err.signum not in (sig, signal.SIGTERM):
             raise
-        saved = "saved " + err.saved if err.saved else "nothing new saved"
-        if err.signum == signal.SIGTERM:
-            print(f"torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): {saved}; exiting for Slurm's "
-                  "requeue", file=sys.stderr, flush=True)
-            raise SystemExit(SIGTERM_EXIT) from None
-        print(f"torchrl_bail: {signal_name(sig)} from Slurm: {saved}; handing over to submitit's requeue",
-              file=sys.stderr, flush=True)
-        signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
-        raise
+        signum, saved = err.signum, "saved " + err.saved if err.saved else "nothing new saved"
+    else:
+        # the work is done: a time-limit signal from now on would only requeue a finished run or, as the interpreter
+        # shuts down (its handlers back to the default), end the job by that signal, and Slurm would record it FAILED
+        signal.signal(sig, signal.SIG_IGN)
+        return
+    if signum == signal.SIGTERM:
+        print(f"torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): {saved}; exiting for Slurm's "
+              "requeue", file=sys.stderr, flush=True)
+        raise SystemExit(SIGTERM_EXIT)
+    print(f"torchrl_bail: {signal_name(sig)} from Slurm: {saved}; handing over to submitit's requeue",
+          file=sys.stderr, flush=True)
+    signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
 
 
 def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None, *,

@@ -39,9 +39,9 @@ from typing import Any, Literal
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tqdm.auto import tqdm
 
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+from torchrl_bail.progress import tqdm
 from torchrl_bail.stacking import SeedModules
 
 __all__ = [

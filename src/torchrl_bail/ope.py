@@ -167,12 +167,12 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     """
     import torch
     from torchrl.objectives import HardUpdate
-    from tqdm.auto import tqdm
 
     from torchrl_bail import interrupts
     from torchrl_bail.io import write_atomic
     from torchrl_bail.modules import make_qvalue_network
     from torchrl_bail.objectives.fqe import FQELoss, episode_starts
+    from torchrl_bail.progress import tqdm
 
     settings = (settings or FQESettings()).check()
     device = torch.device(device)

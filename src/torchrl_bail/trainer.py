@@ -43,12 +43,13 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
-from tqdm.auto import tqdm
+from torchrl.data import RandomSampler, TensorStorage
 
 from torchrl_bail import interrupts
 from torchrl_bail.algorithms.base import Algorithm
+from torchrl_bail.data.local_buffer import local_replay_buffer
 from torchrl_bail.io import write_atomic
+from torchrl_bail.progress import tqdm
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee
 
 __all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "make_trainee",
@@ -174,8 +175,8 @@ class AlgorithmTrainee:
         self.name, self.epochs = algorithm.name, algorithm.epochs
         self.samples_per_update = algorithm.samples_per_update
         self.sampler = RandomSampler()
-        self.buffer = TensorDictReplayBuffer(storage=TensorStorage(data.to(algorithm.device)), sampler=self.sampler,
-                                             batch_size=algorithm.batch_size)
+        self.buffer = local_replay_buffer(TensorStorage, data.to(algorithm.device), sampler=self.sampler,
+                                          batch_size=algorithm.batch_size)
 
     @property
     def policy(self):

@@ -18,12 +18,13 @@ from typing import Any
 import torch
 from omegaconf import MISSING, OmegaConf
 from tensordict import TensorDictBase
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorSpec
+from torchrl.data import LazyTensorStorage, TensorSpec
 
 from torchrl_bail.algo_schemas import AlgoConfig, EnvelopeConfig, NetConfig, SelectionConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.config import at_least, one_of
+from torchrl_bail.data.local_buffer import local_replay_buffer
 from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.plots import plot_envelope
@@ -156,7 +157,7 @@ class BAIL(BehaviourCloning):
         keyed = data.select("observation", "action", "return").clone(False)
         keyed.set("state_value", values.to(returns.dtype))
         self.filter = self._new_filter()
-        selected_buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(len(data)), transform=self.filter)
+        selected_buffer = local_replay_buffer(LazyTensorStorage, len(data), transform=self.filter)
         selected_buffer.extend(keyed)
         selected = selected_buffer.storage[: len(selected_buffer)]
         self._summary.update(selected_fraction=len(selected) / len(data), num_selected=len(selected),

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
+from torchrl.data import LazyMemmapStorage
 
+from torchrl_bail.data.local_buffer import local_replay_buffer
 from torchrl_bail.data.returns import discounted_returns
 
 __all__ = ["EpisodeStore", "BatchSink", "BehaviourBuffers"]
@@ -29,10 +30,9 @@ class EpisodeStore:
 
     def __init__(self, capacity: int, scratch: Path, *, batch_size: int | None = None):
         self.capacity = int(capacity)
-        self.rb = TensorDictReplayBuffer(
-            storage=LazyMemmapStorage(self.capacity, scratch_dir=scratch, auto_cleanup=False),
-            batch_size=batch_size,
-        )
+        self.rb = local_replay_buffer(LazyMemmapStorage, self.capacity,
+                                      storage_kwargs={"scratch_dir": scratch, "auto_cleanup": False},
+                                      batch_size=batch_size)
 
     def __len__(self) -> int:
         return len(self.rb)

@@ -29,11 +29,11 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
-from tqdm.auto import tqdm
 
 from torchrl_bail import interrupts
 from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
 from torchrl_bail.data.cache import plain
+from torchrl_bail.progress import tqdm
 from torchrl_bail.simulator import make_guarded_env
 
 __all__ = ["TRANSITION_KEYS", "agent_kwargs", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker",
