@@ -35,6 +35,19 @@ def test_joblib_jobs_share_the_cores():
     assert job_threads(cfg, _compose().hydra.launcher) is None  # the basic launcher: torch's default
 
 
+def test_the_joblib_launcher_runs_two_jobs_by_default_without_hydras_schema_warning():
+    """``hydra/launcher=joblib`` is the project's ConfigStore node over the plugin's (2 jobs, not the plugin's 10), so
+    no yaml file shares the plugin's schema name, which Hydra warned about on every composition (8 times a sweep)."""
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # Hydra's "validated against ConfigStore schema" is a UserWarning
+        launcher = _compose("hydra/launcher=joblib").hydra.launcher
+    assert launcher.n_jobs == 2 and "JoblibLauncher" in launcher._target_
+    assert not (config_dir() / "hydra" / "launcher" / "joblib.yaml").exists()
+
+
 def test_slurm_gpu_launcher_asks_for_one_gpu():
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     launcher = _compose("hydra/launcher=slurm_gpu").hydra.launcher

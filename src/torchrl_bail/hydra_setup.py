@@ -29,6 +29,35 @@ def register_schemas() -> None:
         cs.store(group="algo", name=f"base_{name}_schema", node=schema)
     for recipe, schema in BATCH_SCHEMAS.items():
         cs.store(group="batch", name=f"base_{recipe}_schema", node=schema)
+    _register_joblib_launcher(cs)
+
+
+def _register_joblib_launcher(cs) -> None:
+    """``hydra/launcher=joblib``: local parallel sweeps through the hydra-joblib-launcher plugin
+    (``pip install -e ".[parallel]"``), stored over the plugin's own node with 2 jobs at once by default (the plugin's
+    10 would hold ten 10^6-transition batches in memory on a laptop)::
+
+        python -m torchrl_bail.train -m hydra/launcher=joblib hydra.launcher.n_jobs=4 +exp=hopper_ddpg05 seed=1,2,3,4
+
+    Jobs run side by side in worker processes; each sets torch's thread count to cores // n_jobs (at least 1; an
+    explicit ``threads`` config key wins), so n_jobs x threads never exceeds the cores. Jobs that need the same batch
+    wait on its lock and one of them collects it. Memory: a paper-scale BAIL job needs a few GiB (Humanoid ~8).
+
+    A node in the ConfigStore, not a yaml file: a file named like the plugin's node is "validated against ConfigStore
+    schema with the same name", which Hydra warns about on every composition. The plugin's module is imported first,
+    so that its own registration never comes after this one. Without the plugin: nothing is stored."""
+    from dataclasses import dataclass
+
+    try:
+        from hydra_plugins.hydra_joblib_launcher.config import JobLibLauncherConf
+    except ImportError:
+        return
+
+    @dataclass
+    class TwoJobsJoblibLauncherConf(JobLibLauncherConf):
+        n_jobs: int = 2
+
+    cs.store(group="hydra/launcher", name="joblib", node=TwoJobsJoblibLauncherConf, provider="torchrl_bail")
 
 
 def group_options(conf: Path | None = None) -> dict[str, list[str]]:
