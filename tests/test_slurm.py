@@ -107,17 +107,17 @@ def _squeue(env: dict[str, str], *args: str) -> list[str]:
 
 
 def _sacct_states(env: dict[str, str], jobs: list[str]) -> list[str]:
-    """The states of ``jobs`` in Slurm's accounting (``sacct``), once none is pending or running there any more
-    (slurmctld reports to slurmdbd a moment after a job ends)."""
-    deadline = time.monotonic() + 60
+    """The states of ``jobs`` in Slurm's accounting (``sacct -j``), once none is pending, running or not yet recorded
+    there (slurmctld reports to slurmdbd a moment after a job ends; longer on a loaded machine)."""
+    deadline = time.monotonic() + 180
     while True:
-        out = subprocess.run(["sacct", "-X", "-n", "-P", "-o", "JobID,State", "-S", "now-1hour"], env=env,
+        out = subprocess.run(["sacct", "-X", "-n", "-P", "-o", "JobID,State", "-j", ",".join(jobs)], env=env,
                              capture_output=True, text=True, check=True, timeout=30).stdout
         states = dict(line.split("|", 1) for line in out.splitlines() if "|" in line)
         found = [states.get(job, "MISSING") for job in jobs]
         if not {"PENDING", "RUNNING", "REQUEUED", "MISSING"} & set(found) or time.monotonic() > deadline:
             return found
-        time.sleep(1)
+        time.sleep(2)
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,7 @@ def test_the_documented_sweep_completes_on_slurm_and_equals_local_runs(slurm, da
     assert "Traceback" not in err and "Traceback" not in _job_logs(tmp_path / "slurm"), _job_logs(tmp_path / "slurm")
     slurm_runs, local_runs = _summaries(tmp_path / "slurm"), _summaries(tmp_path / "local")
     assert len(slurm_runs) == 4 and slurm_runs == local_runs
-    jobs = [p.name for p in (tmp_path / "slurm" / ".submitit").iterdir() if "_" in p.name]
+    jobs = sorted(p.name for p in (tmp_path / "slurm" / ".submitit").iterdir() if "_" in p.name)  # array tasks
     assert _sacct_states(env, jobs) == ["COMPLETED"] * 4
 
 
