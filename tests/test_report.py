@@ -140,3 +140,28 @@ def test_runs_from_before_a_key_existed_group_with_its_default(tmp_path):
             path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **extra}))
     groups = group_runs(find_runs([tmp_path]))
     assert sorted((g.variant_label, g.seeds) for g in groups) == [("", 2), ("compile=true", 1)]
+
+
+def test_the_fqe_selected_return_is_a_column_only_when_a_run_has_one(tmp_path):
+    """``fqe_selected`` (written by ``python -m torchrl_bail.ope`` for a run with snapshots) gives each group the mean
+    and std of the selected snapshots' evaluation returns over the runs that have one; without it, no column."""
+    from torchrl_bail.report import format_csv, format_markdown, summarise
+
+    for seed in (1, 2, 3):
+        _write_run(tmp_path, "hopper_ddpg05_b1", "bc", seed, 100.0 * seed)
+    (row,) = summarise(group_runs(find_runs([tmp_path])), reps=50)
+    assert not any(k.startswith("fqe") for k in row)
+    assert "fqe" not in format_csv([row]) and "fqe" not in format_markdown([row])
+    for seed, online in ((1, 90.0), (2, 110.0)):
+        path = tmp_path / f"hopper_ddpg05_b1_bc_envelope_s{seed}" / "summary.json"
+        summary = json.loads(path.read_text())
+        summary["fqe_selected"] = {"path": "snapshots/policy_4.pt", "iteration": 4, "fqe_estimate": 1.5,
+                                   "online_return": online}
+        write_json_atomic(path, summary)
+    (row,) = summarise(group_runs(find_runs([tmp_path])), reps=50)
+    assert row["fqe_selected_return_mean"] == 100.0 and row["fqe_selected_runs"] == 2
+    assert row["fqe_selected_return_std"] == pytest.approx(np.std([90.0, 110.0], ddof=1))
+    assert row["final_return_mean"] == 200.0  # beside final_return, over all three runs
+    header = format_csv([row]).splitlines()[0].split(",")
+    assert header[-3:] == ["fqe_selected_return_mean", "fqe_selected_return_std", "fqe_selected_runs"]
+    assert "| hopper_ddpg05_b1 | 500.0 | 100.0 ± 14.1 (2) |" in format_markdown([row])

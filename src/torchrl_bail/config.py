@@ -179,6 +179,7 @@ class EvalConfig(Checked):
     every_epochs: float = positive("a positive number of epochs")
     max_steps: int = at_least(1, "a positive integer")
     final_window: int = at_least(1, "a positive integer")
+    snapshots: int = at_least(0, "an integer >= 0 (0: none)")
 
 
 @dataclass

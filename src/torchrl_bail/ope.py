@@ -9,7 +9,13 @@ starts, a discounted value (``--gamma``) meant for ranking policies trained on t
 
 Beside the run it writes ``ope.json`` (``ope_best.json`` with ``--best``), atomically: the estimate, the settings
 and seed, the number of updates, the policy file's SHA-1, the batch, and the fitting curve (the estimate and the
-mean TD loss every ``--log-every`` updates). A finished ``ope.json`` is kept unless ``--force``. The fit shows a
+mean TD loss every ``--log-every`` updates). A finished ``ope.json`` is kept unless ``--force`` (or the run was
+trained again since: its policy file's SHA-1 differs).
+
+A run trained with ``eval.snapshots=N`` kept ``N`` policy snapshots (listed in its ``summary.json``); each is fitted
+too (``snapshots/ope_policy_<iteration>.json``) and :func:`select_snapshot` ranks them by their estimates: the
+ranking and ``fqe_selected`` (the policy it would deploy, with the evaluation return the run recorded for it) go
+into ``ope.json``, and ``fqe_selected`` into ``summary.json``. The fit shows a
 tqdm bar (ETA) and checkpoints into ``ope_checkpoint.pt`` every ``--checkpoint-every-s`` seconds and on Ctrl-C or
 SIGTERM; the same command continues from it, to the same numbers as an uninterrupted fit (the checkpoint is used only
 when its settings, seed, policy and batch are the command's; it is removed once ``ope.json`` is written).
@@ -31,7 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FQESettings", "OPEError", "fit_fqe", "score_run", "main"]
+__all__ = ["FQESettings", "OPEError", "fit_fqe", "fqe_update", "listed_snapshots", "score_run", "select_snapshot",
+           "main"]
 
 OPE_FORMAT = 1
 #: the entries of a batch the fit reads
@@ -113,6 +120,18 @@ def _read_checkpoint(path: Path | None, identity: dict) -> dict | None:
               f"the start", file=sys.stderr)
         return None
     return state
+
+
+def fqe_update(loss, optimizer, updater, batch):
+    """One update of the fit (:func:`fit_fqe`'s step, and ``benchmarks/bench_fqe.py``'s): the squared TD error of
+    ``loss`` (:class:`~torchrl_bail.objectives.fqe.FQELoss`) on ``batch``, a step of ``optimizer``, a step of the
+    target ``updater``; returns the loss, detached."""
+    loss_value, _ = loss.qvalue_loss(batch)
+    optimizer.zero_grad(set_to_none=True)
+    loss_value.backward()
+    optimizer.step()
+    updater.step()
+    return loss_value.detach()
 
 
 def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
@@ -222,12 +241,7 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         last_save = time.monotonic()
         for update in range(done + 1, settings.updates + 1):
             index = torch.randint(num, (settings.batch_size,), generator=generator, device=device)
-            loss_value, _ = loss.qvalue_loss(data[index])
-            optimizer.zero_grad(set_to_none=True)
-            loss_value.backward()
-            optimizer.step()
-            updater.step()
-            td_sum += loss_value.detach()
+            td_sum += fqe_update(loss, optimizer, updater, data[index])
             td_count += 1
             if update % settings.log_every == 0 or update == settings.updates:
                 estimate = _as_float(loss.policy_value(starts))
@@ -284,39 +298,26 @@ def output_path(run_dir: str | Path, *, best: bool = False) -> Path:
     return Path(run_dir) / ("ope_best.json" if best else "ope.json")
 
 
-def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
-              best: bool = False, data_dir: str | Path | None = None, force: bool = False, progress: bool = False,
-              checkpoint_every_s: float = 300.0) -> tuple[dict[str, Any], bool]:
-    """Scores one run directory: ``(record, fitted)``, the record written to :func:`output_path` (or the one
-    already there, ``fitted = False``, unless ``force``). Arguments as in :func:`fit_fqe` and the command line."""
+def _settings_record(settings: FQESettings) -> dict[str, Any]:
+    return {**dataclasses.asdict(settings), "hidden": list(settings.hidden)}
+
+
+def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, device, progress: bool,
+                checkpoint_every_s: float, desc: str) -> dict[str, Any]:
+    """Fits FQE for ``policy`` (from :func:`~torchrl_bail.policy.load_policy`) on ``batch`` and writes its record to
+    ``out`` atomically, checkpointing beside it (``<out stem>_checkpoint.pt``, removed once ``out`` is written);
+    returns the record."""
     import torch
-    from omegaconf import OmegaConf
 
     from torchrl_bail.data.batch import library_versions
     from torchrl_bail.io import write_json_atomic
-    from torchrl_bail.policy import load_policy
 
-    settings = (settings or FQESettings()).check()
-    run_dir = Path(run_dir)
-    out = output_path(run_dir, best=best)
-    if out.exists() and not force:
-        import json
-
-        return json.loads(out.read_text()), False
-    device = torch.device(device)
-    policy = load_policy(run_dir, device=device, best=best)
-    cfg = OmegaConf.load(run_dir / "config.yaml")
-    batch = run_batch(run_dir, cfg, data_dir)
     record = policy.record
-    if (batch.obs_dim, batch.act_dim) != (int(record["obs_dim"]), int(record["act_dim"])):
-        raise OPEError(f"{run_dir}: its batch {batch.path} has observation/action sizes ({batch.obs_dim}, "
-                       f"{batch.act_dim}) where its policy has ({record['obs_dim']}, {record['act_dim']})")
     policy_file = Path(record["path"])
     identity = {"policy_sha1": _sha1(policy_file), "batch": str(batch.path), "num_transitions": batch.num_transitions}
     checkpoint = out.with_name(out.stem + "_checkpoint.pt")
     result = fit_fqe(policy, batch.data, settings, seed=seed, device=device, progress=progress,
-                     checkpoint_path=checkpoint, checkpoint_every_s=checkpoint_every_s, identity=identity,
-                     desc=run_dir.name)
+                     checkpoint_path=checkpoint, checkpoint_every_s=checkpoint_every_s, identity=identity, desc=desc)
     ope = {
         "format": OPE_FORMAT,
         "estimator": "fqe",
@@ -324,14 +325,14 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
         "gamma": settings.gamma,
         "updates": result["updates"],
         "seed": int(seed),
-        "settings": {**dataclasses.asdict(settings), "hidden": list(settings.hidden)},
+        "settings": _settings_record(settings),
         "algo": record["algo"],
         "policy": policy_file.name,
         "policy_sha1": identity["policy_sha1"],
         "batch": str(batch.path),
         "num_transitions": result["num_transitions"],
         "num_episode_starts": result["num_episode_starts"],
-        "device": device.type,
+        "device": torch.device(device).type,
         "threads": torch.get_num_threads(),
         "wall_time_s": result["wall_time_s"],
         "resumed_at": result["resumed_at"],
@@ -340,7 +341,187 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     }
     write_json_atomic(out, ope)
     checkpoint.unlink(missing_ok=True)
-    return ope, True
+    return ope
+
+
+def _read_record(path: Path) -> dict | None:
+    """The JSON object at ``path``, or ``None`` when there is none (or it does not parse: it is written again)."""
+    import json
+
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _kept(out: Path, policy_file: Path) -> dict | None:
+    """The finished record at ``out`` when it scored the policy file as it is now, else ``None`` (with a line on
+    stderr when the run was trained again since)."""
+    if not out.exists():
+        return None
+    import json
+
+    record = json.loads(out.read_text())
+    if record.get("policy_sha1") not in (None, _sha1(policy_file)):
+        print(f"torchrl_bail.ope: {out} scored another {policy_file.name} (the run was trained again since); fitting "
+              f"again", file=sys.stderr)
+        return None
+    return record
+
+
+def listed_snapshots(run_dir: str | Path) -> list[dict] | None:
+    """The policy snapshots the run's ``summary.json`` lists (``eval.snapshots``), or ``None`` (none, or no summary)."""
+    run_dir = Path(run_dir)
+    summary = _read_record(run_dir / "summary.json")
+    snapshots = None if summary is None else summary.get("snapshots")
+    if not snapshots:
+        return None
+    if not isinstance(snapshots, list) or not all(isinstance(s, dict) and {"path", "iteration", "eval_return"} <= set(s)
+                                                  for s in snapshots):
+        raise OPEError(f"{run_dir / 'summary.json'}: its snapshots are not a list of {{path, iteration, eval_return}}")
+    return snapshots
+
+
+def _same_weights(a, b) -> bool:
+    import torch
+
+    sa, sb = a.state_dict(), b.state_dict()
+    return (a.record["algo"] == b.record["algo"] and sa.keys() == sb.keys()
+            and all(sa[k].shape == sb[k].shape and torch.equal(sa[k], sb[k].to(sa[k].device)) for k in sa))
+
+
+def _record_selection(run_dir: Path, selected: dict) -> None:
+    """Writes ``fqe_selected`` into the run's ``summary.json`` (atomically; nothing when it already holds it)."""
+    from torchrl_bail.io import write_json_atomic
+
+    path = run_dir / "summary.json"
+    summary = _read_record(path)
+    if summary is None:
+        raise OPEError(f"{path}: not readable; the selection is in {output_path(run_dir)}")
+    if summary.get("fqe_selected") != selected:
+        write_json_atomic(path, {**summary, "fqe_selected": selected})
+
+
+def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, settings: FQESettings, seed: int = 0,
+                    device="cpu", force: bool = False, progress: bool = False, checkpoint_every_s: float = 300.0,
+                    snapshots: list[dict] | None = None) -> dict[str, Any]:
+    """Chooses, among a run's policy snapshots and its final policy, the one FQE estimates best; returns ``ope`` (the
+    final policy's record) with the ranking, after writing it to ``ope.json`` and ``fqe_selected`` to
+    ``summary.json`` (each atomically).
+
+    Each snapshot the run's ``summary.json`` lists (``eval.snapshots``, :func:`listed_snapshots`) is fitted on
+    ``batch`` (the run's, :func:`run_batch`) with the command's settings and seed (the same Q network initialisation
+    and mini-batches for every candidate) into ``snapshots/ope_<snapshot>.json``, checkpointed beside it, and kept
+    for a later command when it scored that file with the same settings, seed, device and batch (unless
+    ``force``). The snapshot with the final policy's weights (the last one) takes the final policy's own fit from
+    ``ope`` when that was made alike; the final policy is a candidate of its own only when no snapshot has its
+    weights. Other arguments as in :func:`fit_fqe`.
+
+    ``fqe_selected`` = ``{path, iteration, fqe_estimate, online_return}``: the highest estimate (the earliest on a
+    tie) and the evaluation return the run recorded for that policy, what deploying it without a simulator gives.
+    """
+    import functools
+
+    import torch
+
+    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.policy import load_policy
+
+    run_dir = Path(run_dir)
+    snapshots = listed_snapshots(run_dir) if snapshots is None else snapshots
+    fit = functools.partial(_fit_policy, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
+                            checkpoint_every_s=checkpoint_every_s)
+    wanted = {"settings": _settings_record(settings), "seed": int(seed), "device": torch.device(device).type,
+              "batch": str(batch.path)}
+    final_fit_usable = all(ope.get(k) == v for k, v in wanted.items())
+    candidates, final_seen = [], False
+    entries = list(snapshots or [])
+    for entry in entries:
+        path = run_dir / str(entry["path"])
+        if not path.is_file():
+            raise OPEError(f"{run_dir}: its summary.json lists the policy snapshot {entry['path']}, which is missing")
+        policy = load_policy(path, device=device)
+        is_final = _same_weights(policy, final_policy)
+        final_seen = final_seen or is_final
+        if is_final and final_fit_usable:
+            estimate, fitted_in = ope["estimate"], output_path(run_dir).name
+        else:
+            out = path.with_name(f"ope_{path.stem}.json")
+            record = None if force else _read_record(out)
+            if record is None or any(record.get(k) != v for k, v in wanted.items()) or \
+                    record.get("policy_sha1") != _sha1(path):
+                record = fit(policy, out, desc=f"{run_dir.name} {entry['path']}")
+            estimate, fitted_in = record["estimate"], out.relative_to(run_dir).as_posix()
+        candidates.append({"path": str(entry["path"]), "iteration": int(entry["iteration"]),
+                           "eval_return": entry["eval_return"], "fqe_estimate": float(estimate),
+                           "fitted_in": fitted_in})
+    if not final_seen:  # the final policy is a candidate of its own
+        info = final_policy.record.get("info", {})
+        if final_fit_usable:
+            estimate, fitted_in = ope["estimate"], output_path(run_dir).name
+        else:
+            out = run_dir / "snapshots" / "ope_final.json"
+            estimate, fitted_in = fit(final_policy, out, desc=f"{run_dir.name} policy.pt")["estimate"], \
+                out.relative_to(run_dir).as_posix()
+        candidates.append({"path": Path(final_policy.record["path"]).name, "iteration": info.get("iteration"),
+                           "eval_return": info.get("mean_return"), "fqe_estimate": float(estimate),
+                           "fitted_in": fitted_in})
+    order = sorted(range(len(candidates)), key=lambda i: (-candidates[i]["fqe_estimate"], i))
+    for rank, i in enumerate(order, 1):
+        candidates[i]["rank"] = rank
+    chosen = candidates[order[0]]
+    selected = {"path": chosen["path"], "iteration": chosen["iteration"], "fqe_estimate": chosen["fqe_estimate"],
+                "online_return": chosen["eval_return"]}
+    returns = [c["eval_return"] for c in candidates if c["eval_return"] is not None]
+    ope = {**ope, "snapshots": candidates, "fqe_selected": selected,
+           "selection": {**wanted, "candidates": len(candidates),
+                         "best_online_return": max(returns) if returns else None}}
+    write_json_atomic(output_path(run_dir), ope)
+    _record_selection(run_dir, selected)  # after ope.json: a command stopped between the two writes it again
+    return ope
+
+
+def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
+              best: bool = False, data_dir: str | Path | None = None, force: bool = False, progress: bool = False,
+              checkpoint_every_s: float = 300.0) -> tuple[dict[str, Any], bool]:
+    """Scores one run directory: ``(record, fitted)``, the record written to :func:`output_path` (or the one
+    already there, ``fitted = False``, unless ``force`` or the policy file changed since). Arguments as in
+    :func:`fit_fqe` and the command line.
+
+    A run with policy snapshots (``eval.snapshots``; not with ``best``) is then ranked by :func:`select_snapshot`,
+    which adds the ranking and ``fqe_selected`` to the record and ``fqe_selected`` to ``summary.json``; a kept record
+    without them gets them.
+    """
+    import torch
+    from omegaconf import OmegaConf
+
+    from torchrl_bail.policy import load_policy
+
+    settings = (settings or FQESettings()).check()
+    run_dir = Path(run_dir)
+    out = output_path(run_dir, best=best)
+    snapshots = None if best else listed_snapshots(run_dir)
+    kept = None if force else _kept(out, run_dir / ("policy_best.pt" if best else "policy.pt"))
+    if kept is not None and (not snapshots or "fqe_selected" in kept):
+        if snapshots:
+            _record_selection(run_dir, kept["fqe_selected"])  # a command stopped between ope.json and summary.json
+        return kept, False
+    device = torch.device(device)
+    policy = load_policy(run_dir, device=device, best=best)
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    batch = run_batch(run_dir, cfg, data_dir)
+    record = policy.record
+    if (batch.obs_dim, batch.act_dim) != (int(record["obs_dim"]), int(record["act_dim"])):
+        raise OPEError(f"{run_dir}: its batch {batch.path} has observation/action sizes ({batch.obs_dim}, "
+                       f"{batch.act_dim}) where its policy has ({record['obs_dim']}, {record['act_dim']})")
+    if kept is None:
+        kept = _fit_policy(policy, out, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
+                           checkpoint_every_s=checkpoint_every_s, desc=run_dir.name)
+    if snapshots:
+        kept = select_snapshot(run_dir, kept, policy, batch, settings=settings, seed=seed, device=device, force=force,
+                               progress=progress, checkpoint_every_s=checkpoint_every_s, snapshots=snapshots)
+    return kept, True
 
 
 # -- the command line -------------------------------------------------------------------------------------------
@@ -366,7 +547,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu",
                         help="where the fit runs (default cpu; auto: cuda when available)")
     parser.add_argument("--best", action="store_true", help="score policy_best.pt into ope_best.json")
-    parser.add_argument("--force", action="store_true", help="refit a run whose ope.json exists")
+    parser.add_argument("--force", action="store_true",
+                        help="refit a run whose ope.json exists (and its snapshots' fits)")
     parser.add_argument("--data-dir", type=Path, help="the data cache holding the runs' batches (default: each "
                         "run's data_dir, else $TORCHRL_BAIL_DATA_DIR or ~/.cache/torchrl_bail)")
     parser.add_argument("--batch-size", type=int, default=defaults.batch_size,
@@ -396,6 +578,21 @@ def _check_run_dir(path: Path, best: bool) -> str | None:
     if not policy.is_file():
         return f"{path}: no {policy.name} (a finished run directory holds it)"
     return None
+
+
+def _print_result(run_dir: Path, out: Path, ope: dict, fitted: bool, settings: FQESettings, seed: int) -> None:
+    if fitted:
+        print(f"{run_dir}: FQE estimate {ope['estimate']:.3f} (discounted, gamma {ope['gamma']}; "
+              f"{ope['updates']} updates, {ope['num_episode_starts']} episode starts) -> {out}")
+    else:
+        same = ope.get("settings") == _settings_record(settings) and ope.get("seed") == seed
+        note = "" if same else " (fitted with other settings or seed: --force refits)"
+        print(f"{run_dir}: kept {out}, FQE estimate {ope.get('estimate')}{note}")
+    selected = ope.get("fqe_selected")
+    if selected is not None:
+        print(f"{run_dir}: FQE selects {selected['path']} (iteration {selected['iteration']}, estimate "
+              f"{selected['fqe_estimate']:.3f}, the highest of {len(ope['snapshots'])}); its evaluation return "
+              f"{selected['online_return']} -> {out}, {run_dir / 'summary.json'}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -451,15 +648,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"torchrl_bail.ope: {err}", file=sys.stderr)
                 status = 2
                 continue
-            out = output_path(run_dir, best=args.best)
-            if fitted:
-                print(f"{run_dir}: FQE estimate {ope['estimate']:.3f} (discounted, gamma {ope['gamma']}; "
-                      f"{ope['updates']} updates, {ope['num_episode_starts']} episode starts) -> {out}")
-            else:
-                same = ope.get("settings") == {**dataclasses.asdict(settings), "hidden": list(settings.hidden)} \
-                    and ope.get("seed") == args.seed
-                note = "" if same else " (fitted with other settings or seed: --force refits)"
-                print(f"{run_dir}: kept {out}, FQE estimate {ope.get('estimate')}{note}")
+            _print_result(run_dir, output_path(run_dir, best=args.best), ope, fitted, settings, args.seed)
     return status
 
 

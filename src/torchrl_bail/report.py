@@ -16,7 +16,12 @@ Per group it reports the number of distinct seeds, the mean and sample standard 
 ``final_return`` and ``best_return``, the interquartile mean (IQM) of ``final_return`` with a 95 % stratified
 bootstrap confidence interval (rliable, Agarwal et al. 2021; numpy's stream seeded with ``--bootstrap-seed`` afresh
 for each group, so a group's interval does not depend on the others; see :func:`numpy_seed`) and the mean normalized
-score where ``summary.json`` has one (``final_return_normalized``).
+score where ``summary.json`` has one (``final_return_normalized``). When some run's ``summary.json`` holds
+``fqe_selected`` (written by ``python -m torchrl_bail.ope`` for a run with ``eval.snapshots``), every group also
+gets ``fqe_selected_return``'s mean and standard deviation over its runs that have one (with their count): the
+evaluation return of the policy snapshot FQE chose, what a user without the simulator would have deployed, beside
+``final_return`` and ``best_return`` (which the simulator chose). Without such a run neither the column nor its table
+appears.
 
 ``--out PREFIX`` writes ``PREFIX.md`` (batches as rows, a variant's non-default values in the row name,
 algorithms as columns, the best mean per row in bold), ``PREFIX.csv`` and ``PREFIX.json`` (every group, with
@@ -58,7 +63,7 @@ from torchrl_bail.resume import ADDED_KEYS, RENAMED_KEYS
 from torchrl_bail.run_dirs import RUN_ONLY_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
-           "summarise", "format_markdown", "numpy_seed", "main", "NON_SEPARATING_KEYS"]
+           "summarise", "format_markdown", "fqe_selected_return", "numpy_seed", "main", "NON_SEPARATING_KEYS"]
 
 #: the algorithms' order in tables and figures: their schemas' (the registry's)
 ALGO_ORDER = list(ALGO_SCHEMAS)
@@ -167,7 +172,19 @@ def _read_summary(path: Path) -> dict:
     for key in ("final_return", "best_return"):
         if not isinstance(summary[key], (int, float)):
             raise ReportError(f"{path}: incomplete summary.json, {key} = {summary[key]!r} is not a number")
+    selected = summary.get("fqe_selected")
+    if selected is not None and not (isinstance(selected, dict) and isinstance(selected.get("online_return"),
+                                                                                (int, float, type(None)))):
+        raise ReportError(f"{path}: fqe_selected = {selected!r} has no online_return")
     return summary
+
+
+def fqe_selected_return(summary: dict) -> float | None:
+    """The evaluation return of the snapshot FQE selected (``summary["fqe_selected"]["online_return"]``), or
+    ``None`` when the run has no selection."""
+    selected = summary.get("fqe_selected")
+    value = selected.get("online_return") if isinstance(selected, dict) else None
+    return None if value is None else float(value)
 
 
 def find_runs(paths: list[Path]) -> list[Run]:
@@ -292,6 +309,7 @@ def iqm_interval(scores: list[float], *, reps: int = 2_000, seed: int = 0) -> tu
 def summarise(groups: list[Group], *, reps: int = 2_000, seed: int = 0) -> list[dict]:
     """One row per group: seeds, mean/std of final and best return, IQM with its CI, normalised score."""
     rows = []
+    with_selection = any(fqe_selected_return(r.summary) is not None for g in groups for r in g.runs)
     for g in groups:
         final, best = g.scores("final_return"), g.scores("best_return")
         iqm, low, high = iqm_interval(final, reps=reps, seed=seed)
@@ -309,6 +327,11 @@ def summarise(groups: list[Group], *, reps: int = 2_000, seed: int = 0) -> list[
             "dataset_mean_episode_return": stats(dataset)[0] if dataset else None,
             "run_dirs": [str(r.run_dir) for r in g.runs],
         })
+        if with_selection:  # a column only when some run has a selection
+            selected = [v for v in (fqe_selected_return(r.summary) for r in g.runs) if v is not None]
+            rows[-1].update({"fqe_selected_return_mean": stats(selected)[0] if selected else None,
+                             "fqe_selected_return_std": stats(selected)[1] if selected else None,
+                             "fqe_selected_runs": len(selected)})
     return rows
 
 
@@ -327,6 +350,13 @@ def _cell(row: dict) -> str:
     return f"{row['final_return_mean']:.1f}{std}"
 
 
+def _fqe_cell(row: dict) -> str:
+    if row["fqe_selected_return_mean"] is None:
+        return "—"
+    std = "" if math.isnan(row["fqe_selected_return_std"]) else f" ± {row['fqe_selected_return_std']:.1f}"
+    return f"{row['fqe_selected_return_mean']:.1f}{std} ({row['fqe_selected_runs']})"
+
+
 def _iqm_cell(row: dict) -> str:
     low, high = row["final_return_iqm_ci_low"], row["final_return_iqm_ci_high"]
     return f"{row['final_return_iqm']:.1f} [{low:.1f}, {high:.1f}]"
@@ -337,14 +367,14 @@ def _table(table: dict[str, dict[str, dict]], algos: list[str], cell, key: str) 
     best ``key`` per row in bold (when there is more than one column)."""
     lines = ["| batch | data | " + " | ".join(algos) + " |", "|---|---|" + "---|" * len(algos)]
     for name, cells in table.items():
-        best = max(c[key] for c in cells.values())
+        best = max((c[key] for c in cells.values() if c[key] is not None), default=None)
         data = next((c["dataset_mean_episode_return"] for c in cells.values()
                      if c.get("dataset_mean_episode_return") is not None), None)
         out = [""] * len(algos)
         for i, a in enumerate(algos):
             c = cells.get(a)
             if c is not None:
-                out[i] = f"**{cell(c)}**" if c[key] == best and len(algos) > 1 else cell(c)
+                out[i] = f"**{cell(c)}**" if c[key] == best and best is not None and len(algos) > 1 else cell(c)
         lines.append(f"| {name} | {'' if data is None else f'{data:.1f}'} | " + " | ".join(out) + " |")
     return lines
 
@@ -371,6 +401,11 @@ def format_markdown(rows: list[dict], separating: dict[str, list[str]] | None = 
     lines += ["", *_table(table, algos, _iqm_cell, "final_return_iqm"), "",
               "final_return: interquartile mean over seeds [95 % stratified-bootstrap confidence interval] (rliable); "
               "best IQM per row in bold."]
+    if any(r.get("fqe_selected_return_mean") is not None for r in rows):
+        lines += ["", *_table(table, algos, _fqe_cell, "fqe_selected_return_mean"), "",
+                  "fqe_selected_return: mean ± sample std of the evaluation return of the policy snapshot FQE chose "
+                  "(python -m torchrl_bail.ope), over the runs (in brackets) that have one; best mean per row in "
+                  "bold."]
     return "\n".join(lines)
 
 
@@ -380,9 +415,14 @@ CSV_FIELDS = ["batch", "recipe_hash", "algo", "label", "variant", "seeds", "runs
               "final_return_normalized_std", "dataset_mean_episode_return"]
 
 
+#: the CSV's columns after :data:`CSV_FIELDS` when some run has an FQE selection
+FQE_CSV_FIELDS = ["fqe_selected_return_mean", "fqe_selected_return_std", "fqe_selected_runs"]
+
+
 def format_csv(rows: list[dict]) -> str:
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore", lineterminator="\n")
+    fields = CSV_FIELDS + (FQE_CSV_FIELDS if any("fqe_selected_return_mean" in r for r in rows) else [])
+    writer = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     return buf.getvalue()

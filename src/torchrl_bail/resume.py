@@ -54,14 +54,17 @@ __all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resump
 
 log = logging.getLogger("torchrl_bail")
 
-#: top-level keys added after checkpoints and runs were made, with the value those older runs behaved as: at that
-#: value a key is left out of the comparison, so an older run still resumes and still groups with newer ones
-ADDED_KEYS = {"compile": False, "seeds": None}
+#: keys added after checkpoints and runs were made (top-level, or ``group.key``), with the value those older runs
+#: behaved as: at that value a key is left out of the comparison, so an older run still resumes and still groups
+#: with newer ones
+ADDED_KEYS = {"compile": False, "seeds": None, "eval.snapshots": 0}
 #: config keys renamed after runs were made (old dotted key -> new): an older run's config is read under the new
 #: names, so it still resumes and still groups with newer runs (one spelling: "-ize", as TorchRL's names)
 RENAMED_KEYS = {"algo.mmd_stabiliser": "algo.mmd_stabilizer"}
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
+#: the folder of a run's policy snapshots (``eval.snapshots``)
+SNAPSHOTS = "snapshots"
 #: the suffix a damaged checkpoint or summary is set aside with
 CORRUPT = ".corrupt"
 LOGS = "logs"
@@ -83,6 +86,11 @@ def _comparable(container: dict[str, Any]) -> dict[str, Any]:
         node = container.get(group)
         if isinstance(node, dict) and leaf in node:
             container[group] = {new_leaf if k == leaf else k: v for k, v in node.items()}
+    for key, default in ADDED_KEYS.items():
+        group, _, leaf = key.rpartition(".")
+        node = container.get(group) if group else None
+        if isinstance(node, dict) and leaf in node and node[leaf] == default:
+            container[group] = {k: v for k, v in node.items() if k != leaf}
     return {k: v for k, v in container.items() if k not in RUN_ONLY_KEYS and k != "hydra"
             and not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
 
@@ -345,7 +353,8 @@ class Resumption:
         return True
 
     def _start_over(self, reason: str | None) -> None:
-        leftovers = [p for p in (self.run_dir / CHECKPOINT, self.run_dir / SUMMARY, self.run_dir / LOGS) if p.exists()]
+        leftovers = [p for p in (self.run_dir / CHECKPOINT, self.run_dir / SUMMARY, self.run_dir / LOGS,
+                                 self.run_dir / SNAPSHOTS) if p.exists()]
         for path in leftovers:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
         if leftovers and reason:
@@ -355,10 +364,11 @@ class Resumption:
                      ", ".join(p.name for p in leftovers))
 
     def _adopt(self, source: Path) -> None:
-        """``resume=<run_dir>``: this directory takes over the other run's scalar logs and plots."""
+        """``resume=<run_dir>``: this directory takes over the other run's scalar logs, plots and policy snapshots."""
         self._start_over(None)
-        if (source / LOGS).is_dir():
-            shutil.copytree(source / LOGS, self.run_dir / LOGS)
+        for folder in (LOGS, SNAPSHOTS):
+            if (source / folder).is_dir():
+                shutil.copytree(source / folder, self.run_dir / folder)
         for plot in source.glob("*.png"):
             shutil.copy2(plot, self.run_dir / plot.name)
 

@@ -4,8 +4,10 @@ Data flows one way: batch (generated on demand, or imported from ``dataset=<path
 -> the algorithm's ``prepare`` (BAIL: envelope + best-action filter) -> the training loop -> evaluation.
 The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``), ``learning_curve.png``,
 ``envelope.png`` (BAIL), ``checkpoint.pt``, ``policy.pt`` (the final policy), ``policy_best.pt`` (the
-best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either) and ``summary.json``. Re-running the same command
-continues a killed run from its checkpoint (:mod:`torchrl_bail.resume`).
+best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either), with ``eval.snapshots=N`` the policies of
+``N`` evaluations spread over training (``snapshots/policy_<iteration>.pt``, :func:`snapshot_path`), and
+``summary.json``. Re-running the same command continues a killed run from its checkpoint
+(:mod:`torchrl_bail.resume`).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported w
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.cli.run_cli) in about a second, before they load.
 
-__all__ = ["run", "main", "ConfigError", "validate_config", "make_logger", "flat_hparams"]
+__all__ = ["run", "main", "ConfigError", "validate_config", "make_logger", "flat_hparams", "snapshot_path"]
 
 log = logging.getLogger("torchrl_bail")
 
@@ -163,6 +165,7 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
         "final_return": history.final_return(cfg.eval.final_window),
         "best_return": history.best_return(),
         "best_policy": _best_policy(history),
+        **({"snapshots": _snapshots(history, cfg.eval.snapshots, run_dir)} if cfg.eval.snapshots else {}),
         "dataset_mean_episode_return": float(episode_returns.mean()),
         "dataset_max_episode_return": float(episode_returns.max()),
         "num_transitions": int(batch.num_transitions),
@@ -346,6 +349,13 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
                             mean_return=point.mean_return)
             return save
 
+        def keep_snapshot(i: int):  # snapshots/policy_<iteration>.pt: eval.snapshots evaluations' policies
+            def save(point, index: int) -> None:
+                save_policy(dirs[i] / snapshot_path(point.iteration), trainee.algorithms()[i], configs[i],
+                            obs_dim=obs_dim, action_spec=action_spec, iteration=point.iteration, epoch=point.epoch,
+                            evaluation=index, mean_return=point.mean_return)
+            return save
+
         every_minutes = cfg.checkpoint.get("every_minutes")
         histories = train(
             trainee, evaluate=evaluator.evaluate, evaluation_state=evaluator, samples_per_epoch=cfg.samples_per_epoch,
@@ -355,6 +365,7 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
             checkpoint_extras=[r.checkpoint_extra for r in resumptions],
             resume_from=checkpoints if resuming else None,
             on_new_best=[keep_best(i) for i in range(len(configs))],
+            snapshots=cfg.eval.snapshots, on_snapshot=[keep_snapshot(i) for i in range(len(configs))],
         )
         algorithms = trainee.algorithms()
     finally:
@@ -375,6 +386,34 @@ def _sampling_stream(seed: int, device):
         generator.set_state(torch.get_rng_state())
         return generator
     return torch.Generator(device=device).manual_seed(seed)
+
+
+def snapshot_path(iteration: int) -> str:
+    """Where a run keeps its policy snapshot of iteration ``iteration``, relative to the run directory.
+
+    Examples:
+        >>> snapshot_path(2500)
+        'snapshots/policy_2500.pt'
+    """
+    return f"snapshots/policy_{int(iteration)}.pt"
+
+
+def _snapshots(history, count: int, run_dir: Path) -> list[dict[str, Any]]:
+    """The policy snapshots of ``eval.snapshots=count``, read from the history
+    (:func:`~torchrl_bail.trainer.snapshot_indices`), so that a resumed run lists the same ones as an uninterrupted
+    run: each with its path, iteration, epoch, evaluation index and evaluation return (``eval_return``, the mean test
+    return the run measured for that policy)."""
+    from torchrl_bail.trainer import snapshot_indices
+
+    snapshots = []
+    for index in snapshot_indices(len(history.evaluations), count):
+        point = history.evaluations[index]
+        path = snapshot_path(point.iteration)
+        if not (run_dir / path).is_file():
+            log.warning("%s is missing: its snapshot is listed in summary.json all the same", run_dir / path)
+        snapshots.append({"path": path, "iteration": point.iteration, "epoch": point.epoch, "evaluation": index,
+                          "eval_return": point.mean_return})
+    return snapshots
 
 
 def _best_policy(history) -> dict[str, Any] | None:

@@ -52,8 +52,8 @@ from torchrl_bail.io import write_atomic
 from torchrl_bail.progress import tqdm
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee
 
-__all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "make_trainee",
-           "rng_state", "save_checkpoint", "set_rng_state", "train"]
+__all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "evaluation_count",
+           "make_trainee", "rng_state", "save_checkpoint", "set_rng_state", "snapshot_indices", "train"]
 
 #: version of the checkpoint layout :func:`train` writes and resumes from
 CHECKPOINT_FORMAT = 1
@@ -81,6 +81,29 @@ class TrainHistory:
 
     def best_return(self) -> float:
         return max((e.mean_return for e in self.evaluations), default=float("nan"))
+
+
+def evaluation_count(iterations: int, eval_interval: int) -> int:
+    """How many evaluations :func:`train` makes: one every ``eval_interval`` iterations, and one at the end.
+
+    Examples:
+        >>> evaluation_count(10, 5), evaluation_count(12, 5)
+        (2, 3)
+    """
+    return iterations // eval_interval + (iterations % eval_interval != 0)
+
+
+def snapshot_indices(evaluations: int, count: int) -> list[int]:
+    """The evaluations (indices into a run's ``evaluations``) whose policies a run of ``count`` snapshots keeps:
+    ``count`` of them spread evenly, the ``k``-th at ``ceil(k * evaluations / count) - 1``, so that the last one is the
+    final evaluation; every evaluation when ``count >= evaluations``, none for ``count = 0``.
+
+    Examples:
+        >>> snapshot_indices(10, 3), snapshot_indices(4, 8), snapshot_indices(10, 0)
+        ([3, 6, 9], [0, 1, 2, 3], [])
+    """
+    count = min(count, evaluations)
+    return [-(-k * evaluations // count) - 1 for k in range(1, count + 1)]
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
@@ -248,6 +271,8 @@ def train(
     progress: bool = True,
     log_every: int = 100,
     on_new_best: Sequence[Callable[[EvalPoint, int], None] | None] | None = None,
+    snapshots: int = 0,
+    on_snapshot: Sequence[Callable[[EvalPoint, int], None] | None] | None = None,
 ) -> list[TrainHistory]:
     """The training loop: runs the ``S`` seeds of ``trainee`` (:func:`make_trainee`; their ``prepare`` already ran)
     for ``trainee.epochs`` epochs; returns one :class:`TrainHistory` per seed. Every per-seed argument is a list of
@@ -278,6 +303,11 @@ def train(
         log_every (int): training scalars are averaged and logged every ``log_every`` updates.
         on_new_best: per seed, ``(point, index)`` called when an evaluation beats every earlier one of that seed
             (e.g. to save the best policy); ``index`` is the evaluation's position in its history.
+        snapshots (int): how many evaluations, spread evenly over training (:func:`snapshot_indices`, the last one
+            included), call ``on_snapshot``. Defaults to ``0``.
+        on_snapshot: per seed, ``(point, index)`` called at those evaluations, after ``on_new_best`` and before
+            the checkpoint (e.g. to save the policy: a resumed run calls it at the same evaluations as an
+            uninterrupted one, and again at one whose checkpoint a kill prevented).
     """
     count = trainee.seeds
     per_update = trainee.samples_per_update
@@ -286,6 +316,8 @@ def train(
     trainee.plan_updates(iterations)
     loggers = list(loggers or [None] * count)
     best_callbacks = list(on_new_best or [None] * count)
+    snapshot_callbacks = list(on_snapshot or [None] * count)
+    kept = set(snapshot_indices(evaluation_count(iterations, eval_interval), snapshots))
     extras = list(checkpoint_extras or [None] * count)
     histories = [TrainHistory() for _ in range(count)]
     sums: dict[str, torch.Tensor] = {}
@@ -316,7 +348,7 @@ def train(
             evaluated = evaluate is not None and (it % eval_interval == 0 or it == iterations)
             if evaluated:
                 points = _evaluate(evaluate, trainee, it, it * per_update / samples_per_epoch)
-                _record_evaluation(points, histories, loggers, best_callbacks, it)
+                _record_evaluation(points, histories, loggers, best_callbacks, it, snapshot_callbacks, kept)
                 mean_return = sum(p.mean_return for p in points) / len(points)
                 bar.set_postfix(epoch=f"{points[0].epoch:.2f}", eval_return=f"{mean_return:.1f}")
             saved = checkpoint_paths is not None and (
@@ -366,13 +398,18 @@ def _log_training(trainee: Trainee, sums: dict, loggers: Sequence, log_every: in
 
 
 def _record_evaluation(points: list[EvalPoint], histories: list[TrainHistory], loggers: Sequence,
-                       best_callbacks: Sequence, it: int) -> None:
-    """Appends each seed's evaluation to its history, calls its ``on_new_best`` on a new best, logs it."""
-    for point, seed_history, seed_logger, callback in zip(points, histories, loggers, best_callbacks, strict=True):
+                       best_callbacks: Sequence, it: int, snapshot_callbacks: Sequence, kept: set[int]) -> None:
+    """Appends each seed's evaluation to its history, calls its ``on_new_best`` on a new best and its
+    ``on_snapshot`` when the evaluation's index is ``kept``, logs it."""
+    for point, seed_history, seed_logger, callback, snapshot in zip(points, histories, loggers, best_callbacks,
+                                                                   snapshot_callbacks, strict=True):
         is_best = all(point.mean_return > e.mean_return for e in seed_history.evaluations)
         seed_history.evaluations.append(point)
+        index = len(seed_history.evaluations) - 1
         if callback is not None and is_best:
-            callback(point, len(seed_history.evaluations) - 1)
+            callback(point, index)
+        if snapshot is not None and index in kept:
+            snapshot(point, index)
         if seed_logger is not None:
             seed_logger.log_scalar("eval/return", point.mean_return, step=it)
             seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
