@@ -34,6 +34,13 @@ transitions, ``preset=paper``), in the order that lands what matters most first 
 Its ``cell.{md,json}`` (:func:`paper_cell_report`) sets the DDPG σ = 0.5 cell beside the published figures, gives a
 verdict per claim of the paper and the measured cost of every run. A job whose summary is already kept in
 ``--results`` is done: it neither runs again nor needs the workdir that made it.
+``--study paper_batches`` (results in ``results/paper_batches``): three more 10^6-transition batches
+(:data:`PAPER_BATCHES`, :func:`paper_batches_jobs`). Beside its own ``study.*`` it writes ``cross_batch.{md,json}``
+and ``curves_<batch>.png`` (:func:`cross_batch_report`): these batches and the headline one (read from
+``--headline``, default ``results/paper_hopper``) side by side, a verdict per claim per batch, and rliable's IQM and
+probabilities of improvement over all of them, each batch's final returns min-max normalised by its own episodes
+(:func:`normalised_return`). Every collect job's batch metadata is kept in ``<results>/batches``
+(:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept, with zero, some or all runs.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
 with the checkpoint's progress (updates done / scheduled) where one exists and the time the updates left take at
 the run's pace so far.
@@ -42,6 +49,7 @@ the run's pace so far.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -53,6 +61,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
@@ -139,11 +148,17 @@ def paper_schedule(algo: str) -> list[str]:
     epochs of conf/algo). An actor-critic runs :data:`OFFLINE_RL_UPDATES` updates of its own batch size, in epochs of
     10^6 samples: ``algo.epochs=10`` for BCQ and BEAR (batches of 100), ``algo.epochs=25.6`` for TD3+BC (256), so
     that every actor-critic of the cell has had as many updates."""
+    return list(_paper_schedule(algo, ALGO_SCHEMAS[algo].cost))
+
+
+@functools.cache
+def _paper_schedule(algo: str, cost: str) -> tuple[str, ...]:
+    """:func:`paper_schedule`, computed once per algorithm (composing its yaml takes most of a second)."""
     from torchrl_bail.config_builders import run_length_overrides
 
-    if ALGO_SCHEMAS[algo].cost == "imitation":
-        return []
-    return run_length_overrides(algo, OFFLINE_RL_UPDATES, OFFLINE_RL_EVALUATIONS)
+    if cost == "imitation":
+        return ()
+    return tuple(run_length_overrides(algo, OFFLINE_RL_UPDATES, OFFLINE_RL_EVALUATIONS))
 
 
 #: the paper-scale study's design (which algorithms: each schema's ``paper_study`` line): :data:`HEADLINE_PAIR` runs
@@ -383,8 +398,37 @@ def wall_seconds(entry: float | dict) -> float:
     return float(entry["wall_s"] if isinstance(entry, dict) else entry)
 
 
-def gather(workdir: Path, results: Path) -> list[Path]:
-    """Copies every finished run's summary, config and logs from ``workdir/outputs`` into ``results/runs``."""
+#: what a collect job prints once its batch is in the cache (``torchrl_bail.collect``): the batch's cache entry
+CACHED_AT = re.compile(r"^\S+: (?:collected|already cached) at (.+)$", re.MULTILINE)
+
+
+def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[Path]:
+    """Copies the ``metadata.json`` of each batch a collect job of ``jobs`` has in the cache (the entry its log in
+    ``workdir/logs`` names, in the data dir) to ``results/batches/<entry>.metadata.json``: the batch's statistics
+    (episode returns, the behaviour agent's final return, collection time) stay with the results once the data dir
+    is gone. A copy already kept with the same content is left alone; returns the files written."""
+    kept = []
+    for job in jobs:
+        log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
+        if job.module != "torchrl_bail.collect" or not log.is_file():
+            continue
+        entries = CACHED_AT.findall(log.read_text(errors="replace"))
+        source = Path(entries[-1].strip()) / "metadata.json" if entries else None
+        if source is None or not source.is_file():
+            continue
+        target = results / "batches" / f"{source.parent.name}.metadata.json"
+        if target.is_file() and target.read_bytes() == source.read_bytes():
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(source, target)
+        kept.append(target)
+    return kept
+
+
+def gather(workdir: Path, results: Path, jobs: list[Job] = ()) -> list[Path]:
+    """Copies every finished run's summary, config and logs from ``workdir/outputs`` into ``results/runs``, and the
+    metadata of the batches the collect jobs of ``jobs`` made (:func:`keep_batch_metadata`)."""
+    keep_batch_metadata(workdir, results, list(jobs))
     copied = []
     for summary in sorted((workdir / "outputs").glob("*/*/*/summary.json")):
         run = summary.parent
@@ -656,10 +700,383 @@ def paper_cell_report(results: Path, jobs: list[Job]) -> str:
     return text
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# the cross-batch report (``--study paper_batches``): the headline batch and PAPER_BATCHES side by side
+# ---------------------------------------------------------------------------------------------------------------
+
+#: the cross-batch report's columns, in the registry's order: the central cells of every batch, then the reference
+#: points (shown once any batch has a run of them)
+CROSS_BATCH_CENTRAL = tuple(a for a in ALGO_SCHEMAS if a in dict(PAPER_BATCH_CELLS))
+CROSS_BATCH_EXTRA = tuple(a for a in ALGO_SCHEMAS if a in dict(PAPER_BATCH_EXTRA_CELLS))
+#: the claims read on every batch: the paper cell's own (:data:`PAPER_CLAIMS`) whose groups every batch runs
+CROSS_BATCH_CLAIMS = [c for c in PAPER_CLAIMS if (c[1], c[2]) in {("bail", "bc"), ("bail", "bcq"), ("pbail", "bail")}]
+#: the probabilities of improvement over all batches: P(first > second)
+CROSS_BATCH_PAIRS = [("bail", "bcq"), ("bail", "bc")]
+#: bootstrap replications and numpy seed of every interval of the cross-batch report (the report's defaults)
+CROSS_BATCH_REPS, CROSS_BATCH_SEED = 2_000, 0
+#: how a final return is put on one scale across batches (:func:`normalised_return`)
+NORMALISATION = ("min-max by the batch's own episodes: (final return - the batch's worst episode return) / (its "
+                 "best - its worst), from the batch's metadata (episode_return_min, episode_return_max); 0 = the "
+                 "batch's worst episode, 1 = its best")
+
+
+def cross_batches() -> list[tuple[str, int, str, str]]:
+    """The cross-batch report's rows, as ``(exp, batch index, the BAIL authors' published figure, the study whose
+    results hold its runs)``: the headline batch (Hopper DDPG sigma=0.5 B1, ``results/paper_hopper``), then
+    :data:`PAPER_BATCHES` (``results/paper_batches``)."""
+    return [("hopper_ddpg05", 1, PAPER_ANCHORS["bail"][0], "paper_hopper"),
+            *((exp, index, published, "paper_batches") for exp, index, published in PAPER_BATCHES)]
+
+
+def normalised_return(final_return: float, metadata: dict) -> float:
+    """A final return on its batch's min-max scale (:data:`NORMALISATION`): 0 = the batch's worst episode, 1 = its
+    best. Min-max by the batch itself, not by reference scores: every batch's metadata has both bounds (the
+    random-policy scores of ``results/reference_scores.json`` have no expert end yet), the four batches differ in
+    env and behaviour quality, and the question BAIL asks is how much of the batch's best behaviour a policy
+    recovers. The map is increasing, so within a batch it changes no ordering; it sets the weight of each batch in
+    the aggregate."""
+    low, high = float(metadata["episode_return_min"]), float(metadata["episode_return_max"])
+    return (float(final_return) - low) / (high - low)
+
+
+def kept_metadata(results: Path, label: str, recipe_hashes: set[str]) -> tuple[Path | None, dict | None]:
+    """The batch's ``metadata.json`` kept in ``results/batches`` (``<label>-<recipe hash>.metadata.json``, copied
+    there by :func:`keep_batch_metadata`): the one whose recipe hash the runs name, or the only one."""
+    files = sorted((results / "batches").glob(f"{label}-*.metadata.json"))
+    if recipe_hashes:
+        files = [f for f in files if f.name[len(label) + 1:].split(".")[0] in recipe_hashes]
+    if len(files) != 1:
+        return None, None
+    return files[0], json.loads(files[0].read_text())
+
+
+def _train_cell(job: Job) -> tuple[str, str, int] | None:
+    """``(batch label, algorithm, seed)`` of a training job without a variant tag, else ``None``."""
+    if job.module != "torchrl_bail.train" or len(job.name.split("/")) != 3:
+        return None
+    named = dict(arg.split("=", 1) for arg in job.args)
+    return f"{named['+exp']}_b{named.get('batch.index', 1)}", named["algo"], int(named["seed"])
+
+
+def batch_cells(results: Path, jobs: list[Job], label: str) -> dict[str, dict]:
+    """``algo -> {"scheduled": seeds the study runs, "runs": kept run directories}`` of batch ``label``, for the
+    cross-batch columns."""
+    cells: dict[str, dict] = {}
+    for job in jobs:
+        cell = _train_cell(job)
+        if cell is None or cell[0] != label or cell[1] not in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA:
+            continue
+        entry = cells.setdefault(cell[1], {"scheduled": 0, "runs": []})
+        entry["scheduled"] += 1
+        run = run_dir_of(job, results / "runs")
+        if run is not None and (run / "summary.json").is_file():
+            entry["runs"].append(run)
+    return cells
+
+
+def _shown(path: Path) -> str:
+    """A path relative to the repository where it lies inside it (the kept reports hold no machine's paths)."""
+    path = Path(path).resolve()
+    return str(path.relative_to(HERE.parent)) if path.is_relative_to(HERE.parent) else str(path)
+
+
+def _cell_row(label: str, algo: str, runs: list[Path], metadata: dict | None) -> dict:
+    """One algorithm's row on one batch: :func:`torchrl_bail.report.summarise` over its kept runs (mean, sample std,
+    IQM with its 95 % stratified-bootstrap interval), its per-seed final returns in seed order and, where the
+    batch's metadata is kept, their normalised values."""
+    import math
+
+    from torchrl_bail.report import Group, find_runs, summarise
+
+    found = sorted(find_runs(runs), key=lambda r: int(r.summary["seed"]))
+    row = summarise([Group((label, None), algo, (), algo, "", found)], reps=CROSS_BATCH_REPS,
+                    seed=CROSS_BATCH_SEED)[0]
+    row = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()
+           if k not in ("label", "variant", "overrides", "recipe_hash", "batch")}
+    row["run_dirs"] = [_shown(r.run_dir) for r in found]
+    row["seed_ids"] = [int(r.summary["seed"]) for r in found]
+    row["per_seed"] = [float(r.summary["final_return"]) for r in found]
+    row["per_seed_normalised"] = (None if metadata is None else
+                                  [normalised_return(x, metadata) for x in row["per_seed"]])
+    return row
+
+
+#: the learning-curve figures' window: each seed's evaluations averaged per this many updates (the actor-critics'
+#: evaluation interval at the paper schedule, so every algorithm lands on one grid)
+CURVE_WINDOW_UPDATES = 5000
+
+
+def _windowed_curve(run: Path):
+    """``(window ends, mean evaluation return per window)`` of a kept run, windows of :data:`CURVE_WINDOW_UPDATES`
+    updates (the trainer logs each evaluation at its update count: the step of ``eval/return.csv``); ``None``
+    without CSV evaluation logs."""
+    from torchrl_bail.plots import _read_scalar_csv, read_eval_curve
+
+    if read_eval_curve(run) is None:
+        return None
+    returns = _read_scalar_csv(run / "logs" / "scalars" / "eval" / "return.csv")
+    windows: dict[int, list[float]] = {}
+    for step, value in returns.items():
+        windows.setdefault(-(-step // CURVE_WINDOW_UPDATES), []).append(value)
+    ends = sorted(windows)
+    return np.array(ends) * CURVE_WINDOW_UPDATES, np.array([np.mean(windows[w]) for w in ends])
+
+
+def plot_batch_curves(label: str, cells: dict[str, dict], metadata: dict | None, path: Path) -> Path | None:
+    """``curves_<batch>.png``: every algorithm's evaluation return against updates on a linear axis (every schedule
+    of the study ends between 5 x 10^4 and 1.25 x 10^5 updates, where its epochs of 10^6 samples run from 10 to 100),
+    each seed averaged per :data:`CURVE_WINDOW_UPDATES` updates; the mean over seeds as a line, the lowest to the
+    highest seed as a band; the batch's mean episode return dashed."""
+    from torchrl_bail.plots import new_figure, read_eval_curve, save_figure
+
+    lines = []
+    for i, algo in enumerate(CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA):
+        runs = cells.get(algo, {}).get("runs", [])
+        curves = [c for c in map(_windowed_curve, runs) if c is not None and len(c[0])]
+        if not curves:
+            continue
+        n = min(len(x) for x, _ in curves)
+        ys = np.stack([y[:n] for _, y in curves])
+        epochs = max(read_eval_curve(r)[0][-1] for r in runs if read_eval_curve(r) is not None)
+        lines.append((algo, f"C{i}", len(curves), f"{epochs:g}", curves[0][0][:n] / 1000, ys))
+    if not lines:
+        return None
+    fig = new_figure(figsize=(8.0, 4.8), layout="constrained")
+    ax = fig.subplots()
+    for algo, color, n, epochs, x, ys in lines:
+        ax.plot(x, ys.mean(0), color=color, linewidth=1.8,
+                label=f"{algo} ({n} seed{'s' if n != 1 else ''}, {epochs} epochs)")
+        ax.fill_between(x, ys.min(0), ys.max(0), color=color, alpha=0.12, linewidth=0)
+    if metadata is not None:
+        ax.axhline(metadata["episode_return_mean"], color="gray", linestyle="--", label="batch mean episode return")
+    ax.set_title(f"{label}: evaluation return, mean over seeds (band: lowest to highest seed)")
+    ax.set_xlabel(f"updates (thousands; each seed's evaluations averaged per {CURVE_WINDOW_UPDATES} updates)")
+    ax.set_ylabel("evaluation return")
+    ax.set_xlim(left=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize="small")
+    return save_figure(fig, path)
+
+
+def _seeded_interval(scores, func) -> tuple[float, float, float]:
+    """``(point, low, high)`` of rliable's stratified bootstrap over ``scores`` (a runs x batches matrix, or a pair
+    of them), under the report's seeded numpy stream (:func:`torchrl_bail.report.numpy_seed`)."""
+    from rliable import library
+
+    from torchrl_bail.report import numpy_seed
+
+    with numpy_seed(CROSS_BATCH_SEED):
+        point, interval = library.get_interval_estimates({"x": scores}, func, reps=CROSS_BATCH_REPS)
+    return float(np.ravel(point["x"])[0]), float(np.ravel(interval["x"][0])[0]), float(np.ravel(interval["x"][1])[0])
+
+
+def _matrix(batches: list[dict], algo: str, entered: list[str]) -> np.ndarray:
+    """``runs x batches`` of ``algo``'s normalised final returns on the batches ``entered``: each batch's first ``n``
+    seeds in seed order, ``n`` the fewest seeds any of them has (rliable needs a full matrix)."""
+    columns = [b["cells"][algo]["per_seed_normalised"] for b in batches if b["batch"] in entered]
+    n = min(len(c) for c in columns)
+    return np.array([c[:n] for c in columns]).T
+
+
+def cross_batch_aggregate(batches: list[dict]) -> dict:
+    """Over all batches, on the normalised scale (:data:`NORMALISATION`): each algorithm's IQM with its 95 %
+    stratified-bootstrap interval over the batches where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds, and for each of
+    :data:`CROSS_BATCH_PAIRS` the probability of improvement (rliable) with its interval over the batches where both
+    have them. A batch without kept metadata enters nothing. Unequal seeds: each batch gives its first ``n`` seeds,
+    ``n`` the fewest of the batches entered (so 5-seed BAIL stays 5 where every batch has 5)."""
+    from rliable import metrics
+
+    def ready(batch: dict, algo: str) -> bool:
+        cell = batch["cells"].get(algo)
+        return (batch["metadata"] is not None and cell is not None and cell.get("seeds", 0) >= MIN_SEEDS_FOR_VERDICT)
+
+    total = len(batches)
+    iqm = {}
+    for algo in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA:
+        entered = [b["batch"] for b in batches if ready(b, algo)]
+        if not entered:
+            continue
+        m = _matrix(batches, algo, entered)
+        point, low, high = _seeded_interval(m, lambda x: np.array([metrics.aggregate_iqm(x)]))
+        iqm[algo] = {"batches": entered, "seeds_per_batch": int(m.shape[0]), "iqm": point, "ci_low": low,
+                     "ci_high": high}
+    pairs = []
+    for a, b in CROSS_BATCH_PAIRS:
+        entered = [x["batch"] for x in batches if ready(x, a) and ready(x, b)]
+        row = {"a": a, "b": b, "batches": entered, "p": None, "ci_low": None, "ci_high": None, "seeds": None}
+        if entered:
+            x, y = _matrix(batches, a, entered), _matrix(batches, b, entered)
+            row["p"], row["ci_low"], row["ci_high"] = _seeded_interval([x, y], metrics.probability_of_improvement)
+            row["seeds"] = [int(x.shape[0]), int(y.shape[0])]
+        if len(entered) < total:
+            row["reading"] = (f"pending ({len(entered)} of {total} batches entered; the reading needs every batch "
+                              f"with {MIN_SEEDS_FOR_VERDICT} seeds of both)")
+        elif row["ci_low"] > 0.5:
+            row["reading"] = f"{a} above {b} across batches (the interval lies above 0.5)"
+        elif row["ci_high"] < 0.5:
+            row["reading"] = f"{a} below {b} across batches (the interval lies below 0.5)"
+        else:
+            row["reading"] = "no difference shown (the interval contains 0.5)"
+        pairs.append(row)
+    return {"normalisation": NORMALISATION, "iqm": iqm, "probability_of_improvement": pairs}
+
+
+def _fmt(x: float | None, digits: int = 1) -> str:
+    return "" if x is None else f"{x:.{digits}f}"
+
+
+def _mean_cell(cell: dict | None) -> str:
+    if cell is None:
+        return "not run"
+    seeds, scheduled = cell.get("seeds", 0), cell["scheduled"]
+    if seeds == 0:
+        return f"pending (0 of {scheduled} seeds)"
+    std = cell["final_return_std"]
+    text = _fmt(cell["final_return_mean"]) + ("" if std is None else f" ± {_fmt(std)}")
+    return text + (f" ({seeds} of {scheduled} seeds)" if seeds < scheduled else "")
+
+
+def _iqm_cell(cell: dict | None) -> str:
+    if cell is None:
+        return "not run"
+    seeds, scheduled = cell.get("seeds", 0), cell["scheduled"]
+    if seeds < MIN_SEEDS_FOR_VERDICT:
+        return f"pending ({seeds} of {scheduled} seeds)"
+    text = (f"{_fmt(cell['final_return_iqm'])} [{_fmt(cell['final_return_iqm_ci_low'])}, "
+            f"{_fmt(cell['final_return_iqm_ci_high'])}]")
+    return text + (f" ({seeds} of {scheduled} seeds)" if seeds < scheduled else "")
+
+
+def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
+    """``results/cross_batch.{md,json}`` and ``results/curves_<batch>.png``: the headline batch (its kept runs and
+    metadata in ``headline``, default ``results/paper_hopper``) and :data:`PAPER_BATCHES` (in ``results``) side by
+    side, Table-1 style — per batch its own mean episode return, its behaviour agent's final evaluation return
+    (``behaviour_final_return_mean10``) and collection time (``collection_wall_time_s``) from its kept metadata, each
+    algorithm's mean ± std and IQM [95 % CI] over seeds, the BAIL authors' published figure; a verdict per claim of
+    :data:`CROSS_BATCH_CLAIMS` per batch (:func:`claim_verdict`); over all batches :func:`cross_batch_aggregate`.
+    Reads kept runs only (no workdir, no batch); a cell without runs, a batch without metadata, reads "pending".
+    Returns the JSON written."""
+    from torchrl_bail.io import write_json_atomic, write_text_atomic
+
+    headline = headline if headline is not None else HERE / "paper_hopper"
+    sources = {"paper_hopper": (headline, paper_hopper_jobs()), "paper_batches": (results, paper_batches_jobs())}
+    batches = []
+    for exp, index, published, study in cross_batches():
+        label = f"{exp}_b{index}"
+        root, jobs = sources[study]
+        cells = batch_cells(root, jobs, label)
+        hashes = set()
+        for cell in cells.values():
+            for run in cell["runs"]:
+                path = json.loads((run / "summary.json").read_text()).get("batch_path") or ""
+                if "-" in Path(path).name:
+                    hashes.add(Path(path).name.rsplit("-", 1)[1])
+        meta_path, metadata = kept_metadata(root, label, hashes)
+        rows = {}
+        for algo, cell in cells.items():
+            row = _cell_row(label, algo, cell["runs"], metadata) if cell["runs"] else {"seeds": 0}
+            rows[algo] = {"scheduled": cell["scheduled"], **row}
+        claims = [{"claim": claim, "a": a, "b": b, "verdict": claim_verdict(rows.get(a), rows.get(b), kind)}
+                  for claim, a, b, kind in CROSS_BATCH_CLAIMS]
+        complete = all(rows.get(a, {}).get("seeds", 0) >= rows[a]["scheduled"] for a in CROSS_BATCH_CENTRAL
+                       if a in rows) and metadata is not None
+        figure = plot_batch_curves(label, cells, metadata, results / f"curves_{label}.png")
+        keys = ("episode_return_mean", "episode_return_min", "episode_return_max", "behaviour_final_return_mean10",
+                "collection_wall_time_s", "num_transitions", "num_episodes", "env_id", "recipe_hash")
+        batches.append({
+            "batch": label, "results": _shown(root), "published_bail": published, "complete": complete,
+            "metadata_file": None if meta_path is None else _shown(meta_path),
+            "metadata": None if metadata is None else {k: metadata.get(k) for k in keys},
+            "cells": rows, "claims": claims, "figure": None if figure is None else figure.name})
+    aggregate = cross_batch_aggregate(batches)
+    across = []
+    for claim, *_ in CROSS_BATCH_CLAIMS:
+        verdicts = [next(c["verdict"] for c in b["claims"] if c["claim"] == claim) for b in batches]
+        across.append({"claim": claim, **{k: sum(v.startswith(k + " ") or v == k for v in verdicts)
+                                          for k in ("holds", "does not hold", "pending")}})
+    done = [b["batch"] for b in batches if b["complete"]]
+    status = ("Batches complete (every central cell at its seeds: "
+              + ", ".join(f"{a} x {dict(PAPER_BATCH_CELLS)[a]}" for a in CROSS_BATCH_CENTRAL)
+              + f"; the batch's metadata kept): {len(done)} of {len(batches)}"
+              + (f" ({', '.join(done)})" if done else "") + ". "
+              + ("The cross-batch reading is pending until every batch is complete."
+                 if len(done) < len(batches) else "Every batch is complete."))
+    shown_extra = [a for a in CROSS_BATCH_EXTRA if any(b["cells"].get(a, {}).get("seeds") for b in batches)]
+    algos = [*CROSS_BATCH_CENTRAL, *shown_extra]
+    out = {"status": status, "complete_batches": done, "min_seeds_for_verdict": MIN_SEEDS_FOR_VERDICT,
+           "batches": batches, "claims_across_batches": across, "aggregate": aggregate,
+           "bootstrap": {"reps": CROSS_BATCH_REPS, "seed": CROSS_BATCH_SEED}}
+
+    def meta(b, key, fmt):
+        return "pending" if b["metadata"] is None or b["metadata"].get(key) is None else fmt(b["metadata"][key])
+
+    lines = [status, "",
+             "| batch | data: mean episode return | behaviour agent's final return | collection time | "
+             + " | ".join(algos) + " | published BAIL (gym -v2) |", "|---|---|---|---|" + "---|" * len(algos) + "---|"]
+    for b in batches:
+        lines.append(f"| {b['batch']} | {meta(b, 'episode_return_mean', _fmt)} | "
+                     f"{meta(b, 'behaviour_final_return_mean10', _fmt)} | "
+                     f"{meta(b, 'collection_wall_time_s', lambda s: f'{s / 3600:.1f} h')} | "
+                     + " | ".join(_mean_cell(b["cells"].get(a)) for a in algos) + f" | {b['published_bail']} |")
+    lines += ["", "Final return (the mean of a run's last evaluations), mean ± sample std over seeds. Data: the "
+              "batch's mean episode return; behaviour agent's final return: the mean of its last 10 evaluations as "
+              "collection ended; collection time: wall time of the 10^6-step collection (all from the batch's "
+              "kept metadata.json). Published BAIL: the authors' figures, mean ± std over seeds, on gym's -v2 "
+              "envs — for the three added batches from their repository's README table, for hopper_ddpg05_b1 the "
+              "paper's Table 1. These runs use Gymnasium's -v5 (simulator and rewards changed), so the levels "
+              "differ and the ordering of the algorithms is what compares.", "",
+              "| batch | " + " | ".join(algos) + " |", "|---|" + "---|" * len(algos)]
+    lines += [f"| {b['batch']} | " + " | ".join(_iqm_cell(b["cells"].get(a)) for a in algos) + " |" for b in batches]
+    lines += ["", f"Interquartile mean of the final return over seeds [95 % stratified-bootstrap interval] (rliable, "
+              f"{CROSS_BATCH_REPS} replications); pending below {MIN_SEEDS_FOR_VERDICT} seeds.", "",
+              "| batch | " + " | ".join(c[0] for c in CROSS_BATCH_CLAIMS) + " |",
+              "|---|" + "---|" * len(CROSS_BATCH_CLAIMS)]
+    lines += [f"| {b['batch']} | " + " | ".join(c["verdict"] for c in b["claims"]) + " |" for b in batches]
+    lines.append("| across batches | " + " | ".join(
+        f"holds on {c['holds']}, does not hold on {c['does not hold']}, pending on {c['pending']} of {len(batches)}"
+        for c in across) + " |")
+    lines += ["", f"A verdict needs {MIN_SEEDS_FOR_VERDICT} seeds on both sides (the paper cell's rule: 'holds' for "
+              "an 'above' claim means the first group's IQM interval lies wholly above the second's; for ≈ that the "
+              "intervals overlap, no difference shown, which is not proof of equality).", "",
+              f"**Over all batches.** Normalisation: {NORMALISATION}. Min-max by the batch itself because every "
+              "batch's metadata carries both bounds (the v5 reference scores have no expert end yet) and the four "
+              "batches differ in env and behaviour quality; it changes no ordering within a batch. A batch enters "
+              f"an algorithm's IQM when the algorithm has {MIN_SEEDS_FOR_VERDICT} seeds there, and a comparison "
+              f"when both sides have; each batch gives its first n seeds (seed order), n the fewest of the batches "
+              f"entered. Intervals: rliable's stratified bootstrap (over seeds within each batch), 95 %.", "",
+              "| algorithm | batches entered | seeds per batch | IQM of normalised final return [95 % CI] |",
+              "|---|---|---|---|"]
+    for algo in algos:
+        row = aggregate["iqm"].get(algo)
+        lines.append(f"| {algo} | pending (no batch with {MIN_SEEDS_FOR_VERDICT} seeds) |  |  |" if row is None else
+                     f"| {algo} | {', '.join(row['batches'])} ({len(row['batches'])} of {len(batches)}) | "
+                     f"{row['seeds_per_batch']} | {_fmt(row['iqm'], 3)} [{_fmt(row['ci_low'], 3)}, "
+                     f"{_fmt(row['ci_high'], 3)}] |")
+    lines += ["", "| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
+              "| reading |", "|---|---|---|---|---|"]
+    for p in aggregate["probability_of_improvement"]:
+        entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {len(batches)})" if p["batches"] else "none"
+        value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
+        seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
+        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {p['reading']} |")
+    lines += ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above a run "
+              "of the second on the same batch, averaged over the batches entered; the reading needs all "
+              f"{len(batches)} batches, and then says 'above' when the whole interval lies above 0.5."]
+    figures = ", ".join(f"`{_shown(results / b['figure'])}`" for b in batches if b["figure"]) or "none yet"
+    lines += ["", f"Learning curves, one figure per batch (updates on a linear axis, each seed's "
+              f"evaluations averaged per {CURVE_WINDOW_UPDATES} updates; the mean over seeds, a band from the lowest "
+              f"to the highest seed): {figures}."]
+    text = "\n".join(lines) + "\n"
+    write_text_atomic(results / "cross_batch.md", text)
+    write_json_atomic(results / "cross_batch.json", out)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
-                        help="study: the 50k-transition study (docs: Results); paper_hopper: Hopper at paper scale")
+                        help="study: the 50k-transition study (docs: Results); paper_hopper: Hopper at paper scale; "
+                             "paper_batches: three more 10^6 batches, reported beside paper_hopper's (cross_batch.md)")
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
     parser.add_argument("--workdir", type=Path, help="where outputs/ and logs/ go (default: <study>_work)")
@@ -668,6 +1085,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--list", action="store_true", help="print the jobs and exit")
     parser.add_argument("--status", action="store_true", help="print each job's state (done, running, left)")
     parser.add_argument("--report-only", action="store_true", help="only gather the finished runs and report")
+    parser.add_argument("--headline", type=Path, default=HERE / "paper_hopper",
+                        help="paper_batches: the headline batch's kept results (default: results/paper_hopper)")
     args = parser.parse_args(argv)
     args.workdir = args.workdir or Path(f"{args.study}_work")
     args.results = args.results or HERE / args.study
@@ -702,6 +1121,7 @@ def main(argv: list[str] | None = None) -> int:
                 timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
                 if rc == 0:
                     timings.setdefault(job.name, whole_job_record(job, record, args.workdir))
+                    keep_batch_metadata(args.workdir, args.results, [job])  # a collect job's batch, at once
                 print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
                       f"in {seconds:.0f} s", flush=True)
                 if rc != 0:
@@ -709,12 +1129,15 @@ def main(argv: list[str] | None = None) -> int:
                 tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
                 tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
                 tmp.replace(timings_path)
-    copied = gather(args.workdir, args.results)
+    copied = gather(args.workdir, args.results, STUDIES[args.study]())
     report(args.results, ablations=args.study == "study")
     curve_check(args.results)
     if args.study == "paper_hopper":
         paper_cell_report(args.results, STUDIES[args.study]())
-    reports = "study.md, ablations.md" if args.study == "study" else "study.md, cell.md"
+    if args.study == "paper_batches":
+        cross_batch_report(args.results, args.headline)
+    reports = {"study": "study.md, ablations.md", "paper_hopper": "study.md, cell.md",
+               "paper_batches": "study.md, cross_batch.md"}[args.study]
     kept = len(list((args.results / "runs").glob("*/*/*/summary.json")))
     print(f"{len(copied)} runs copied from {args.workdir / 'outputs'}; {kept} runs in {args.results / 'runs'}; "
           f"reports in {args.results}: {reports}")

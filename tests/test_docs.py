@@ -368,24 +368,42 @@ def _table(text: str, key: str) -> dict[str, dict[str, str]]:
 
 def test_the_home_pages_headline_result_is_the_results_own():
     """Every figure of the home page's headline table is the one its results file holds: the study's Hopper DDPG
-    sigma = 0.5 row, and the paper-scale cell (results/paper_hopper: its report and its batch's metadata)."""
+    sigma = 0.5 row, and the paper-scale cell (results/paper_hopper: its report and its batch's metadata); BAIL, BC
+    and BCQ, the best of each row in bold, and the sentence on BCQ's order against BAIL is the data's."""
     page = (ROOT / "docs" / "index.md").read_text()
-    home = _table(page[page.index("## The headline result"):], "batch")
+    headline = page[page.index("## The headline result"):page.index("## Where to start")]
+    home = _table(headline, "batch")
     small, paper = home["50k transitions (`preset=study`)"], home["10^6 transitions, the paper's size (`preset=paper`)"]
     study = _table((ROOT / "results" / "study" / "study.md").read_text(), "batch")["hopper_ddpg05_b1"]
-    assert [small["the batch's own mean episode return"], small["BAIL"], small["BC"]] == [
-        study["data"], study["bail"], study["bc"]]
+    assert [small["the batch's own mean episode return"], small["BAIL"], small["BC"], small["BCQ"]] == [
+        study["data"], study["bail"], study["bc"], study["bcq"]]
     cell = _table((ROOT / "results" / "paper_hopper" / "cell.md").read_text(), "algorithm")
     batch = json.loads((ROOT / "results" / "paper_hopper" / "batches" /
                         "hopper_ddpg05_b1-dcc2994b.metadata.json").read_text())
-    assert [paper["the batch's own mean episode return"], paper["BAIL"], paper["BC"]] == [
-        f"{batch['episode_return_mean']:.1f}", cell["bail"]["mean ± std"], cell["bc"]["mean ± std"]]
+    assert [paper["the batch's own mean episode return"], paper["BAIL"], paper["BC"], paper["BCQ"]] == [
+        f"{batch['episode_return_mean']:.1f}", cell["bail"]["mean ± std"], cell["bc"]["mean ± std"],
+        cell["bcq"]["mean ± std"]]
     runs = ROOT / "results" / "study" / "runs" / "hopper_ddpg05_b1"
     seeds = [sum(bool(re.fullmatch(r"seed\d+,preset=study", d.name)) for d in (runs / algo).iterdir())
-             for algo in ("bail", "bc")]
-    assert seeds == [5, 5], "the study's runs of the cell without overrides"
-    assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and "over 5 seeds" in page
+             for algo in ("bail", "bc", "bcq")]
+    assert seeds == [5, 5, 3], "the study's runs of the cell without overrides"
+    assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and cell["bcq"]["seeds"] == "3"
+    assert "over 5 seeds (BCQ: 3 seeds)" in page
     assert "2054 ± 158" in page and cell["bail"]["published (gym v2)"] == "2054 ± 158"
+    for row in (small, paper):  # the bold cell is the row's best mean
+        means = {algo: float(row[algo].split(" ± ")[0]) for algo in ("BAIL", "BC", "BCQ")}
+        best = max(means, key=means.get)
+        assert f"**{row[best]}**" in headline and headline.count("**") == 4, (best, row)
+    mean = {k: float(v.split(" ± ")[0]) for k, v in (("study bail", study["bail"]), ("study bcq", study["bcq"]),
+                                                       ("cell bail", cell["bail"]["mean ± std"]),
+                                                       ("cell bcq", cell["bcq"]["mean ± std"]))}
+    text = " ".join(headline.split())
+    assert "0.5 % on the 50k batch, where it ends below BAIL" in text and mean["study bcq"] < mean["study bail"]
+    assert "(10^5 updates) at the paper's size, where it ends above BAIL" in text
+    assert mean["cell bcq"] > mean["cell bail"]
+    verdict = next(c["verdict"] for c in json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())[
+        "claims"] if (c["a"], c["b"]) == ("bail", "bcq"))
+    assert verdict.startswith("does not hold") and "BAIL beats BCQ does not hold on this batch" in text
 
 
 def test_getting_started_quotes_the_kept_run_of_the_first_command():
@@ -458,6 +476,21 @@ def test_readme_quotes_the_paper_scale_cell():
     bcq, bail = cell["groups"]["bcq"], cell["groups"]["bail"]
     assert (f"BCQ {bcq['final_return_mean']:.0f} ± {bcq['final_return_std']:.0f} ({bcq['seeds']} seeds) vs BAIL "
             f"{bail['final_return_mean']:.0f} ± {bail['final_return_std']:.0f} ({bail['seeds']} seeds)") in results
+
+
+def test_the_results_pages_cross_batch_state_is_the_reports():
+    """"Across batches" includes the cross-batch report and its sentence on where the study stands is the report's
+    (``results/paper_batches/cross_batch.json``: which batches are complete); a batch completing fails this until
+    the sentence says so."""
+    report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
+    page = (ROOT / "docs" / "results.md").read_text()
+    section = " ".join(page[page.index("## Across batches"):].split())
+    assert '--8<-- "results/paper_batches/cross_batch.md"' in section
+    states = {("hopper_ddpg05_b1",): "only the headline batch is complete, so the table's other rows, and the verdict "
+                                     "across batches, are pending"}
+    assert states[tuple(report["complete_batches"])] in section
+    assert [b["batch"] for b in report["batches"]][0] == "hopper_ddpg05_b1" and len(report["batches"]) == 4
+    assert report["status"] in (ROOT / "results" / "paper_batches" / "cross_batch.md").read_text()
 
 
 def _pm(group: dict) -> str:

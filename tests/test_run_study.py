@@ -306,3 +306,155 @@ def test_claim_verdicts_read_the_iqm_intervals(run_study):
     assert run_study.claim_verdict(row(3, 0, 15), row(3, 10, 20), "similar").startswith("holds (no difference")
     assert run_study.claim_verdict(row(3, 0, 9), row(3, 10, 20), "similar").startswith("does not hold (below")
     assert run_study.claim_verdict(None, row(3, 10, 20), "above").startswith("pending (seeds so far: 0 and 3")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the cross-batch report (--study paper_batches): a fake results tree of kept runs and kept batch metadata
+# ---------------------------------------------------------------------------------------------------------------
+
+HEADLINE_META = {"episode_return_mean": 500.0, "episode_return_min": 100.0, "episode_return_max": 3100.0,
+                 "behaviour_final_return_mean10": 1234.5, "collection_wall_time_s": 9000.0,
+                 "num_transitions": 10**6, "recipe_hash": "abcd1234"}
+WALKER_META = {"episode_return_mean": 400.0, "episode_return_min": 50.0, "episode_return_max": 2050.0,
+               "behaviour_final_return_mean10": 1500.0, "collection_wall_time_s": 3600.0,
+               "num_transitions": 10**6, "recipe_hash": "1234abcd"}
+HEADLINE_RUNS = {"bail": [2200.0, 2300.0, 2100.0, 2250.0, 2150.0], "bc": [400.0, 450.0, 500.0, 420.0, 480.0],
+                 "bcq": [2600.0, 2700.0, 2650.0], "pbail": [2150.0, 2250.0, 2200.0]}
+WALKER_RUNS = {"bail": [1100.0, 1200.0, 1000.0, 1150.0, 1050.0], "bc": [300.0, 350.0]}  # BC: 2 of 5 seeds so far
+
+
+def _fake_batch(run_study, root: Path, label: str, recipe: str, runs: dict[str, list[float]],
+                metadata: dict | None) -> None:
+    """Kept runs of one batch in the layout the runner gathers (``runs/<batch>/<algo>/seed<s>[,<schedule>]`` with
+    summary.json, config.yaml and CSV evaluation logs), and its kept ``batches/<batch>-<hash>.metadata.json``."""
+    for algo, finals in runs.items():
+        suffix = "".join("," + o for o in sorted(run_study.paper_schedule(algo)))
+        for seed, final in enumerate(finals, 1):
+            run = root / "runs" / label / algo / f"seed{seed}{suffix}"
+            scalars = run / "logs" / "scalars" / "eval"
+            scalars.mkdir(parents=True)
+            (run / "summary.json").write_text(json.dumps({
+                "algo": algo, "seed": seed, "final_return": final, "best_return": final + 100.0, "iterations": 10000,
+                "wall_time_s": 60.0, "batch": label, "batch_path": f"/data/{label}-{recipe}"}))
+            (run / "config.yaml").write_text(f"threads: 1\nseed: {seed}\n")
+            (scalars / "return.csv").write_text(f"5000,{final - 200.0}\n10000,{final}\n")
+            (scalars / "epoch.csv").write_text("5000,0.5\n10000,1.0\n")
+    if metadata is not None:
+        (root / "batches").mkdir(parents=True, exist_ok=True)
+        (root / "batches" / f"{label}-{recipe}.metadata.json").write_text(json.dumps(metadata))
+
+
+@pytest.fixture(scope="module")
+def cross_batch(run_study, tmp_path_factory):
+    """The report over the headline batch (every central cell complete) and walker_ddpg05_b1 (BAIL's 5 seeds, BC's
+    first 2), the two other batches not begun."""
+    root = tmp_path_factory.mktemp("cross_batch")
+    headline, results = root / "paper_hopper", root / "paper_batches"
+    _fake_batch(run_study, headline, "hopper_ddpg05_b1", "abcd1234", HEADLINE_RUNS, HEADLINE_META)
+    _fake_batch(run_study, results, "walker_ddpg05_b1", "1234abcd", WALKER_RUNS, WALKER_META)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 300)
+        out = run_study.cross_batch_report(results, headline)
+    return out, results
+
+
+def test_the_cross_batch_table_has_a_row_per_batch_with_its_metadata_and_pending_cells(run_study, cross_batch):
+    out, results = cross_batch
+    text = (results / "cross_batch.md").read_text()
+    assert [b["batch"] for b in out["batches"]] == ["hopper_ddpg05_b1", "walker_ddpg05_b1", "hopper_ddpg01_b1",
+                                                     "hopper_ddpg05_b2"]
+    assert "| batch | data: mean episode return | behaviour agent's final return | collection time | bail | pbail | " \
+           "bc | bcq | published BAIL (gym -v2) |" in text  # no run of BEAR, TD3+BC or IQL: no column
+    assert ("| hopper_ddpg05_b1 | 500.0 | 1234.5 | 2.5 h | 2200.0 ± 79.1 | 2200.0 ± 50.0 | 450.0 ± 41.2 | "
+            "2650.0 ± 50.0 | 2054 ± 158 |") in text
+    assert ("| walker_ddpg05_b1 | 400.0 | 1500.0 | 1.0 h | 1100.0 ± 79.1 | pending (0 of 3 seeds) | "
+            "325.0 ± 35.4 (2 of 5 seeds) | pending (0 of 3 seeds) | 2522 ± 51 |") in text
+    assert ("| hopper_ddpg01_b1 | pending | pending | pending | pending (0 of 5 seeds) | pending (0 of 3 seeds) | "
+            "pending (0 of 5 seeds) | pending (0 of 3 seeds) | 2173 ± 291 |") in text
+    assert "| walker_ddpg05_b1 | " in text.split("Interquartile mean")[0].split("| batch | bail |")[1]
+    assert "pending (2 of 5 seeds)" in text  # BC's IQM on walker: below 3 seeds
+    assert "gym's -v2" in text and "Gymnasium's -v5" in text and "README table" in text
+    assert out["complete_batches"] == ["hopper_ddpg05_b1"] and "1 of 4 (hopper_ddpg05_b1)" in out["status"]
+    assert sorted(p.name for p in results.glob("curves_*.png")) == ["curves_hopper_ddpg05_b1.png",
+                                                                     "curves_walker_ddpg05_b1.png"]
+    assert json.loads((results / "cross_batch.json").read_text()) == json.loads(json.dumps(out))
+
+
+def test_each_batchs_verdicts_follow_the_paper_cells_rule(run_study, cross_batch):
+    out, _ = cross_batch
+    headline, walker = out["batches"][:2]
+    verdicts = {c["claim"]: c["verdict"] for c in headline["claims"]}
+    cells = headline["cells"]
+    assert verdicts["BAIL ≫ BC"] == run_study.claim_verdict(cells["bail"], cells["bc"], "above")
+    assert verdicts["BAIL ≫ BC"] == "holds (above: the IQM intervals are disjoint)"
+    assert cells["bail"]["final_return_iqm_ci_low"] > cells["bc"]["final_return_iqm_ci_high"]
+    assert verdicts["BAIL above BCQ (BCQ at 10^5 of the paper's 10^6 updates)"].startswith("does not hold (below")
+    assert verdicts["Progressive BAIL ≈ BAIL"].startswith("holds (no difference shown")
+    walker_verdicts = {c["claim"]: c["verdict"] for c in walker["claims"]}
+    assert walker_verdicts["BAIL ≫ BC"].startswith("pending (seeds so far: 5 and 2")
+    across = {c["claim"]: c for c in out["claims_across_batches"]}
+    assert across["BAIL ≫ BC"] == {"claim": "BAIL ≫ BC", "holds": 1, "does not hold": 0, "pending": 3}
+
+
+def test_the_aggregate_normalises_by_each_batchs_own_episodes(run_study, cross_batch):
+    """Min-max by the batch's worst and best episode (its metadata): BAIL's IQM over both batches with 5 seeds is
+    the trimmed mean of the hand-normalised returns; P(BAIL > BC) > 0.5 with its interval, on the one batch where
+    both have 3 seeds; P(BAIL > BCQ) < 0.5 there."""
+    from scipy.stats import trim_mean
+
+    out, _ = cross_batch
+    norm = [(x - 100.0) / 3000.0 for x in HEADLINE_RUNS["bail"]] + [(x - 50.0) / 2000.0 for x in WALKER_RUNS["bail"]]
+    assert out["batches"][0]["cells"]["bail"]["per_seed_normalised"] == pytest.approx(norm[:5])
+    bail = out["aggregate"]["iqm"]["bail"]
+    assert bail["batches"] == ["hopper_ddpg05_b1", "walker_ddpg05_b1"] and bail["seeds_per_batch"] == 5
+    assert bail["iqm"] == pytest.approx(trim_mean(norm, 0.25))
+    assert bail["ci_low"] <= bail["iqm"] <= bail["ci_high"]
+    assert out["aggregate"]["iqm"]["bc"]["batches"] == ["hopper_ddpg05_b1"]  # walker's BC has 2 seeds
+    poi = {(p["a"], p["b"]): p for p in out["aggregate"]["probability_of_improvement"]}
+    over_bc, over_bcq = poi[("bail", "bc")], poi[("bail", "bcq")]
+    assert over_bc["batches"] == ["hopper_ddpg05_b1"] and over_bc["seeds"] == [5, 5]
+    assert over_bc["p"] > 0.5 and 0.5 < over_bc["ci_low"] <= over_bc["p"] <= over_bc["ci_high"]
+    assert over_bcq["p"] < 0.5 and over_bcq["ci_high"] < 0.5 and over_bcq["seeds"] == [5, 3]
+    assert over_bc["reading"].startswith("pending (1 of 4 batches entered")
+
+
+def test_the_cross_batch_report_with_no_runs_is_all_pending(run_study, tmp_path):
+    out = run_study.cross_batch_report(tmp_path / "paper_batches", tmp_path / "paper_hopper")
+    assert out["complete_batches"] == [] and "0 of 4" in out["status"]
+    assert out["aggregate"]["iqm"] == {} and all(p["p"] is None for p in out["aggregate"]["probability_of_improvement"])
+    assert all(c["verdict"].startswith("pending (seeds so far: 0 and 0") for b in out["batches"] for c in b["claims"])
+    text = (tmp_path / "paper_batches" / "cross_batch.md").read_text()
+    assert "| bail | pending (no batch with 3 seeds) |" in text and "none yet" in text
+    assert not list((tmp_path / "paper_batches").glob("*.png"))
+
+
+def test_report_only_keeps_the_collected_batchs_metadata_and_rebuilds_from_kept_files_alone(run_study, tmp_path,
+                                                                                             monkeypatch):
+    """``--report-only`` copies a collect job's batch metadata from the cache entry its log names (the data dir)
+    into ``results/batches``; with the workdir and the data dir gone, it rebuilds the same report."""
+    import shutil
+
+    monkeypatch.setattr(run_study, "CROSS_BATCH_REPS", 300)
+    monkeypatch.setattr(run_study, "report", lambda *a, **k: None)  # torchrl_bail.report's own tables: not here
+    headline, results, work, data = (tmp_path / d for d in ("paper_hopper", "paper_batches", "work", "data"))
+    _fake_batch(run_study, headline, "hopper_ddpg05_b1", "abcd1234", HEADLINE_RUNS, HEADLINE_META)
+    _fake_batch(run_study, results, "walker_ddpg05_b1", "1234abcd", WALKER_RUNS, None)
+    entry = data / "walker_ddpg05_b1-1234abcd"
+    entry.mkdir(parents=True)
+    (entry / "metadata.json").write_text(json.dumps(WALKER_META))
+    (work / "logs").mkdir(parents=True)
+    (work / "logs" / "collect__walker_ddpg05_b1.log").write_text(
+        f"walker_ddpg05_b1: collected at {entry}\n  env Walker2d-v5: 1000000 transitions\n")
+    args = ["--study", "paper_batches", "--report-only", "--results", str(results), "--headline", str(headline)]
+    assert run_study.main([*args, "--workdir", str(work)]) == 0
+    kept = results / "batches" / "walker_ddpg05_b1-1234abcd.metadata.json"
+    assert json.loads(kept.read_text()) == WALKER_META
+    first = (results / "cross_batch.md").read_text()
+    assert "| walker_ddpg05_b1 | 400.0 | 1500.0 | 1.0 h | 1100.0 ± 79.1 |" in first
+    shutil.rmtree(work)
+    shutil.rmtree(data)
+    for made in [*results.glob("cross_batch.*"), *results.glob("curves_*.png")]:
+        made.unlink()
+    assert run_study.main([*args, "--workdir", str(tmp_path / "another")]) == 0
+    assert (results / "cross_batch.md").read_text() == first
+    assert (results / "curves_walker_ddpg05_b1.png").is_file() and not (tmp_path / "another" / "outputs").exists()
