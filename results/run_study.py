@@ -425,17 +425,20 @@ def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[P
     return kept
 
 
-def gather(workdir: Path, results: Path, jobs: list[Job] = ()) -> list[Path]:
+def gather(workdir: Path, results: Path, jobs: list[Job] = (), policies: bool = False) -> list[Path]:
     """Copies every finished run's summary, config and logs from ``workdir/outputs`` into ``results/runs``, and the
-    metadata of the batches the collect jobs of ``jobs`` made (:func:`keep_batch_metadata`)."""
+    metadata of the batches the collect jobs of ``jobs`` made (:func:`keep_batch_metadata`). With ``policies`` (the
+    paper-scale studies) also each run's final ``policy.pt`` (about 0.5 MB), so that later analyses of the policies
+    (off-policy evaluation: ``python -m torchrl_bail.ope``) never need to train them again; never checkpoints."""
     keep_batch_metadata(workdir, results, list(jobs))
     copied = []
     for summary in sorted((workdir / "outputs").glob("*/*/*/summary.json")):
         run = summary.parent
         target = results / "runs" / run.relative_to(workdir / "outputs")
         target.mkdir(parents=True, exist_ok=True)
-        for name in ("summary.json", "config.yaml"):
-            shutil.copy2(run / name, target / name)
+        for name in ("summary.json", "config.yaml", *(("policy.pt",) if policies else ())):
+            if name != "policy.pt" or (run / name).is_file():
+                shutil.copy2(run / name, target / name)
         if (run / "logs").is_dir():
             shutil.copytree(run / "logs", target / "logs", dirs_exist_ok=True)
         copied.append(target)
@@ -1129,7 +1132,7 @@ def main(argv: list[str] | None = None) -> int:
                 tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
                 tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
                 tmp.replace(timings_path)
-    copied = gather(args.workdir, args.results, STUDIES[args.study]())
+    copied = gather(args.workdir, args.results, STUDIES[args.study](), policies=args.study != "study")
     report(args.results, ablations=args.study == "study")
     curve_check(args.results)
     if args.study == "paper_hopper":

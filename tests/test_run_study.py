@@ -458,3 +458,17 @@ def test_report_only_keeps_the_collected_batchs_metadata_and_rebuilds_from_kept_
     assert run_study.main([*args, "--workdir", str(tmp_path / "another")]) == 0
     assert (results / "cross_batch.md").read_text() == first
     assert (results / "curves_walker_ddpg05_b1.png").is_file() and not (tmp_path / "another" / "outputs").exists()
+
+
+def test_gather_keeps_the_paper_scale_policies_and_never_a_checkpoint(run_study, tmp_path):
+    """A paper-scale study keeps each finished run's ``policy.pt`` beside its summary (what ``torchrl_bail.ope``
+    scores later); the 50k study keeps none; neither keeps a checkpoint."""
+    run = tmp_path / "work" / "outputs" / "walker_ddpg05_b1" / "bail" / "seed1"
+    (run / "logs").mkdir(parents=True)
+    for name, text in (("summary.json", "{}"), ("config.yaml", "seed: 1\n"), ("policy.pt", "weights"),
+                       ("checkpoint.pt", "state")):
+        (run / name).write_text(text)
+    for policies, results in ((True, tmp_path / "paper"), (False, tmp_path / "study")):
+        (kept,) = run_study.gather(tmp_path / "work", results, policies=policies)
+        assert sorted(p.name for p in kept.iterdir()) == sorted(
+            ["summary.json", "config.yaml", "logs", *(["policy.pt"] if policies else [])])
