@@ -156,7 +156,7 @@ def _drill(slurm: str, data_dir: Path, sweep: Path, *launcher: str):
     while not (checkpoints := list(sweep.rglob("checkpoint.pt"))):
         assert proc.poll() is None and time.monotonic() < deadline, _job_logs(sweep)
         time.sleep(0.5)
-    (job,) = _squeue(env, "-o", "%i", "-t", "RUNNING")
+    (job,) = _squeue(env, "-o", "%i", "-t", "RUNNING", "-p", "debug")  # the drill's, not an urgent job left over
     return proc, job, checkpoints[0].parent
 
 
