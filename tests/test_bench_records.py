@@ -240,3 +240,22 @@ def test_the_fail_fast_figures_are_the_records():
     assert (f"it fails in {row['bad command line']:.2f} s, where importing one algorithm's module takes "
             f"{row['algorithm module']:.2f} s (×{row['ratio']:.2f}; medians of {rounds} fresh processes") in guide
     assert row["ratio"] < 0.5
+
+
+def test_the_ope_guide_quotes_the_fqe_record():
+    """The FQE throughput the guide states (rates, ratio, rounds, whole fits, load) is ``bench_fqe.json``'s."""
+    record = json.loads((RECORDS_DIR / "bench_fqe.json").read_text())
+    assert record["script"] == "bench_fqe.py" and record["reference"] == "bare PyTorch"
+    assert record["machine"]["affinity"] == [1] and record["machine"]["torch_threads"] == 1
+    update, fit = record["rows"]
+    assert update["name"].startswith("FQE update") and fit["name"].startswith("FQE whole fit")
+    rounds = len(update["rounds"]["torchrl_bail"])
+    guide = " ".join((ROOT / "docs" / "guides" / "ope.md").read_text().split())
+    assert (f"FQE's update ran at {update['torchrl_bail']:.1f} updates/s, the bare twin's at {update['bare']:.1f} "
+            f"(ratio {update['ratio']:.2f}, medians of {rounds} rounds of {update['updates_per_round']} updates a "
+            f"side)") in guide
+    assert (f"whole fits of {fit['updates_per_round']} updates, with the policy's actions and the estimate, ran at "
+            f"{fit['torchrl_bail']:.1f} and {fit['bare']:.1f} updates/s (ratio {fit['ratio']:.2f}, "
+            f"{len(fit['rounds']['bare'])} fits a side)") in guide
+    assert f"(load average {record['load_average']['start'][0]:.1f} at its start)" in guide
+    assert "`results/benchmarks/bench_fqe.json`" in guide
