@@ -14,6 +14,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -28,9 +29,11 @@ pytestmark = pytest.mark.slurm
 ROOT = Path(__file__).resolve().parents[1]
 CLUSTER = ROOT / "tests" / "slurm"
 SUMMARY_VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
-#: a drill's job: 3000 updates (about 30 s on one core), an evaluation (and its checkpoint) every 1000 and no timed
-#: checkpoints, so that a checkpoint at any other iteration can only have been written on the signal
-DRILL = ["algo=bc", "algo.epochs=3", "eval.every_epochs=1", "checkpoint.every_minutes=null",
+#: a drill's job: 40000 updates (about a minute on an idle core: long enough that a time-limit signal, which Slurm
+#: may send well before ``signal_delay_s``, finds it training), an evaluation (and its checkpoint) every 1000 and no
+#: timed checkpoints, so that a checkpoint at any other iteration can only have been written on the signal
+DRILL_UPDATES = 40_000
+DRILL = ["algo=bc", f"algo.epochs={DRILL_UPDATES // 1000}", "eval.every_epochs=1", "checkpoint.every_minutes=null",
          "algo.policy.hidden=[16,16]", "seed=1"]
 LAUNCHER = ["hydra/launcher=slurm", "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=1",
             "hydra.launcher.timeout_min=10"]
@@ -142,7 +145,7 @@ def test_the_documented_sweep_completes_on_slurm_and_equals_local_runs(slurm, da
     assert "Traceback" not in err and "Traceback" not in _job_logs(tmp_path / "slurm"), _job_logs(tmp_path / "slurm")
     slurm_runs, local_runs = _summaries(tmp_path / "slurm"), _summaries(tmp_path / "local")
     assert len(slurm_runs) == 4 and slurm_runs == local_runs
-    jobs = sorted(p.name for p in (tmp_path / "slurm" / ".submitit").iterdir() if "_" in p.name)  # array tasks
+    jobs = sorted(p.name for p in (tmp_path / "slurm" / ".submitit").iterdir() if re.fullmatch(r"\d+_\d+", p.name))
     assert _sacct_states(env, jobs) == ["COMPLETED"] * 4
 
 
@@ -169,7 +172,10 @@ def _sigterm_drill(slurm, data_dir, drill_reference, sweep: Path, stop) -> None:
     iteration that only the signal could have saved, the job is requeued by Slurm and resumes to the reference."""
     env = _cluster_env(slurm)
     proc, job, run_dir = _drill(slurm, data_dir, sweep)
-    time.sleep(6)  # well into the updates
+    deadline = time.monotonic() + 300
+    while _iteration(run_dir) < 2000:  # well into the updates, whatever the machine's pace
+        assert proc.poll() is None and time.monotonic() < deadline, _job_logs(sweep)
+        time.sleep(0.2)
     signalled = time.time()
     stop(job, env)
     deadline = time.monotonic() + 30
@@ -181,8 +187,8 @@ def _sigterm_drill(slurm, data_dir, drill_reference, sweep: Path, stop) -> None:
     err = _finish(proc)
     logs = _job_logs(sweep)
     assert 0 <= saved_after < 5, (saved_after, logs)
-    assert 0 < iteration < 3000 and iteration % 1000, iteration  # not an evaluation's checkpoint: the signal's
-    assert f"saved the checkpoint at iteration {iteration} of 3000" in logs
+    assert 2000 < iteration < DRILL_UPDATES and iteration % 1000, iteration  # no evaluation's: the signal's
+    assert f"saved the checkpoint at iteration {iteration} of {DRILL_UPDATES}" in logs
     assert "Traceback" not in logs and "Traceback" not in err, logs
     (resumed,) = _summaries(sweep).values()
     assert json.loads((run_dir / "summary.json").read_text())["resumed_from_iteration"] == [iteration]
