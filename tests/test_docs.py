@@ -534,3 +534,25 @@ def test_the_sweep_tutorials_spread_over_seeds_is_its_kept_runs():
     page = " ".join((TUTORIALS / "sweep-seeds.md").read_text().split())
     assert (f"here {statistics.mean(alone):.1f} ± {statistics.stdev(alone):.1f} alone, "
             f"{statistics.mean(stacked):.1f} ± {statistics.stdev(stacked):.1f} stacked") in page
+
+
+def test_the_interrupted_runs_guide_quotes_the_slurm_drills_record():
+    """The Slurm paragraph's restart delays and time-limit signal times are those of ``results/slurm/drills.txt``
+    (Slurm's accounting of the drill jobs: 26 requeued, 27 preempted, 29 stopped by its 1-minute limit)."""
+    from datetime import datetime
+
+    rows = [line.split("|") for line in (ROOT / "results" / "slurm" / "drills.txt").read_text().splitlines()
+            if "|" in line and not line.startswith("JobID")]
+    runs = {}
+    for job, _, state, start, end, _ in rows:
+        runs.setdefault(job, []).append((state, datetime.fromisoformat(start), datetime.fromisoformat(end)))
+
+    def restart_s(job):
+        return round((runs[job][1][1] - runs[job][0][2]).total_seconds())
+
+    stopped = [(end - start).total_seconds() for state, start, end in runs["29"] if state == "REQUEUED"]
+    page = " ".join((ROOT / "docs" / "guides" / "interrupted-runs.md").read_text().split())
+    assert (f"its requeued and preempted drill jobs started again {restart_s('26')} s and {restart_s('27')} s after "
+            "the stop") in page
+    assert (f"Slurm sent it {min(stopped):.0f} to {max(stopped):.0f} s into each start, {60 - max(stopped):.0f} to "
+            f"{60 - min(stopped):.0f} s before the limit") in page
