@@ -220,12 +220,13 @@ def test_a_preemption_saves_the_work_at_once_and_the_requeued_job_ends_as_if_nev
 
 def test_a_time_limit_checkpoints_on_submitits_signal_requeues_and_ends_as_if_never_stopped(
         slurm, data_dir, drill_reference, tmp_path):
-    """A 1-minute limit with the signal asked 30 s before it: Slurm sends USR2 some time in the last 30-60 s (its
-    time-limit check runs every 30 s or so), the loop checkpoints, submitit requeues, and the job resumes; as often
-    as the limit comes, until the run is done."""
+    """A 2-minute limit with the signal asked 60 s before it: Slurm checks time limits about every 30 s, so the signal
+    comes 30 to 60 s into each start (a 1-minute limit with a 30 s delay once had it within the job's first second,
+    before submitit's handler was in place, and the job died of it). The loop checkpoints, submitit requeues, and the
+    job resumes; as often as the limit comes, until the run is done."""
     env = _cluster_env(slurm)
-    proc, job, run_dir = _drill(slurm, data_dir, tmp_path, "hydra.launcher.timeout_min=1",
-                                "hydra.launcher.signal_delay_s=30")
+    proc, job, run_dir = _drill(slurm, data_dir, tmp_path, "hydra.launcher.timeout_min=2",
+                                "hydra.launcher.signal_delay_s=60")
     err = _finish(proc)
     logs = _job_logs(tmp_path)
     assert "Traceback" not in err
