@@ -220,13 +220,14 @@ def test_a_preemption_saves_the_work_at_once_and_the_requeued_job_ends_as_if_nev
 
 def test_a_time_limit_checkpoints_on_submitits_signal_requeues_and_ends_as_if_never_stopped(
         slurm, data_dir, drill_reference, tmp_path):
-    """A 2-minute limit with the signal asked 60 s before it: Slurm checks time limits about every 30 s, so the signal
-    comes 30 to 60 s into each start (a 1-minute limit with a 30 s delay once had it within the job's first second,
-    before submitit's handler was in place, and the job died of it). The loop checkpoints, submitit requeues, and the
-    job resumes; as often as the limit comes, until the run is done."""
+    """A 2-minute limit with the signal asked 75 s before it: Slurm checks time limits about every 30 s, so the signal
+    comes 15 to 45 s into each start, while the drill's job trains (a 1-minute limit with a 30 s delay once had it
+    within the job's first second, before submitit's handler was in place; 60 s before a 2-minute limit once came
+    after the job had finished). The loop checkpoints, submitit requeues, and the job resumes; as often as the limit
+    comes, until the run is done."""
     env = _cluster_env(slurm)
     proc, job, run_dir = _drill(slurm, data_dir, tmp_path, "hydra.launcher.timeout_min=2",
-                                "hydra.launcher.signal_delay_s=60")
+                                "hydra.launcher.signal_delay_s=75")
     err = _finish(proc)
     logs = _job_logs(tmp_path)
     assert "Traceback" not in err
