@@ -243,7 +243,40 @@ def paper_batches_jobs() -> list[Job]:
     return jobs + [cell[i] for i in range(max(len(c) for c in extra)) for cell in extra if i < len(cell)]
 
 
-STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs, "paper_batches": paper_batches_jobs}
+#: the off-policy-evaluation study (``--study ope_headline``): policies trained again on the headline batch (Hopper
+#: DDPG sigma=0.5 B1, 10^6 transitions, at the paper_hopper study's own schedules and seeds, so each final policy is
+#: that study's run, kept this time), as ``(algo, seeds)``: 20 final policies over every algorithm of the headline
+#: cell; the imitation learners and TD3+BC first, one seed of each per round, then one BCQ and one BEAR (80 and 70
+#: minutes a run on one core, against 12-37 for the others)
+OPE_CELLS = [("bail", 5), ("bc", 5), ("td3bc", 3), ("marwil", 3), ("pbail", 2)]
+OPE_COSTLY_CELLS = [("bcq", 1), ("bear", 1)]
+#: the runs that keep policy snapshots for FQE to choose from (``eval.snapshots``: the final policy and 4 earlier)
+OPE_SNAPSHOTS = {"bail": ["eval.snapshots=5"]}
+#: what every FQE job passes to ``torchrl_bail.ope`` beside its run directory (its defaults otherwise: FQESettings)
+OPE_FLAGS = ["--no-progress", "--threads", "1"]
+
+
+def ope_headline_jobs() -> list[Job]:
+    """Issue 38's study (results in ``results/ope_headline``): each policy of :data:`OPE_CELLS` and
+    :data:`OPE_COSTLY_CELLS` trained on the headline batch, then at once its FQE fit (``ope/<training job>``:
+    ``python -m torchrl_bail.ope <its run>``, which also fits and ranks a BAIL run's snapshots), seed 1 of every
+    cell first. The training jobs are the ``paper_hopper`` study's (same overrides, seeds and schedule; BAIL with
+    :data:`OPE_SNAPSHOTS`, which changes no number of the run), so their summaries must equal that study's kept
+    ones: :func:`ope_headline_report` checks it."""
+    def pair(algo, seed):
+        train = Job(f"hopper_ddpg05/{algo}/seed{seed}", ["+exp=hopper_ddpg05", f"algo={algo}", f"seed={seed}",
+                                                         *paper_schedule(algo), *OPE_SNAPSHOTS.get(algo, [])])
+        return [train, Job(f"ope/{train.name}", train.args, "torchrl_bail.ope")]
+
+    jobs = []
+    for cells in (OPE_CELLS, OPE_COSTLY_CELLS):
+        for seed in range(1, max(seeds for _, seeds in cells) + 1):
+            jobs += [j for algo, seeds in cells if seed <= seeds for j in pair(algo, seed)]
+    return jobs
+
+
+STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs, "paper_batches": paper_batches_jobs,
+           "ope_headline": ope_headline_jobs}
 
 
 def run_dir_of(job: Job, runs: Path) -> Path | None:
@@ -287,10 +320,23 @@ def _collected_steps(job: Job, data_dir: Path | None) -> str:
 def landed(job: Job, results: Path | None) -> bool:
     """Whether a training job's ``summary.json`` is already kept in ``results/runs`` (gathered by an earlier call,
     maybe on another machine whose workdir is gone): such a job is done and does not run again."""
-    if results is None or job.module != "torchrl_bail.train":
+    if results is None or job.module not in ("torchrl_bail.train", "torchrl_bail.ope"):
         return False
     run = run_dir_of(job, results / "runs")
+    if job.module == "torchrl_bail.ope":
+        return run is not None and ope_finished(run)
     return run is not None and (run / "summary.json").is_file()
+
+
+def ope_finished(run: Path) -> bool:
+    """Whether an FQE job's run holds its finished ``ope.json``: the estimate and, for a run with policy snapshots,
+    FQE's choice among them (``fqe_selected``, written last)."""
+    try:
+        ope = json.loads((run / "ope.json").read_text())
+        summary = json.loads((run / "summary.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return "estimate" in ope and (not summary.get("snapshots") or "fqe_selected" in ope)
 
 
 def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> str:
@@ -301,6 +347,9 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
         return "done"
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
     running = _is_running(log)
+    if job.module == "torchrl_bail.ope":
+        run = run_dir_of(job, workdir / "outputs")
+        return "done" if run is not None and ope_finished(run) else "running" if running else "left"
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
@@ -349,13 +398,24 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None,
     if landed(job, results) or (job.module == "torchrl_bail.train" and log.is_file()
                                 and FINISHED.search(log.read_text(errors="replace"))):
         return job, None, 0.0, {}
-    extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
-    record = {"threads": 1 if job.module == "torchrl_bail.train" else None, "cpus": sorted(os.sched_getaffinity(0)),
+    args = job.args
+    if job.module == "torchrl_bail.ope":  # its arguments name the training job whose run it scores
+        run = run_dir_of(job, workdir / "outputs")
+        if run is not None and ope_finished(run):
+            return job, None, 0.0, {}
+        if run is None or not (run / "summary.json").is_file():
+            with open(log, "a") as out:
+                out.write(f"{job.name}: its training run has not finished in {workdir / 'outputs'}\n")
+            return job, 1, 0.0, {}
+        args, extra = [str(run.relative_to(workdir))], OPE_FLAGS
+    else:
+        extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
+    record = {"threads": None if job.module == "torchrl_bail.collect" else 1, "cpus": sorted(os.sched_getaffinity(0)),
               "cpu": machine_cpu(), "start": conditions()}
     start = time.perf_counter()
     pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
     with open(log, "a") as out:
-        proc = subprocess.Popen([sys.executable, "-m", job.module, *job.args, *extra], cwd=workdir, env=env,
+        proc = subprocess.Popen([sys.executable, "-m", job.module, *args, *extra], cwd=workdir, env=env,
                                 stdout=out, stderr=subprocess.STDOUT)
         pid_file.write_text(f"{proc.pid}\n")
         try:
@@ -429,7 +489,9 @@ def gather(workdir: Path, results: Path, jobs: list[Job] = (), policies: bool = 
     """Copies every finished run's summary, config and logs from ``workdir/outputs`` into ``results/runs``, and the
     metadata of the batches the collect jobs of ``jobs`` made (:func:`keep_batch_metadata`). With ``policies`` (the
     paper-scale studies) also each run's final ``policy.pt`` (about 0.5 MB), so that later analyses of the policies
-    (off-policy evaluation: ``python -m torchrl_bail.ope``) never need to train them again; never checkpoints."""
+    (off-policy evaluation: ``python -m torchrl_bail.ope``) never need to train them again; never checkpoints (nor
+    policy snapshots). A run's FQE records (``ope.json``, ``snapshots/ope_*.json``) come with it where it has
+    them."""
     keep_batch_metadata(workdir, results, list(jobs))
     copied = []
     for summary in sorted((workdir / "outputs").glob("*/*/*/summary.json")):
@@ -441,6 +503,10 @@ def gather(workdir: Path, results: Path, jobs: list[Job] = (), policies: bool = 
                 shutil.copy2(run / name, target / name)
         if (run / "logs").is_dir():
             shutil.copytree(run / "logs", target / "logs", dirs_exist_ok=True)
+        for record in [run / "ope.json", *sorted(run.glob("snapshots/ope_*.json"))]:
+            if record.is_file():
+                (target / record.relative_to(run)).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(record, target / record.relative_to(run))
         copied.append(target)
     return copied
 
@@ -1098,7 +1164,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:  # a row's batch is collected by its first training job (the others wait on its lock)
         jobs = [j for j in jobs if re.search(args.only, j.name)]
     if args.list:
-        print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" for j in jobs))
+        print("\n".join(f"{j.name}: python -m {j.module} {' '.join(j.args)}" if j.module != "torchrl_bail.ope" else
+                        f"{j.name}: python -m {j.module} <the run of {j.name[len('ope/'):]}> {' '.join(OPE_FLAGS)}"
+                        for j in jobs))
         return 0
     if args.status:
         states = [(j.name, job_status(j, args.workdir, args.data_dir, args.results)) for j in jobs]

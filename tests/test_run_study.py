@@ -472,3 +472,64 @@ def test_gather_keeps_the_paper_scale_policies_and_never_a_checkpoint(run_study,
         (kept,) = run_study.gather(tmp_path / "work", results, policies=policies)
         assert sorted(p.name for p in kept.iterdir()) == sorted(
             ["summary.json", "config.yaml", "logs", *(["policy.pt"] if policies else [])])
+
+
+def test_the_ope_study_scores_20_headline_policies_of_every_algorithm_each_right_after_its_training(run_study):
+    """Issue 38's study: >= 20 final policies on the headline batch over every algorithm of the headline cell, each
+    training job the paper_hopper study's own (same overrides: its kept summary is the reference), BAIL keeping
+    snapshots, and each FQE job right after the training job whose run it scores."""
+    jobs = run_study.ope_headline_jobs()
+    trains = [j for j in jobs if j.module == "torchrl_bail.train"]
+    assert len(trains) >= 20 and len(jobs) == 2 * len(trains)
+    for train, ope in zip(jobs[::2], jobs[1::2]):
+        assert ope.module == "torchrl_bail.ope" and ope.name == f"ope/{train.name}" and ope.args == train.args
+    paper = {j.name: j for j in run_study.paper_hopper_jobs()}
+    cell = {j.name.split("/")[1] for j in paper.values() if j.name.startswith("hopper_ddpg05/")}
+    assert {j.name.split("/")[1] for j in trains} == cell  # every algorithm of the headline cell
+    for train in trains:
+        extra = run_study.OPE_SNAPSHOTS.get(train.name.split("/")[1], [])
+        assert train.args == paper[train.name].args + extra
+    assert all(j.args[-1] == "eval.snapshots=5" for j in trains if "/bail/" in j.name)
+    assert [j.name for j in trains[:5]] == [f"hopper_ddpg05/{a}/seed1" for a in ("bail", "bc", "td3bc", "marwil",
+                                                                                 "pbail")]
+
+
+def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_records(run_study, tiny_run_data_dir,
+                                                                                    tmp_path, monkeypatch):
+    """An FQE job runs ``torchrl_bail.ope`` on the run its training job made (snapshots ranked), is done after it
+    (status, a second call runs nothing), refuses to start before its training has finished, and ``gather`` keeps
+    ``ope.json`` and the snapshots' fit records but never a snapshot's policy."""
+    from _contract import ALGO_CASES, TINY_RUN
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_bail import config_dir
+    from torchrl_bail.train import run
+
+    workdir = tmp_path / "work"
+    train = run_study.Job("hopper_ddpg05/bc/seed1", ["+exp=hopper_ddpg05", "algo=bc", "seed=1", "eval.snapshots=2"])
+    ope = run_study.Job(f"ope/{train.name}", train.args, "torchrl_bail.ope")
+    _, rc, _, _ = run_study.run_job(ope, workdir, tiny_run_data_dir)
+    assert rc == 1 and "has not finished" in (workdir / "logs" / "ope__hopper_ddpg05__bc__seed1.log").read_text()
+    run_dir = workdir / "outputs" / "hopper_ddpg05_b1" / "bc" / "seed1,eval.snapshots=2"
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY_RUN, "algo=bc", *ALGO_CASES["bc"].cli, "eval.snapshots=2",
+                                           f"data_dir={tiny_run_data_dir}"])
+    run(cfg, run_dir)
+    log = workdir / "logs" / "ope__hopper_ddpg05__bc__seed1.log"
+    os.utime(log, (time.time() - 900, time.time() - 900))  # no runner has written it for 15 min
+    assert run_study.job_status(ope, workdir) == "left"
+    monkeypatch.setattr(run_study, "OPE_FLAGS", [*run_study.OPE_FLAGS, "--updates", "40", "--hidden", "16,16"])
+    _, rc, _, record = run_study.run_job(ope, workdir, tiny_run_data_dir)
+    assert rc == 0, log.read_text()
+    assert record["threads"] == 1 and run_study.ope_finished(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["fqe_selected"] == json.loads((run_dir / "ope.json").read_text())["fqe_selected"]
+    assert run_study.job_status(ope, workdir) == "done"
+    assert run_study.run_job(ope, workdir, tiny_run_data_dir)[1] is None  # nothing runs again
+    results = tmp_path / "results"
+    (kept,) = run_study.gather(workdir, results, policies=True)
+    assert (kept / "ope.json").read_bytes() == (run_dir / "ope.json").read_bytes()
+    snapshot_fits = sorted(p.name for p in (run_dir / "snapshots").glob("ope_*.json"))
+    assert snapshot_fits and sorted(p.name for p in (kept / "snapshots").iterdir()) == snapshot_fits
+    assert run_study.landed(ope, results) and run_study.job_status(ope, tmp_path / "elsewhere", results=results) \
+        == "done"

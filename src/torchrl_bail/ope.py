@@ -37,8 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FQESettings", "OPEError", "fit_fqe", "fqe_update", "listed_snapshots", "score_run", "select_snapshot",
-           "main"]
+__all__ = ["FQESettings", "OPEError", "fit_fqe", "fqe_update", "listed_snapshots", "ranking_quality", "score_run",
+           "select_snapshot", "main"]
 
 OPE_FORMAT = 1
 #: the entries of a batch the fit reads
@@ -522,6 +522,49 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
         kept = select_snapshot(run_dir, kept, policy, batch, settings=settings, seed=seed, device=device, force=force,
                                progress=progress, checkpoint_every_s=checkpoint_every_s, snapshots=snapshots)
     return kept, True
+
+
+def ranking_quality(estimates, returns) -> dict[str, Any]:
+    """How well off-policy estimates rank policies whose true returns are known (Paine et al. 2020, sec. 4: rank
+    correlation and the regret of the policy an estimator selects).
+
+    Args:
+        estimates: one estimate per policy (e.g. each run's ``ope.json`` ``estimate``).
+        returns: the same policies' true returns, in the same order (e.g. each run's ``final_return``).
+
+    Returns:
+        ``spearman``: Spearman's rank correlation (``scipy.stats.spearmanr``, ties averaged; ``None`` when either
+        side is constant); ``selected``: the index of the highest estimate (the earliest on a tie), the policy a user
+        without a simulator would deploy; ``best``: the index of the highest true return; ``regret``: the best true
+        return minus the selected policy's (``0`` when the estimates pick the best); ``n``: the number of policies.
+
+    Raises:
+        ValueError: fewer than 2 policies, lengths that differ, or a value that is not finite.
+
+    Examples:
+        >>> q = ranking_quality([3.0, 1.0, 2.0], [300.0, 100.0, 250.0])
+        >>> q["spearman"], q["selected"], q["regret"]
+        (1.0, 0, 0.0)
+        >>> ranking_quality([1.0, 3.0, 2.0], [300.0, 100.0, 250.0])["regret"]
+        200.0
+    """
+    import numpy as np
+
+    estimates, returns = np.asarray(estimates, dtype=float), np.asarray(returns, dtype=float)
+    if estimates.ndim != 1 or estimates.shape != returns.shape:
+        raise ValueError(f"expected one estimate per return, got shapes {estimates.shape} and {returns.shape}")
+    if len(estimates) < 2:
+        raise ValueError(f"a ranking needs at least 2 policies, got {len(estimates)}")
+    if not (np.isfinite(estimates).all() and np.isfinite(returns).all()):
+        raise ValueError("every estimate and return must be finite")
+    try:
+        from scipy.stats import spearmanr
+    except ImportError as err:  # scipy comes with the report extra
+        raise ImportError("ranking_quality needs scipy: pip install 'torchrl_bail[report]'") from err
+    constant = np.ptp(estimates) == 0 or np.ptp(returns) == 0
+    selected, best = int(np.argmax(estimates)), int(np.argmax(returns))
+    return {"n": int(len(estimates)), "spearman": None if constant else float(spearmanr(estimates, returns).statistic),
+            "selected": selected, "best": best, "regret": float(returns[best] - returns[selected])}
 
 
 # -- the command line -------------------------------------------------------------------------------------------
