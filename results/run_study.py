@@ -1141,6 +1141,261 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# the off-policy-evaluation report (``--study ope_headline``): how well FQE ranks the headline batch's policies
+# ---------------------------------------------------------------------------------------------------------------
+
+#: the bootstrap of the rank correlation's interval: replications (policies drawn with replacement) and numpy seed
+OPE_REPS, OPE_SEED = 2_000, 0
+
+
+def _last_evaluation(run: Path) -> float | None:
+    """The return of a run's final policy (``policy.pt``) as training measured it: its last evaluation's mean return
+    (``logs/scalars/eval/return.csv``, the value ``policy.pt`` records)."""
+    from torchrl_bail.plots import _read_scalar_csv
+
+    csv = run / "logs" / "scalars" / "eval" / "return.csv"
+    if not csv.is_file():
+        return None
+    returns = _read_scalar_csv(csv)
+    return float(returns[max(returns)]) if returns else None
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
+    """One policy of the OPE study: its kept run, FQE estimate, true return and the paper_hopper study's summary of
+    the same job (the reference its numbers must equal)."""
+    named = dict(arg.split("=", 1) for arg in job.args)
+    entry = {"job": job.name, "algo": named["algo"], "seed": int(named["seed"]), "run": None, "estimate": None,
+             "true_return": None, "final_return": None, "best_return": None, "reference_final_return": None,
+             "reproduces": None}
+    reference_job = Job(job.name, [a for a in job.args if a not in OPE_SNAPSHOTS.get(named["algo"], [])])
+    reference = run_dir_of(reference_job, headline / "runs")
+    ref_summary = None if reference is None else _read_json(reference / "summary.json")
+    if ref_summary is not None:
+        entry["reference_run"] = _shown(reference)
+        entry["reference_final_return"] = ref_summary["final_return"]
+    run = run_dir_of(job, results / "runs")
+    summary = None if run is None else _read_json(run / "summary.json")
+    if summary is None:
+        return entry
+    entry.update(run=_shown(run), final_return=summary["final_return"], best_return=summary["best_return"],
+                 true_return=_last_evaluation(run))
+    if ref_summary is not None:
+        entry["reproduces"] = all(summary.get(k) == ref_summary.get(k) for k in ("final_return", "best_return"))
+    ope = _read_json(run / "ope.json") if ope_finished(run) else None
+    if ope is not None:
+        entry["estimate"] = ope["estimate"]
+        if ope.get("fqe_selected"):
+            candidates = ope["snapshots"]
+            entry["snapshots"] = {
+                "candidates": [{k: c[k] for k in ("iteration", "eval_return", "fqe_estimate", "rank")}
+                               for c in candidates],
+                "fqe_selected": ope["fqe_selected"],
+                "best_candidate_return": max(c["eval_return"] for c in candidates),
+                "spearman": (ranking_quality([c["fqe_estimate"] for c in candidates],
+                                             [c["eval_return"] for c in candidates])["spearman"]
+                             if len(candidates) > 1 else None)}
+    return entry
+
+
+def ranking_quality(estimates, returns) -> dict:
+    """:func:`torchrl_bail.ope.ranking_quality` (imported when first used: the module loads no torch)."""
+    from torchrl_bail.ope import ranking_quality as quality
+
+    return quality(estimates, returns)
+
+
+def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[float | None, float | None]:
+    """A 95 % percentile-bootstrap interval of Spearman's correlation, the policies drawn with replacement
+    (:data:`OPE_REPS` replications, numpy seed :data:`OPE_SEED`; draws where either side is constant are left out)."""
+    rng = np.random.default_rng(OPE_SEED)
+    e, r, values = np.asarray(estimates), np.asarray(returns), []
+    for _ in range(OPE_REPS):
+        idx = rng.integers(0, len(e), len(e))
+        rho = ranking_quality(e[idx], r[idx])["spearman"]
+        if rho is not None:
+            values.append(rho)
+    if not values:
+        return None, None
+    low, high = np.percentile(values, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def plot_ope(policies: list[dict], path: Path) -> Path:
+    """``ope.png``: left, each scored final policy's FQE estimate against its true return, one marker per algorithm;
+    right, each BAIL run's snapshots (estimate against evaluation return, one line per seed in training order), FQE's
+    choice circled. Before any policy is scored, both panels say so (the docs show the file at every stage)."""
+    from torchrl_bail.plots import new_figure, save_figure
+
+    scored = [p for p in policies if p["estimate"] is not None and p["true_return"] is not None]
+    fig = new_figure(figsize=(11.0, 4.6), layout="constrained")
+    left, right = fig.subplots(1, 2)
+    algos = list(dict.fromkeys(p["algo"] for p in scored))
+    for i, algo in enumerate(algos):
+        mine = [p for p in scored if p["algo"] == algo]
+        left.scatter([p["estimate"] for p in mine], [p["true_return"] for p in mine], color=f"C{i}",
+                     marker="osD^v<>"[i % 7], s=42, label=f"{algo} ({len(mine)})")
+    left.set_xlabel("FQE estimate (discounted value, gamma 0.99)")
+    left.set_ylabel("true return (the policy's own evaluation, 10 episodes)")
+    left.set_title(f"final policies on the headline batch ({len(scored)})")
+    left.grid(alpha=0.3)
+    if scored:
+        left.legend(fontsize="small")
+    else:
+        left.text(0.5, 0.5, "no policy scored yet", transform=left.transAxes, ha="center", color="gray")
+    for p in (p for p in policies if p.get("snapshots")):
+        c = sorted(p["snapshots"]["candidates"], key=lambda c: c["iteration"])
+        line, = right.plot([x["fqe_estimate"] for x in c], [x["eval_return"] for x in c], marker="o", markersize=4,
+                           linewidth=1, label=f"seed {p['seed']}")
+        chosen = p["snapshots"]["fqe_selected"]
+        right.scatter([chosen["fqe_estimate"]], [chosen["online_return"]], s=140, facecolors="none",
+                      edgecolors=line.get_color(), linewidths=1.6)
+    right.set_xlabel("FQE estimate")
+    right.set_ylabel("evaluation return of the snapshot")
+    right.set_title("BAIL snapshots along training (circled: FQE's choice)")
+    right.grid(alpha=0.3)
+    if right.lines:
+        right.legend(fontsize="small")
+    else:
+        right.text(0.5, 0.5, "no BAIL snapshots ranked yet", transform=right.transAxes, ha="center", color="gray")
+    return save_figure(fig, path)
+
+
+def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
+    """``results/ope.{md,json}`` and ``results/ope.png``: how well FQE (``torchrl_bail.ope``, its default settings)
+    ranks the policies of :func:`ope_headline_jobs`, from kept files alone. Each policy's true return is its own
+    evaluation in training (the last evaluation's mean over 10 test episodes: the return of exactly the policy FQE
+    scored); ``final_return`` (the mean of the last 10 evaluations) is shown beside it, and each run is checked
+    against the paper_hopper study's kept summary of the same job (``headline``, default ``results/paper_hopper``).
+    Over the scored policies: Spearman's rank correlation with a bootstrap interval and the regret of deploying
+    FQE's top policy (:func:`torchrl_bail.ope.ranking_quality`); per algorithm, the same on the algorithms' means; per
+    BAIL run, the online return of the snapshot FQE selects beside ``final_return`` and ``best_return``. Returns the
+    JSON written."""
+    from torchrl_bail.io import write_json_atomic, write_text_atomic
+
+    headline = headline if headline is not None else HERE / "paper_hopper"
+    trains = [j for j in ope_headline_jobs() if j.module == "torchrl_bail.train"]
+    policies = [_ope_policy(job, results, headline) for job in trains]
+    scored = [p for p in policies if p["estimate"] is not None and p["true_return"] is not None]
+    trained = [p for p in policies if p["run"] is not None]
+    checked = [p for p in trained if p["reproduces"] is not None]
+    ranking = None
+    if len(scored) >= 2:
+        q = ranking_quality([p["estimate"] for p in scored], [p["true_return"] for p in scored])
+        low, high = _spearman_interval([p["estimate"] for p in scored], [p["true_return"] for p in scored])
+        ranking = {**q, "spearman_ci": [low, high], "selected": scored[q["selected"]]["job"],
+                   "best": scored[q["best"]]["job"], "selected_return": scored[q["selected"]]["true_return"],
+                   "best_return": scored[q["best"]]["true_return"],
+                   "regret_fraction": q["regret"] / scored[q["best"]]["true_return"]}
+    by_algo = {}
+    for p in scored:
+        by_algo.setdefault(p["algo"], []).append(p)
+    algorithms = [{"algo": a, "policies": len(ps), "mean_estimate": float(np.mean([p["estimate"] for p in ps])),
+                   "mean_true_return": float(np.mean([p["true_return"] for p in ps]))} for a, ps in by_algo.items()]
+    algo_ranking = None
+    if len(algorithms) >= 2:
+        q = ranking_quality([a["mean_estimate"] for a in algorithms], [a["mean_true_return"] for a in algorithms])
+        algo_ranking = {**q, "selected": algorithms[q["selected"]]["algo"], "best": algorithms[q["best"]]["algo"]}
+    selections = [p for p in policies if p.get("snapshots")]
+    selection_means = None if not selections else {
+        key: float(np.mean([f(p) for p in selections])) for key, f in (
+            ("fqe_selected_return", lambda p: p["snapshots"]["fqe_selected"]["online_return"]),
+            ("final_return", lambda p: p["final_return"]), ("best_return", lambda p: p["best_return"]),
+            ("final_policy_return", lambda p: p["true_return"]),
+            ("best_candidate_return", lambda p: p["snapshots"]["best_candidate_return"]))}
+    planned_snapshots = sum(1 for j in trains if OPE_SNAPSHOTS.get(j.name.split("/")[1]))
+    status = (f"Policies scored by FQE: {len(scored)} of {len(policies)} planned (trained: {len(trained)}); BAIL runs "
+              f"with their snapshots ranked: {len(selections)} of {planned_snapshots}. Retrained runs equal to the "
+              f"paper_hopper study's kept run of the same job (final and best return): "
+              f"{sum(bool(p['reproduces']) for p in checked)} of {len(checked)}. "
+              + ("Every policy is scored." if len(scored) == len(policies) else
+                 f"The readings below are preliminary until all {len(policies)} are scored."))
+    figure = plot_ope(policies, results / "ope.png")
+    out = {"status": status, "policies": policies, "ranking": ranking, "algorithms": algorithms,
+           "algorithm_ranking": algo_ranking, "snapshot_selection": selection_means,
+           "bootstrap": {"reps": OPE_REPS, "seed": OPE_SEED}, "figure": figure.name}
+
+    def num(x, digits=1):
+        return "pending" if x is None else f"{x:.{digits}f}"
+
+    lines = [status, "", "| policy | FQE estimate | true return | final_return | paper_hopper's final_return | "
+             "same run |", "|---|---|---|---|---|---|"]
+    for p in policies:
+        same = {None: "pending", True: "yes", False: "**no**"}[p["reproduces"]]
+        lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['true_return'])} | "
+                     f"{num(p['final_return'])} | {num(p['reference_final_return'])} | {same} |")
+    lines += ["", "FQE estimate: `python -m torchrl_bail.ope` at its defaults (d3rlpy's FQE settings, 10^5 updates; a "
+              "discounted value, gamma 0.99, so not on the return's scale). True return: the policy's own evaluation "
+              "in training, the mean over 10 test episodes of exactly the policy FQE scored (its last evaluation); "
+              "final_return, the mean of the last 10 evaluations, is the figure the other reports use. Same run: "
+              "the retrained run's final and best return equal those the paper_hopper study kept for the same job, "
+              "to the last digit.", ""]
+    if ranking is None:
+        lines.append("Ranking: pending (fewer than 2 scored policies).")
+    else:
+        lines += ["| policies | Spearman's rho [95 % bootstrap CI] | FQE's top policy (true return) | best policy "
+                  "(true return) | regret |", "|---|---|---|---|---|",
+                  f"| {ranking['n']} | {num(ranking['spearman'], 2)} [{num(ranking['spearman_ci'][0], 2)}, "
+                  f"{num(ranking['spearman_ci'][1], 2)}] | {ranking['selected']} ({num(ranking['selected_return'])}) "
+                  f"| {ranking['best']} ({num(ranking['best_return'])}) | {num(ranking['regret'])} "
+                  f"({100 * ranking['regret_fraction']:.0f} % of the best) |", "",
+                  f"Spearman's rank correlation between the FQE estimates and the true returns of the scored final "
+                  f"policies (its interval: the policies bootstrapped, {OPE_REPS} replications); regret: the best "
+                  f"true return minus that of the policy with the highest estimate, the return a user who deploys "
+                  f"FQE's choice gives up."]
+    if algo_ranking is not None:
+        lines += ["", "| algorithm | policies | mean FQE estimate | mean true return |", "|---|---|---|---|"]
+        lines += [f"| {a['algo']} | {a['policies']} | {num(a['mean_estimate'], 2)} | {num(a['mean_true_return'])} |"
+                  for a in algorithms]
+        lines += ["", f"Choosing an algorithm by its mean estimate: FQE ranks **{algo_ranking['selected']}** first, "
+                  f"the true returns **{algo_ranking['best']}** (Spearman's rho over the {algo_ranking['n']} "
+                  f"algorithms {num(algo_ranking['spearman'], 2)}; regret {num(algo_ranking['regret'])})."]
+    if selections:
+        lines += ["", "| BAIL run | snapshots | FQE's choice: iteration | its online return | final policy's return "
+                  "| final_return | best_return | best snapshot's return | rho over snapshots |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for p in selections:
+            snap = p["snapshots"]
+            lines.append(f"| seed {p['seed']} | {len(snap['candidates'])} | {snap['fqe_selected']['iteration']} | "
+                         f"{num(snap['fqe_selected']['online_return'])} | {num(p['true_return'])} | "
+                         f"{num(p['final_return'])} | {num(p['best_return'])} | {num(snap['best_candidate_return'])} "
+                         f"| {num(snap['spearman'], 2)} |")
+        m = selection_means
+        lines.append(f"| mean of {len(selections)} | | | {num(m['fqe_selected_return'])} | "
+                     f"{num(m['final_policy_return'])} | {num(m['final_return'])} | {num(m['best_return'])} | "
+                     f"{num(m['best_candidate_return'])} | |")
+        lines += ["", "A BAIL run keeps 5 policies evenly along training (`eval.snapshots=5`, the last one the final "
+                  "policy); FQE fits each and picks the highest estimate. Its online return is the snapshot's own "
+                  "evaluation in training (10 episodes), what a user without a simulator deploying FQE's choice "
+                  "gets; best_return is the best of all 100 evaluations, a choice only the simulator can make."]
+    text = "\n".join(lines) + "\n"
+    write_text_atomic(results / "ope.md", text)
+    write_json_atomic(results / "ope.json", out)
+    return out
+
+
+def write_reports(study: str, results: Path, headline: Path) -> str:
+    """Every report of ``study`` from the runs kept in ``results`` (``headline``: the headline batch's kept results,
+    which the cross-batch and OPE reports read); returns the names of its reports."""
+    report(results, ablations=study == "study")
+    curve_check(results)
+    if study == "paper_hopper":
+        paper_cell_report(results, STUDIES[study]())
+    if study == "paper_batches":
+        cross_batch_report(results, headline)
+    if study == "ope_headline":
+        ope_headline_report(results, headline)
+    return {"study": "study.md, ablations.md", "paper_hopper": "study.md, cell.md",
+            "paper_batches": "study.md, cross_batch.md", "ope_headline": "study.md, ope.md"}[study]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
@@ -1155,7 +1410,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--status", action="store_true", help="print each job's state (done, running, left)")
     parser.add_argument("--report-only", action="store_true", help="only gather the finished runs and report")
     parser.add_argument("--headline", type=Path, default=HERE / "paper_hopper",
-                        help="paper_batches: the headline batch's kept results (default: results/paper_hopper)")
+                        help="paper_batches, ope_headline: the headline batch's kept results (default: "
+                             "results/paper_hopper)")
     args = parser.parse_args(argv)
     args.workdir = args.workdir or Path(f"{args.study}_work")
     args.results = args.results or HERE / args.study
@@ -1201,14 +1457,7 @@ def main(argv: list[str] | None = None) -> int:
                 tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
                 tmp.replace(timings_path)
     copied = gather(args.workdir, args.results, STUDIES[args.study](), policies=args.study != "study")
-    report(args.results, ablations=args.study == "study")
-    curve_check(args.results)
-    if args.study == "paper_hopper":
-        paper_cell_report(args.results, STUDIES[args.study]())
-    if args.study == "paper_batches":
-        cross_batch_report(args.results, args.headline)
-    reports = {"study": "study.md, ablations.md", "paper_hopper": "study.md, cell.md",
-               "paper_batches": "study.md, cross_batch.md"}[args.study]
+    reports = write_reports(args.study, args.results, args.headline)
     kept = len(list((args.results / "runs").glob("*/*/*/summary.json")))
     print(f"{len(copied)} runs copied from {args.workdir / 'outputs'}; {kept} runs in {args.results / 'runs'}; "
           f"reports in {args.results}: {reports}")

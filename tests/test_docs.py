@@ -493,6 +493,29 @@ def test_the_results_pages_cross_batch_state_is_the_reports():
     assert report["status"] in (ROOT / "results" / "paper_batches" / "cross_batch.md").read_text()
 
 
+def test_the_ope_guide_shows_the_ope_report_as_its_kept_runs_rebuild_it(tmp_path):
+    """The OPE guide includes ``results/ope_headline/ope.md`` and its figure, and that report is what
+    ``run_study.ope_headline_report`` makes from the kept runs alone (here, from a copy of them): nothing in it is
+    typed by hand or left behind by a later run."""
+    spec = importlib.util.spec_from_file_location("run_study", ROOT / "results" / "run_study.py")
+    run_study = importlib.util.module_from_spec(spec)
+    sys.modules["run_study"] = run_study
+    try:
+        spec.loader.exec_module(run_study)
+        kept = ROOT / "results" / "ope_headline"
+        copy = tmp_path / "ope_headline"
+        if (kept / "runs").is_dir():
+            shutil.copytree(kept / "runs", copy / "runs")
+        run_study.ope_headline_report(copy, ROOT / "results" / "paper_hopper")
+    finally:
+        sys.modules.pop("run_study", None)
+    assert (copy / "ope.md").read_text() == (kept / "ope.md").read_text()
+    page = (ROOT / "docs" / "guides" / "ope.md").read_text()
+    section = page[page.index("## How well FQE ranks the paper cell's policies"):]
+    assert '--8<-- "results/ope_headline/ope.md"' in section
+    assert "](../assets/ope_headline/ope.png)" in section and (kept / "ope.png").is_file()
+
+
 def _pm(group: dict) -> str:
     return f"{group['final_return_mean']:.0f} ± {group['final_return_std']:.0f}"
 

@@ -481,7 +481,7 @@ def test_the_ope_study_scores_20_headline_policies_of_every_algorithm_each_right
     jobs = run_study.ope_headline_jobs()
     trains = [j for j in jobs if j.module == "torchrl_bail.train"]
     assert len(trains) >= 20 and len(jobs) == 2 * len(trains)
-    for train, ope in zip(jobs[::2], jobs[1::2]):
+    for train, ope in zip(jobs[::2], jobs[1::2], strict=True):
         assert ope.module == "torchrl_bail.ope" and ope.name == f"ope/{train.name}" and ope.args == train.args
     paper = {j.name: j for j in run_study.paper_hopper_jobs()}
     cell = {j.name.split("/")[1] for j in paper.values() if j.name.startswith("hopper_ddpg05/")}
@@ -533,3 +533,81 @@ def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_recor
     assert snapshot_fits and sorted(p.name for p in (kept / "snapshots").iterdir()) == snapshot_fits
     assert run_study.landed(ope, results) and run_study.job_status(ope, tmp_path / "elsewhere", results=results) \
         == "done"
+
+
+def _ope_kept_run(run: Path, final: float, best: float, last_eval: float, estimate: float | None,
+                  snapshots: list[tuple[int, float, float]] = ()) -> None:
+    """A kept run of the OPE study: summary, its evaluation CSV ending at ``last_eval``, and a finished ``ope.json``
+    (with ``snapshots`` as ``(iteration, eval_return, estimate)`` ranked, FQE choosing the highest estimate)."""
+    (run / "logs" / "scalars" / "eval").mkdir(parents=True)
+    (run / "logs" / "scalars" / "eval" / "return.csv").write_text(f"500,{best}\n1000,{last_eval}\n")
+    summary = {"final_return": final, "best_return": best}
+    if snapshots:
+        summary["snapshots"] = [{"path": f"snapshots/policy_{i}.pt", "iteration": i, "eval_return": r}
+                                for i, r, _ in snapshots]
+    (run / "summary.json").write_text(json.dumps(summary))
+    if estimate is None:
+        return
+    ope = {"estimate": estimate}
+    if snapshots:
+        order = sorted(snapshots, key=lambda s: -s[2])
+        ope["snapshots"] = [{"path": f"snapshots/policy_{i}.pt", "iteration": i, "eval_return": r, "fqe_estimate": e,
+                             "rank": order.index((i, r, e)) + 1} for i, r, e in snapshots]
+        ope["fqe_selected"] = {"path": f"snapshots/policy_{order[0][0]}.pt", "iteration": order[0][0],
+                               "fqe_estimate": order[0][2], "online_return": order[0][1]}
+    (run / "ope.json").write_text(json.dumps(ope))
+
+
+def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_paper_cells_run(run_study, tmp_path):
+    """Spearman's rho and the regret over the scored final policies (true return: each policy's own last
+    evaluation), the algorithms' ranking, a BAIL run's FQE-selected snapshot beside final and best return, every
+    retrained run compared with the paper_hopper study's kept run of the same job, the rest pending."""
+    from scipy.stats import spearmanr
+
+    results, headline = tmp_path / "ope", tmp_path / "paper_hopper"
+    cell = headline / "runs" / "hopper_ddpg05_b1"
+    kept = results / "runs" / "hopper_ddpg05_b1"
+    # (algo, run name, final, best, last evaluation, estimate); bc seed 1 is no reproduction of the cell's run
+    rows = [("bail", "seed1,eval.snapshots=5", 1500.0, 3000.0, 1400.0, 90.0),
+            ("bc", "seed1", 900.0, 1200.0, 950.0, 95.0),
+            ("td3bc", "seed1,algo.epochs=25.6,eval.every_epochs=1.28", 1200.0, 2000.0, 1300.0, 80.0),
+            ("marwil", "seed1", 400.0, 700.0, 350.0, 60.0)]
+    for algo, name, final, best, last, estimate in rows:
+        snapshots = [(10000, 2500.0, 70.0), (30000, 3000.0, 85.0), (50000, last, estimate)] if algo == "bail" else ()
+        _ope_kept_run(kept / algo / name, final, best, last, estimate, snapshots)
+        reference = cell / algo / name.replace(",eval.snapshots=5", "")
+        reference.mkdir(parents=True)
+        (reference / "summary.json").write_text(json.dumps({"final_return": final + (algo == "bc"),
+                                                            "best_return": best}))
+    _ope_kept_run(kept / "pbail" / "seed1", 1800.0, 2600.0, 1900.0, None)  # trained, FQE still to run
+    (cell / "pbail" / "seed1").mkdir(parents=True)
+    (cell / "pbail" / "seed1" / "summary.json").write_text(json.dumps({"final_return": 1800.0, "best_return": 2600.0}))
+    out = run_study.ope_headline_report(results, headline)
+    assert json.loads((results / "ope.json").read_text()) == json.loads(json.dumps(out))
+    by_job = {p["job"]: p for p in out["policies"]}
+    assert [by_job[f"hopper_ddpg05/{a}/seed1"]["reproduces"] for a in ("bail", "bc", "td3bc", "marwil", "pbail")] \
+        == [True, False, True, True, True]
+    assert by_job["hopper_ddpg05/bail/seed2"]["run"] is by_job["hopper_ddpg05/bail/seed2"]["reproduces"] is None
+    ranking = out["ranking"]
+    estimates, truths = [90.0, 95.0, 80.0, 60.0], [1400.0, 950.0, 1300.0, 350.0]  # the last evaluations, not final
+    assert ranking["n"] == 4 and ranking["spearman"] == pytest.approx(spearmanr(estimates, truths).statistic)
+    assert ranking["selected"] == "hopper_ddpg05/bc/seed1" and ranking["best"] == "hopper_ddpg05/bail/seed1"
+    assert ranking["regret"] == pytest.approx(1400.0 - 950.0)
+    assert ranking["spearman_ci"][0] <= ranking["spearman"] <= ranking["spearman_ci"][1]
+    assert out["algorithm_ranking"]["selected"] == "bc" and out["algorithm_ranking"]["best"] == "bail"
+    assert out["snapshot_selection"] == {"fqe_selected_return": 1400.0, "final_return": 1500.0, "best_return": 3000.0,
+                                         "final_policy_return": 1400.0, "best_candidate_return": 3000.0}
+    text = (results / "ope.md").read_text()
+    assert text.startswith("Policies scored by FQE: 4 of 20 planned (trained: 5); BAIL runs with their snapshots "
+                           "ranked: 1 of 5. Retrained runs equal to the paper_hopper study's kept run of the same job "
+                           "(final and best return): 4 of 5.")
+    assert "| bc seed 1 | 95.00 | 950.0 | 900.0 | 901.0 | **no** |" in text
+    assert "| bail seed 2 | pending | pending | pending | pending | pending |" in text
+    assert "| seed 1 | 3 | 50000 | 1400.0 | 1400.0 | 1500.0 | 3000.0 | 3000.0 |" in text
+    assert (results / "ope.png").is_file()
+
+
+def test_the_ope_report_with_no_runs_is_all_pending(run_study, tmp_path):
+    out = run_study.ope_headline_report(tmp_path / "ope", tmp_path / "no_headline")
+    assert out["ranking"] is None and out["snapshot_selection"] is None and out["figure"] == "ope.png"
+    assert "Ranking: pending" in (tmp_path / "ope" / "ope.md").read_text()
