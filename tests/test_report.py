@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,3 +166,21 @@ def test_the_fqe_selected_return_is_a_column_only_when_a_run_has_one(tmp_path):
     header = format_csv([row]).splitlines()[0].split(",")
     assert header[-3:] == ["fqe_selected_return_mean", "fqe_selected_return_std", "fqe_selected_runs"]
     assert "| hopper_ddpg05_b1 | 500.0 | 100.0 ± 14.1 (2) |" in format_markdown([row])
+
+
+def test_the_aggregates_take_each_batchs_first_seeds_not_its_lowest_scores():
+    """With unequal seeds across a label's batches, each batch enters rliable's matrix with its first ``n`` seeds in
+    seed order: a batch with 5 seeds does not give its 3 lowest scores beside a batch with 3."""
+    from torchrl_bail.report import Group, Run, _normalized_scores
+
+    def run(batch, seed, final):
+        return Run(Path(f"/runs/{batch}/bail/seed{seed}"), {"seed": seed, "final_return": final,
+                                                            "dataset_mean_episode_return": 100.0}, {}, (batch, None))
+
+    five = Group(("a", None), "bail", (), "bail", "", [run("a", s, f) for s, f in
+                                                        zip((4, 2, 5, 1, 3), (50.0, 300.0, 10.0, 500.0, 400.0),
+                                                            strict=True)])
+    three = Group(("b", None), "bail", (), "bail", "", [run("b", s, 100.0 * s) for s in (1, 2, 3)])
+    matrices, name = _normalized_scores([five, three])
+    assert name == "final return / batch mean episode return"
+    assert matrices["bail"].tolist() == [[5.0, 1.0], [3.0, 2.0], [4.0, 3.0]]  # seeds 1, 2, 3 of each batch

@@ -490,8 +490,9 @@ def _normalized_scores(groups):
     """``label -> (runs x batches)`` matrix and the score's name.
 
     The D4RL/Minari normalised score when every run has one, otherwise ``final_return`` divided by the batch's
-    mean episode return (1.0 = as good as the data on average). Each batch contributes its first ``n`` seeds,
-    ``n`` the fewest seeds any of the label's batches has (rliable needs a full matrix).
+    mean episode return (1.0 = as good as the data on average). Each batch contributes its first ``n`` seeds in
+    seed order (whatever their scores), ``n`` the fewest seeds any of the label's batches has (rliable needs a full
+    matrix).
     """
     import numpy as np
 
@@ -505,7 +506,8 @@ def _normalized_scores(groups):
     for g in groups:
         if any(not r.summary.get("dataset_mean_episode_return") for r in g.runs) and name != "normalised score":
             continue
-        by_label.setdefault(g.label, []).append(sorted(score(r.summary) for r in g.runs))
+        in_seed_order = sorted(g.runs, key=lambda r: (int(r.summary.get("seed", 0)), str(r.run_dir)))
+        by_label.setdefault(g.label, []).append([score(r.summary) for r in in_seed_order])
     matrices = {}
     for label, columns in by_label.items():
         n = min(len(c) for c in columns)
