@@ -152,3 +152,24 @@ def test_a_job_whose_lock_was_taken_over_stops_before_writing(tmp_path):
             raise AssertionError("a lost lock must stop the job before it writes")
     assert json.loads(lock.read_text())["token"] == "theirs", "the new owner's lock is left alone"
     HEARTBEAT.check()  # released: nothing lost any more
+
+
+def test_a_cached_batch_clears_the_scratch_a_dead_collector_left_behind(tiny_run_data_dir):
+    """A collector killed between saving its batch and removing its scratch directory leaves the scratch behind; the
+    next job that finds the batch cached removes it (its owner is a dead process of this host) and keeps a live
+    one's."""
+    from _contract import TINY_RUN
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_bail import config_dir
+    from torchrl_bail.behaviour.catalogue import ensure_batch
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY_RUN, f"data_dir={tiny_run_data_dir}"])
+    made = ensure_batch(cfg, progress=False, data_dir=tiny_run_data_dir)  # made here or by an earlier test
+    dead = tiny_run_data_dir / SCRATCH / f"{made.path.name}.{host_name()}.999999999.abcd1234"
+    dead.mkdir(parents=True)
+    (dead / "data.bin").write_bytes(b"\0" * 1024)
+    with scratch_directory(tiny_run_data_dir, "live") as live:
+        assert ensure_batch(cfg, progress=False, data_dir=tiny_run_data_dir).path == made.path
+        assert not dead.exists() and live.exists()

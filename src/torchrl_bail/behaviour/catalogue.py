@@ -38,13 +38,15 @@ def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | No
     """
     cfg = collection_config(cfg)
     path = batch_path(cfg, data_dir)
+    root = path.parent
+    stale, beat = liveness_settings(cfg)
     batch = load_cached_batch(path)
     if batch is not None:
         log.info("using cached batch %s", path)
+        # what a collector killed between saving its batch and removing its scratch left behind
+        clean_stale(root, stale_after_s=stale)
         return batch
-    root = path.parent
     root.mkdir(parents=True, exist_ok=True)
-    stale, beat = liveness_settings(cfg)
     clean_stale(root, stale_after_s=stale)
     with file_lock(root / LOCKS / f"{path.name}.lock", stale_after_s=stale, heartbeat_every_s=beat,
                    what=path.name):
