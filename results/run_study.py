@@ -349,7 +349,9 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
     running = _is_running(log)
     if job.module == "torchrl_bail.ope":
         run = run_dir_of(job, workdir / "outputs")
-        return "done" if run is not None and ope_finished(run) else "running" if running else "left"
+        if run is not None and ope_finished(run):
+            return "done"
+        return ("running" if running else "left") + ("" if run is None else _ope_progress(run))
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
@@ -365,6 +367,27 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
         state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
         progress = f" ({state['iteration']}/{state['iterations']} updates{_time_left(state, run, running)})"
     return ("running" if running else "left") + progress
+
+
+def _ope_progress(run: Path) -> str:
+    """`` (k of n fits, u/U updates)``: an FQE job's finished fits (``ope.json``, then one per snapshot but the
+    last, which has the final policy's weights) and the progress of the fit it checkpointed, if any; empty before
+    its training has finished."""
+    try:
+        snapshots = json.loads((run / "summary.json").read_text()).get("snapshots") or []
+    except (OSError, ValueError):
+        return ""
+    fits = max(1, len(snapshots))
+    done = (run / "ope.json").is_file() + len(list(run.glob("snapshots/ope_*.json")))
+    progress = f" ({min(done, fits)} of {fits} fit{'s' if fits != 1 else ''}"
+    checkpoints = sorted([*run.glob("*_checkpoint.pt"), *run.glob("snapshots/*_checkpoint.pt")],
+                         key=lambda p: p.stat().st_mtime)
+    if checkpoints:
+        import torch
+
+        state = torch.load(checkpoints[-1], map_location="cpu", weights_only=False)
+        progress += f", {state['update']}/{state['identity']['settings']['updates']} updates"
+    return progress + ")"
 
 
 def _time_left(state: dict, run: Path, running: bool) -> str:

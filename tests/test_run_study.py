@@ -517,7 +517,12 @@ def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_recor
     run(cfg, run_dir)
     log = workdir / "logs" / "ope__hopper_ddpg05__bc__seed1.log"
     os.utime(log, (time.time() - 900, time.time() - 900))  # no runner has written it for 15 min
-    assert run_study.job_status(ope, workdir) == "left"
+    assert run_study.job_status(ope, workdir) == "left (0 of 2 fits)"
+    import torch
+
+    torch.save({"update": 20, "identity": {"settings": {"updates": 40}}}, run_dir / "ope_checkpoint.pt")
+    assert run_study.job_status(ope, workdir) == "left (0 of 2 fits, 20/40 updates)"
+    (run_dir / "ope_checkpoint.pt").unlink()
     monkeypatch.setattr(run_study, "OPE_FLAGS", [*run_study.OPE_FLAGS, "--updates", "40", "--hidden", "16,16"])
     _, rc, _, record = run_study.run_job(ope, workdir, tiny_run_data_dir)
     assert rc == 0, log.read_text()
