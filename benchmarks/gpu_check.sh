@@ -9,7 +9,9 @@
 #   2. a tiny end-to-end run with device=cuda compile=true (batch generation, training, evaluation, checkpoint);
 #   3. benchmarks/bench_compile.py --device cuda: compile=true (one CUDA graph per update) vs eager updates/s for every
 #      algorithm, and BC under reduce-overhead and default;
-#   4. benchmarks/bench_seed_stack.py --device cuda, when that benchmark exists.
+#   4. benchmarks/bench_seed_stack.py --device cuda, when that benchmark exists;
+#   5. python -m torchrl_bail.ope --device cuda on the tiny run (BCQ: a sampling policy), then the same fit on the
+#      CPU: ope_cuda.json and ope_cpu.json (the estimates agree to float precision, not bit for bit).
 # Each step has its own time limit and a failing step does not stop the later ones; the exit code is the number
 # of failed steps.
 set -u
@@ -37,12 +39,14 @@ step tiny_run_cuda 90 python -m torchrl_bail.train +exp=hopper_ddpg05 preset=qui
   progress=false batch.steps=1000 batch.start_steps=200 batch.agent.actor_hidden=[32,32] \
   batch.agent.critic_hidden=[32,32] env.max_episode_steps=50 eval.episodes=2 eval.max_steps=50 returns.horizon=50 \
   algo.epochs=0.004 eval.every_epochs=0.002 "data_dir=$OUT/data" "hydra.run.dir=$OUT/tiny_run"
-step bench_compile_cuda 150 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc,pbail,marwil,bcq,bear \
+step bench_compile_cuda 115 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc,pbail,marwil,bcq,bear \
   --modes true --updates 100 --repeats 3 --json "$OUT/bench_compile.json"
 step bench_compile_reduce_overhead_cuda 45 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc \
   --modes reduce-overhead,default --updates 100 --repeats 3 --json "$OUT/bench_compile_reduce_overhead.json"
 if [ -f benchmarks/bench_seed_stack.py ]; then
   step bench_seed_stack_cuda 45 python benchmarks/bench_seed_stack.py --device cuda --json "$OUT/bench_seed_stack.json"
 fi
+step ope_cuda 35 bash -c 'for device in cuda cpu; do python -m torchrl_bail.ope "$0/tiny_run" --device "$device" \
+  --updates 300 --force --no-progress && cp "$0/tiny_run/ope.json" "$0/ope_$device.json" || exit 1; done' "$OUT"
 echo "failed steps: $failed" | tee -a "$OUT/gpu_check.log"
 exit "$failed"
