@@ -1212,6 +1212,8 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                  true_return=_last_evaluation(run))
     if ref_summary is not None:
         entry["reproduces"] = all(summary.get(k) == ref_summary.get(k) for k in ("final_return", "best_return"))
+        entry["platforms"] = ("unrecorded" if not (summary.get("platform") and ref_summary.get("platform")) else
+                              "same" if summary["platform"] == ref_summary["platform"] else "different")
     ope = _read_json(run / "ope.json") if ope_finished(run) else None
     if ope is not None:
         entry["estimate"] = ope["estimate"]
@@ -1351,7 +1353,9 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     lines = [status, "", "| policy | FQE estimate | true return | final_return | paper_hopper's final_return | "
              "same run |", "|---|---|---|---|---|---|"]
     for p in policies:
-        same = {None: "pending", True: "yes", False: "**no**"}[p["reproduces"]]
+        same = {None: "pending", True: "yes", False: {"same": "**no** (same platform)", "different":
+                "no (another platform)", "unrecorded": "no (a platform unrecorded)"}.get(p.get("platforms"))}[
+            p["reproduces"]]
         lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['true_return'])} | "
                      f"{num(p['final_return'])} | {num(p['reference_final_return'])} | {same} |")
     lines += ["", "FQE estimate: `python -m torchrl_bail.ope` at its defaults (d3rlpy's FQE settings, 10^5 updates; a "
@@ -1359,7 +1363,9 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
               "in training, the mean over 10 test episodes of exactly the policy FQE scored (its last evaluation); "
               "final_return, the mean of the last 10 evaluations, is the figure the other reports use. Same run: "
               "the retrained run's final and best return equal those the paper_hopper study kept for the same job, "
-              "to the last digit.", ""]
+              "to the last digit. Where they do not, the summaries' `platform` records (library versions, CPU model, "
+              "SIMD level) tell a bug (the same platform) from another machine's rounding, which grows over "
+              "training; the paper_hopper runs were made before summaries recorded it.", ""]
     if ranking is None:
         lines.append("Ranking: pending (fewer than 2 scored policies).")
     else:

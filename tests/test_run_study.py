@@ -587,11 +587,15 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
     _ope_kept_run(kept / "pbail" / "seed1", 1800.0, 2600.0, 1900.0, None)  # trained, FQE still to run
     (cell / "pbail" / "seed1").mkdir(parents=True)
     (cell / "pbail" / "seed1" / "summary.json").write_text(json.dumps({"final_return": 1800.0, "best_return": 2600.0}))
+    # marwil seed 1: both runs record one platform, and still differ (a bug, not rounding)
+    for path, final in ((kept / "marwil" / "seed1" / "summary.json", 400.0),
+                        (cell / "marwil" / "seed1" / "summary.json", 401.0)):
+        path.write_text(json.dumps({"final_return": final, "best_return": 700.0, "platform": {"cpu": "x"}}))
     out = run_study.ope_headline_report(results, headline)
     assert json.loads((results / "ope.json").read_text()) == json.loads(json.dumps(out))
     by_job = {p["job"]: p for p in out["policies"]}
     assert [by_job[f"hopper_ddpg05/{a}/seed1"]["reproduces"] for a in ("bail", "bc", "td3bc", "marwil", "pbail")] \
-        == [True, False, True, True, True]
+        == [True, False, True, False, True]
     assert by_job["hopper_ddpg05/bail/seed2"]["run"] is by_job["hopper_ddpg05/bail/seed2"]["reproduces"] is None
     ranking = out["ranking"]
     estimates, truths = [90.0, 95.0, 80.0, 60.0], [1400.0, 950.0, 1300.0, 350.0]  # the last evaluations, not final
@@ -605,8 +609,9 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
     text = (results / "ope.md").read_text()
     assert text.startswith("Policies scored by FQE: 4 of 20 planned (trained: 5); BAIL runs with their snapshots "
                            "ranked: 1 of 5. Retrained runs equal to the paper_hopper study's kept run of the same job "
-                           "(final and best return): 4 of 5.")
-    assert "| bc seed 1 | 95.00 | 950.0 | 900.0 | 901.0 | **no** |" in text
+                           "(final and best return): 3 of 5.")
+    assert "| bc seed 1 | 95.00 | 950.0 | 900.0 | 901.0 | no (a platform unrecorded) |" in text
+    assert "| marwil seed 1 | 60.00 | 350.0 | 400.0 | 401.0 | **no** (same platform) |" in text
     assert "| bail seed 2 | pending | pending | pending | pending | pending |" in text
     assert "| seed 1 | 3 | 50000 | 1400.0 | 1400.0 | 1500.0 | 3000.0 | 3000.0 |" in text
     assert (results / "ope.png").is_file()

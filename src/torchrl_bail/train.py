@@ -145,6 +145,7 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
                resumption: Resumption, *, wall_time_s: float) -> dict[str, Any]:
     """After training: ``policy.pt``, ``summary.json`` (written last: it marks the run complete) and the learning
     curve of one seed's run; returns the summary."""
+    from torchrl_bail.data.batch import platform_record
     from torchrl_bail.io import write_json_atomic
     from torchrl_bail.plots import plot_learning_curve
     from torchrl_bail.policy import save_policy
@@ -179,6 +180,7 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
         "wall_time_s": wall_time_s,
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
+        "platform": platform_record(),
     }
     _add_normalized_scores(summary, cfg.env.id, batch.metadata)
     plot_learning_curve(

@@ -60,6 +60,7 @@ __all__ = [
     "save_batch",
     "load_batch",
     "library_versions",
+    "platform_record",
     "write_json_atomic",
 ]
 
@@ -81,6 +82,28 @@ def library_versions() -> dict[str, str]:
         except importlib.metadata.PackageNotFoundError:
             versions[pkg] = None
     return versions
+
+
+def platform_record() -> dict:
+    """What a run's numbers depend on beyond its config and seed: the library versions (:func:`library_versions`),
+    Python's version, the CPU's model name and the SIMD level torch's CPU kernels use. Two runs of one config and seed
+    that agree here must give the same numbers on the CPU; runs that differ here may differ in the last digits (another
+    CPU kind rounds matrix products otherwise), and the difference grows over training.
+
+    Examples:
+        >>> sorted(platform_record())
+        ['cpu', 'cpu_capability', 'python', 'versions']
+    """
+    import platform
+
+    cpu = platform.processor() or "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"versions": library_versions(), "python": platform.python_version(), "cpu": cpu,
+            "cpu_capability": torch.backends.cpu.get_cpu_capability()}
 
 
 def _episode_boundaries(episode: torch.Tensor) -> torch.Tensor:
