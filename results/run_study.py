@@ -1255,8 +1255,8 @@ def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[fl
 
 def plot_ope(policies: list[dict], path: Path) -> Path:
     """``ope.png``: left, each scored final policy's FQE estimate against its true return, one marker per algorithm;
-    right, each BAIL run's snapshots (estimate against evaluation return, one line per seed in training order), FQE's
-    choice circled. Before any policy is scored, both panels say so (the docs show the file at every stage)."""
+    right, each BAIL run's snapshots (estimate against evaluation return, one colour per seed, each labelled with its
+    iteration), FQE's choice circled. Before any policy is scored, both panels say so (the docs show the file at every stage)."""
     from torchrl_bail.plots import new_figure, save_figure
 
     scored = [p for p in policies if p["estimate"] is not None and p["true_return"] is not None]
@@ -1275,18 +1275,21 @@ def plot_ope(policies: list[dict], path: Path) -> Path:
         left.legend(fontsize="small")
     else:
         left.text(0.5, 0.5, "no policy scored yet", transform=left.transAxes, ha="center", color="gray")
-    for p in (p for p in policies if p.get("snapshots")):
-        c = sorted(p["snapshots"]["candidates"], key=lambda c: c["iteration"])
-        line, = right.plot([x["fqe_estimate"] for x in c], [x["eval_return"] for x in c], marker="o", markersize=4,
-                           linewidth=1, label=f"seed {p['seed']}")
+    for i, p in enumerate(p for p in policies if p.get("snapshots")):
+        c = p["snapshots"]["candidates"]
+        right.scatter([x["fqe_estimate"] for x in c], [x["eval_return"] for x in c], color=f"C{i}", s=24,
+                      label=f"seed {p['seed']}")
+        for x in c:  # each snapshot's iteration, in thousands
+            right.annotate(f"{x['iteration'] // 1000}k", (x["fqe_estimate"], x["eval_return"]), fontsize=7,
+                           color=f"C{i}", xytext=(4, 3), textcoords="offset points")
         chosen = p["snapshots"]["fqe_selected"]
         right.scatter([chosen["fqe_estimate"]], [chosen["online_return"]], s=140, facecolors="none",
-                      edgecolors=line.get_color(), linewidths=1.6)
+                      edgecolors=f"C{i}", linewidths=1.6)
     right.set_xlabel("FQE estimate")
     right.set_ylabel("evaluation return of the snapshot")
     right.set_title("BAIL snapshots along training (circled: FQE's choice)")
     right.grid(alpha=0.3)
-    if right.lines:
+    if right.collections:
         right.legend(fontsize="small")
     else:
         right.text(0.5, 0.5, "no BAIL snapshots ranked yet", transform=right.transAxes, ha="center", color="gray")
