@@ -1256,7 +1256,8 @@ def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[fl
 def plot_ope(policies: list[dict], path: Path) -> Path:
     """``ope.png``: left, each scored final policy's FQE estimate against its true return, one marker per algorithm;
     right, each BAIL run's snapshots (estimate against evaluation return, one colour per seed, each labelled with its
-    iteration), FQE's choice circled. Before any policy is scored, both panels say so (the docs show the file at every stage)."""
+    iteration), FQE's choice circled. Before any policy is scored, both panels say so (the docs show the file at every
+    stage)."""
     from torchrl_bail.plots import new_figure, save_figure
 
     scored = [p for p in policies if p["estimate"] is not None and p["true_return"] is not None]
