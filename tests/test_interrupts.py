@@ -294,3 +294,37 @@ def test_under_submitit_sigterm_checkpoints_first_then_exits_143_for_slurms_requ
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def test_under_submitit_a_requeue_command_stopped_by_the_requeue_ends_the_job_for_slurms_requeue(monkeypatch, capsys):
+    """On the time-limit signal submitit runs ``scontrol requeue``; Slurm carries it out by stopping the job step, and
+    on a loaded core that SIGTERM can reach ``scontrol`` before it has exited. submitit then raises
+    ``CalledProcessError`` (-15); the job must end as on Slurm's SIGTERM (exit 143, one line, no result for submitit)
+    rather than fail. Any other failure of submitit's handler still propagates."""
+    import subprocess
+
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
+    monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
+    failures = iter([-signal.SIGTERM, 1])
+
+    def submitit_requeue(signum, frame):
+        raise subprocess.CalledProcessError(next(failures), ["scontrol", "requeue", "9"])
+
+    previous = {sig: signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else signal.SIG_DFL)
+                for sig in (signal.SIGUSR2, signal.SIGTERM)}
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            with checkpoint_before_requeue(), interrupts.safe_points():
+                signal.raise_signal(signal.SIGUSR2)
+                interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+        assert stopped.value.code == 143
+        assert capsys.readouterr().err.strip().splitlines()[-1] == (
+            "torchrl_bail: Slurm stopped the job while requeueing it; exiting for the requeue")
+        signal.signal(signal.SIGUSR2, submitit_requeue)
+        with pytest.raises(subprocess.CalledProcessError):
+            with checkpoint_before_requeue(), interrupts.safe_points():
+                signal.raise_signal(signal.SIGUSR2)
+                interrupts.stop("the checkpoint at iteration 5 of 9 in run/checkpoint.pt")
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -211,7 +211,19 @@ def checkpoint_before_requeue() -> Iterator[None]:
         raise SystemExit(SIGTERM_EXIT)
     print(f"torchrl_bail: {signal_name(sig)} from Slurm: {saved}; handing over to submitit's requeue",
           file=sys.stderr, flush=True)
-    signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
+    import subprocess
+
+    try:
+        signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
+    except subprocess.CalledProcessError as err:
+        # Slurm carries the requeue out by stopping the job step with SIGTERM, and that can reach submitit's
+        # `scontrol requeue` before it has exited (seen on a loaded core): the job is being requeued, so it ends as
+        # on Slurm's SIGTERM, without a result for submitit
+        if err.returncode != -signal.SIGTERM:
+            raise
+        print("torchrl_bail: Slurm stopped the job while requeueing it; exiting for the requeue", file=sys.stderr,
+              flush=True)
+        raise SystemExit(SIGTERM_EXIT) from None
 
 
 def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = None, *,
