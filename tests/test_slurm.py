@@ -218,6 +218,7 @@ def test_a_preemption_saves_the_work_at_once_and_the_requeued_job_ends_as_if_nev
     _sigterm_drill(slurm, data_dir, drill_reference, tmp_path, preempt)
 
 
+@pytest.mark.timeout(1500)  # 32 starts and over 10 minutes on one core shared with two training jobs
 def test_a_time_limit_checkpoints_on_submitits_signal_requeues_and_ends_as_if_never_stopped(
         slurm, data_dir, drill_reference, tmp_path):
     """A 2-minute limit with the signal asked 75 s before it: Slurm checks time limits about every 30 s, so the signal
@@ -231,7 +232,7 @@ def test_a_time_limit_checkpoints_on_submitits_signal_requeues_and_ends_as_if_ne
     # the launcher's default of 10 requeues; 40 finishes it at any pace, and how many it takes is not the point
     proc, job, run_dir = _drill(slurm, data_dir, tmp_path, "hydra.launcher.timeout_min=2",
                                 "hydra.launcher.signal_delay_s=75", "hydra.launcher.max_num_timeout=40")
-    err = _finish(proc)
+    err = _finish(proc, timeout=1400)
     logs = _job_logs(tmp_path)
     assert "Traceback" not in err
     assert "SIGUSR2 from Slurm: saved the checkpoint at iteration" in logs, logs
