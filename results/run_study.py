@@ -65,6 +65,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
+from torchrl_bail.ope import ranking_quality  # loads no torch
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
@@ -328,15 +329,20 @@ def landed(job: Job, results: Path | None) -> bool:
     return run is not None and (run / "summary.json").is_file()
 
 
-def ope_finished(run: Path) -> bool:
-    """Whether an FQE job's run holds its finished ``ope.json``: the estimate and, for a run with policy snapshots,
-    FQE's choice among them (``fqe_selected``, written last)."""
+def finished_ope(run: Path) -> dict | None:
+    """An FQE job's finished ``ope.json`` in ``run``: one with the estimate and, for a run with policy snapshots,
+    FQE's choice among them (``fqe_selected``, written last); else ``None``."""
     try:
         ope = json.loads((run / "ope.json").read_text())
         summary = json.loads((run / "summary.json").read_text())
     except (OSError, ValueError):
-        return False
-    return "estimate" in ope and (not summary.get("snapshots") or "fqe_selected" in ope)
+        return None
+    return ope if "estimate" in ope and (not summary.get("snapshots") or "fqe_selected" in ope) else None
+
+
+def ope_finished(run: Path) -> bool:
+    """Whether an FQE job's run holds its finished ``ope.json`` (:func:`finished_ope`)."""
+    return finished_ope(run) is not None
 
 
 def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> str:
@@ -422,6 +428,8 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None,
                                 and FINISHED.search(log.read_text(errors="replace"))):
         return job, None, 0.0, {}
     args = job.args
+    from torchrl_bail.data.batch import cpu_model  # loads torch: not at the script's start (--list, --status)
+
     if job.module == "torchrl_bail.ope":  # its arguments name the training job whose run it scores
         run = run_dir_of(job, workdir / "outputs")
         if run is not None and ope_finished(run):
@@ -434,7 +442,7 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None,
     else:
         extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
     record = {"threads": None if job.module == "torchrl_bail.collect" else 1, "cpus": sorted(os.sched_getaffinity(0)),
-              "cpu": machine_cpu(), "start": conditions()}
+              "cpu": cpu_model(), "start": conditions()}
     start = time.perf_counter()
     pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
     with open(log, "a") as out:
@@ -462,18 +470,6 @@ def whole_job_record(job: Job, record: dict, workdir: Path) -> dict:
         return record
     return {**record, "wall_s": float(summary["wall_time_s"]), "last_part_s": record["wall_s"],
             "resumed_from_iteration": summary["resumed_from_iteration"]}
-
-
-def machine_cpu() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
-    import platform
-
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 def wall_seconds(entry: float | dict) -> float:
@@ -1214,7 +1210,7 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
         entry["reproduces"] = all(summary.get(k) == ref_summary.get(k) for k in ("final_return", "best_return"))
         entry["platforms"] = ("unrecorded" if not (summary.get("platform") and ref_summary.get("platform")) else
                               "same" if summary["platform"] == ref_summary["platform"] else "different")
-    ope = _read_json(run / "ope.json") if ope_finished(run) else None
+    ope = finished_ope(run)
     if ope is not None:
         entry["estimate"] = ope["estimate"]
         if ope.get("fqe_selected"):
@@ -1228,13 +1224,6 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                                              [c["eval_return"] for c in candidates])["spearman"]
                              if len(candidates) > 1 else None)}
     return entry
-
-
-def ranking_quality(estimates, returns) -> dict:
-    """:func:`torchrl_bail.ope.ranking_quality` (imported when first used: the module loads no torch)."""
-    from torchrl_bail.ope import ranking_quality as quality
-
-    return quality(estimates, returns)
 
 
 def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[float | None, float | None]:

@@ -59,6 +59,7 @@ __all__ = [
     "batch_statistics",
     "save_batch",
     "load_batch",
+    "cpu_model",
     "library_versions",
     "platform_record",
     "write_json_atomic",
@@ -84,11 +85,25 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
 def platform_record() -> dict:
     """What a run's numbers depend on beyond its config and seed: the library versions (:func:`library_versions`),
-    Python's version, the CPU's model name and the SIMD level torch's CPU kernels use. Two runs of one config and seed
-    that agree here must give the same numbers on the CPU; runs that differ here may differ in the last digits (another
-    CPU kind rounds matrix products otherwise), and the difference grows over training.
+    Python's version, the CPU's model name (:func:`cpu_model`) and the SIMD level torch's CPU kernels use. Two runs of
+    one config and seed that agree here must give the same numbers on the CPU; runs that differ here may differ in the
+    last digits (another CPU kind rounds matrix products otherwise), and the difference grows over training.
 
     Examples:
         >>> sorted(platform_record())
@@ -96,13 +111,7 @@ def platform_record() -> dict:
     """
     import platform
 
-    cpu = platform.processor() or "unknown"
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
-    except OSError:
-        pass
-    return {"versions": library_versions(), "python": platform.python_version(), "cpu": cpu,
+    return {"versions": library_versions(), "python": platform.python_version(), "cpu": cpu_model(),
             "cpu_capability": torch.backends.cpu.get_cpu_capability()}
 
 
