@@ -33,6 +33,7 @@ import hashlib
 import math
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -524,7 +525,7 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     return kept, True
 
 
-def ranking_quality(estimates, returns) -> dict[str, Any]:
+def ranking_quality(estimates: Sequence[float], returns: Sequence[float]) -> dict[str, Any]:
     """How well off-policy estimates rank policies whose true returns are known (Paine et al. 2020, sec. 4: rank
     correlation and the regret of the policy an estimator selects).
 
