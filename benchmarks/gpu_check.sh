@@ -14,9 +14,19 @@
 #      CPU: ope_cuda.json and ope_cpu.json (the estimates agree to float precision, not bit for bit).
 # Each step has its own time limit and a failing step does not stop the later ones; the exit code is the number
 # of failed steps.
+# A GPU machine without network and without this package's dependencies (a stock CUDA PyTorch image): run
+# benchmarks/gpu_wheels.sh first where PyPI is reachable and bring .whl/ along; the wheels found there are installed
+# offline into a folder of their own (the image's torch is used as it is), and the versions in use go to gpu.txt.
 set -u
 OUT="${OUT:-$PWD/gpu_check_out}"
 mkdir -p "$OUT"
+PY=${PYTHON:-$(command -v python3 || command -v python)}
+if compgen -G ".whl/*.whl" > /dev/null; then
+  site=$(mktemp -d)
+  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$site" .whl/*.whl \
+    > "$OUT/wheels.log" 2>&1 || { echo "installing .whl/ failed:"; tail -n 20 "$OUT/wheels.log"; }
+  export PYTHONPATH="$site"
+fi
 export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" RL_WARNINGS=0 TORCHRL_BAIL_TEST_DEVICE=cuda
 failed=0
 step() {  # step NAME SECONDS COMMAND...: runs COMMAND with a time limit, output to $OUT/NAME.log
@@ -32,21 +42,24 @@ step() {  # step NAME SECONDS COMMAND...: runs COMMAND with a time limit, output
 }
 
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$OUT/gpu.txt" 2>&1
-python -c "import torch; print(torch.__version__, torch.cuda.get_device_name(0))" | tee -a "$OUT/gpu.txt"
+"$PY" -c "import sys, torch, torchrl, tensordict, gymnasium, mujoco, hydra
+print(sys.version.split()[0], 'torch', torch.__version__, torch.cuda.get_device_name(0), 'torchrl', torchrl.__version__,
+      'tensordict', tensordict.__version__, 'gymnasium', gymnasium.__version__, 'mujoco', mujoco.__version__,
+      'hydra', hydra.__version__)" 2>&1 | tail -n 3 | tee -a "$OUT/gpu.txt"
 
-step tests_cuda 150 python -m pytest -q -p no:cacheprovider tests/test_compile.py
-step tiny_run_cuda 90 python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick algo=bcq device=cuda compile=true \
+step tests_cuda 150 "$PY" -m pytest -q -p no:cacheprovider tests/test_compile.py
+step tiny_run_cuda 90 "$PY" -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick algo=bcq device=cuda compile=true \
   progress=false batch.steps=1000 batch.start_steps=200 batch.agent.actor_hidden=[32,32] \
   batch.agent.critic_hidden=[32,32] env.max_episode_steps=50 eval.episodes=2 eval.max_steps=50 returns.horizon=50 \
   algo.epochs=0.004 eval.every_epochs=0.002 "data_dir=$OUT/data" "hydra.run.dir=$OUT/tiny_run"
-step bench_compile_cuda 115 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc,pbail,marwil,bcq,bear \
+step bench_compile_cuda 115 "$PY" benchmarks/bench_compile.py --device cuda --threads 0 --algos bc,pbail,marwil,bcq,bear \
   --modes true --updates 100 --repeats 3 --json "$OUT/bench_compile.json"
-step bench_compile_reduce_overhead_cuda 45 python benchmarks/bench_compile.py --device cuda --threads 0 --algos bc \
+step bench_compile_reduce_overhead_cuda 45 "$PY" benchmarks/bench_compile.py --device cuda --threads 0 --algos bc \
   --modes reduce-overhead,default --updates 100 --repeats 3 --json "$OUT/bench_compile_reduce_overhead.json"
 if [ -f benchmarks/bench_seed_stack.py ]; then
-  step bench_seed_stack_cuda 45 python benchmarks/bench_seed_stack.py --device cuda --json "$OUT/bench_seed_stack.json"
+  step bench_seed_stack_cuda 45 "$PY" benchmarks/bench_seed_stack.py --device cuda --json "$OUT/bench_seed_stack.json"
 fi
-step ope_cuda 35 bash -c 'for device in cuda cpu; do python -m torchrl_bail.ope "$0/tiny_run" --device "$device" \
-  --updates 300 --force --no-progress && cp "$0/tiny_run/ope.json" "$0/ope_$device.json" || exit 1; done' "$OUT"
+step ope_cuda 35 bash -c 'for device in cuda cpu; do "$1" -m torchrl_bail.ope "$0/tiny_run" --device "$device" \
+  --updates 300 --force --no-progress && cp "$0/tiny_run/ope.json" "$0/ope_$device.json" || exit 1; done' "$OUT" "$PY"
 echo "failed steps: $failed" | tee -a "$OUT/gpu_check.log"
 exit "$failed"
