@@ -19,6 +19,7 @@ import importlib
 import importlib.util
 import inspect
 import io
+import json
 import math
 from pathlib import Path
 
@@ -545,3 +546,9 @@ def test_tiny_run_through_the_config(case, tiny_run_data_dir, tmp_path):
         with torch.no_grad():
             actions.append(acting(observation.clone())["action"])
     torch.testing.assert_close(actions[0], actions[1], rtol=0, atol=0)
+    # and FQE scores it (python -m torchrl_bail.ope: every algorithm's policy.pt, a sampling one included)
+    from torchrl_bail.ope import main as ope_main
+
+    assert ope_main([str(tmp_path), "--updates", "20", "--log-every", "10", "--hidden", "16,16", "--no-progress"]) == 0
+    scored = json.loads((tmp_path / "ope.json").read_text())
+    assert scored["algo"] == case.name and math.isfinite(scored["estimate"])
