@@ -1193,7 +1193,7 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
     named = dict(arg.split("=", 1) for arg in job.args)
     entry = {"job": job.name, "algo": named["algo"], "seed": int(named["seed"]), "run": None, "estimate": None,
              "true_return": None, "final_return": None, "best_return": None, "reference_final_return": None,
-             "reproduces": None}
+             "reproduces": None, "action_gap": None}
     reference_job = Job(job.name, [a for a in job.args if a not in OPE_SNAPSHOTS.get(named["algo"], [])])
     reference = run_dir_of(reference_job, headline / "runs")
     ref_summary = None if reference is None else _read_json(reference / "summary.json")
@@ -1212,7 +1212,7 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                               "same" if summary["platform"] == ref_summary["platform"] else "different")
     ope = finished_ope(run)
     if ope is not None:
-        entry["estimate"] = ope["estimate"]
+        entry["estimate"], entry["action_gap"] = ope["estimate"], ope.get("action_gap")
         if ope.get("fqe_selected"):
             candidates = ope["snapshots"]
             entry["snapshots"] = {
@@ -1224,6 +1224,19 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                                              [c["eval_return"] for c in candidates])["spearman"]
                              if len(candidates) > 1 else None)}
     return entry
+
+
+def _gap_overrating(scored: list[dict]) -> dict | None:
+    """Spearman's rho between the scored policies' action gaps and FQE's overrating of each (its rank by estimate
+    minus its rank by true return, ranks ascending, ties averaged), or ``None`` below 3 policies with a gap."""
+    from scipy.stats import rankdata, spearmanr
+
+    with_gap = [p for p in scored if p["action_gap"] is not None]
+    if len(with_gap) < 3:
+        return None
+    overrating = (rankdata([p["estimate"] for p in with_gap]) - rankdata([p["true_return"] for p in with_gap]))
+    rho = spearmanr([p["action_gap"] for p in with_gap], overrating).statistic
+    return {"n": len(with_gap), "spearman": None if np.isnan(rho) else float(rho)}
 
 
 def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[float | None, float | None]:
@@ -1316,7 +1329,10 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     for p in scored:
         by_algo.setdefault(p["algo"], []).append(p)
     algorithms = [{"algo": a, "policies": len(ps), "mean_estimate": float(np.mean([p["estimate"] for p in ps])),
-                   "mean_true_return": float(np.mean([p["true_return"] for p in ps]))} for a, ps in by_algo.items()]
+                   "mean_true_return": float(np.mean([p["true_return"] for p in ps])),
+                   "mean_action_gap": (None if any(p["action_gap"] is None for p in ps) else
+                                       float(np.mean([p["action_gap"] for p in ps])))} for a, ps in by_algo.items()]
+    gap_overrating = _gap_overrating(scored)
     algo_ranking = None
     if len(algorithms) >= 2:
         q = ranking_quality([a["mean_estimate"] for a in algorithms], [a["mean_true_return"] for a in algorithms])
@@ -1337,19 +1353,20 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
                  f"The readings below are preliminary until all {len(policies)} are scored."))
     figure = plot_ope(policies, results / "ope.png")
     out = {"status": status, "policies": policies, "ranking": ranking, "algorithms": algorithms,
-           "algorithm_ranking": algo_ranking, "snapshot_selection": selection_means,
+           "algorithm_ranking": algo_ranking, "gap_overrating": gap_overrating, "snapshot_selection": selection_means,
            "bootstrap": {"reps": OPE_REPS, "seed": OPE_SEED}, "figure": figure.name}
 
     def num(x, digits=1):
         return "pending" if x is None else f"{x:.{digits}f}"
 
-    lines = [status, "", "| policy | FQE estimate | true return | final_return | paper_hopper's final_return | "
-             "same run |", "|---|---|---|---|---|---|"]
+    lines = [status, "", "| policy | FQE estimate | action gap | true return | final_return | paper_hopper's "
+             "final_return | same run |", "|---|---|---|---|---|---|---|"]
     for p in policies:
         same = {None: "pending", True: "yes", False: {"same": "**no** (same platform)", "different":
                 "no (another platform)", "unrecorded": "no (a platform unrecorded)"}.get(p.get("platforms"))}[
             p["reproduces"]]
-        lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['true_return'])} | "
+        lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['action_gap'], 2)} | "
+                     f"{num(p['true_return'])} | "
                      f"{num(p['final_return'])} | {num(p['reference_final_return'])} | {same} |")
     lines += ["", "FQE estimate: `python -m torchrl_bail.ope` at its defaults (d3rlpy's FQE settings, 10^5 updates; a "
               "discounted value, gamma 0.99, so not on the return's scale). True return: the policy's own evaluation "
@@ -1358,7 +1375,10 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
               "the retrained run's final and best return equal those the paper_hopper study kept for the same job, "
               "to the last digit. Where they do not, the summaries' `platform` records (library versions, CPU model, "
               "SIMD level) tell a bug (the same platform) from another machine's rounding, which grows over "
-              "training; the paper_hopper runs were made before summaries recorded it.", ""]
+              "training; the paper_hopper runs were made before summaries recorded it. Action gap: how far the "
+              "policy acts from the batch, the root mean square of its action minus the batch's over all 10^6 "
+              "transitions, per half action range (`torchrl_bail.ope.action_gap`; 0: the batch's own actions); the "
+              "further it is, the more of FQE's estimate is extrapolation.", ""]
     if ranking is None:
         lines.append("Ranking: pending (fewer than 2 scored policies).")
     else:
@@ -1372,10 +1392,16 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
                   f"policies (its interval: the policies bootstrapped, {OPE_REPS} replications); regret: the best "
                   f"true return minus that of the policy with the highest estimate, the return a user who deploys "
                   f"FQE's choice gives up."]
+    if gap_overrating is not None:
+        lines += ["", f"Does FQE overrate the policies that act furthest from the batch? Spearman's rho between the "
+                  f"action gap and FQE's overrating (a policy's rank by estimate above its rank by true return) over "
+                  f"the {gap_overrating['n']} scored policies: {num(gap_overrating['spearman'], 2)} (positive: the "
+                  f"more FQE overrates a policy, the further that policy acts from the batch)."]
     if algo_ranking is not None:
-        lines += ["", "| algorithm | policies | mean FQE estimate | mean true return |", "|---|---|---|---|"]
-        lines += [f"| {a['algo']} | {a['policies']} | {num(a['mean_estimate'], 2)} | {num(a['mean_true_return'])} |"
-                  for a in algorithms]
+        lines += ["", "| algorithm | policies | mean FQE estimate | mean action gap | mean true return |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {a['algo']} | {a['policies']} | {num(a['mean_estimate'], 2)} | {num(a['mean_action_gap'], 2)} "
+                  f"| {num(a['mean_true_return'])} |" for a in algorithms]
         lines += ["", f"Choosing an algorithm by its mean estimate: FQE ranks **{algo_ranking['selected']}** first, "
                   f"the true returns **{algo_ranking['best']}** (Spearman's rho over the {algo_ranking['n']} "
                   f"algorithms {num(algo_ranking['spearman'], 2)}; regret {num(algo_ranking['regret'])})."]

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
@@ -60,6 +61,28 @@ def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_
 
     assert main([str(tiny_run), "--seed", "4", "--force", *FAST]) == 0
     assert _ope(tiny_run)["estimate"] != first["estimate"]
+
+
+def test_the_action_gap_is_recorded_and_added_to_an_older_record_without_a_new_fit(tiny_run, monkeypatch, capsys):
+    """``ope.json`` carries how far the policy acts from the batch (:func:`torchrl_bail.ope.action_gap`); a record
+    written before ope recorded it gets it on the next call, from the policy and batch alone: no fit runs again."""
+    import torchrl_bail.ope as ope_module
+    from torchrl_bail.data.cache import load_cached_batch
+    from torchrl_bail.policy import load_policy
+
+    assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
+    fitted = _ope(tiny_run)
+    batch = load_cached_batch(Path(fitted["batch"]), remedy="")
+    assert fitted["action_gap"] == ope_module.action_gap(load_policy(tiny_run), batch.data, seed=3)
+    assert 0.0 < fitted["action_gap"] < 2.0
+
+    older = {k: v for k, v in fitted.items() if k != "action_gap"}
+    (tiny_run / "ope.json").write_text(json.dumps(older))
+    monkeypatch.setattr(ope_module, "fit_fqe", lambda *a, **k: pytest.fail("a kept fit was fitted again"))
+    assert main([str(tiny_run), "--seed", "3", *FAST]) == 0
+    assert _ope(tiny_run) == fitted
+    assert main([str(tiny_run), "--seed", "3", *FAST]) == 0  # now whole: kept as it is
+    assert "kept" in capsys.readouterr().out and _ope(tiny_run) == fitted
 
 
 def test_a_killed_fit_continues_to_the_uninterrupted_numbers(tiny_run, monkeypatch, capsys):

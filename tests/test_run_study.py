@@ -541,7 +541,7 @@ def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_recor
 
 
 def _ope_kept_run(run: Path, final: float, best: float, last_eval: float, estimate: float | None,
-                  snapshots: list[tuple[int, float, float]] = ()) -> None:
+                  snapshots: list[tuple[int, float, float]] = (), action_gap: float | None = None) -> None:
     """A kept run of the OPE study: summary, its evaluation CSV ending at ``last_eval``, and a finished ``ope.json``
     (with ``snapshots`` as ``(iteration, eval_return, estimate)`` ranked, FQE choosing the highest estimate)."""
     (run / "logs" / "scalars" / "eval").mkdir(parents=True)
@@ -553,7 +553,7 @@ def _ope_kept_run(run: Path, final: float, best: float, last_eval: float, estima
     (run / "summary.json").write_text(json.dumps(summary))
     if estimate is None:
         return
-    ope = {"estimate": estimate}
+    ope = {"estimate": estimate} if action_gap is None else {"estimate": estimate, "action_gap": action_gap}
     if snapshots:
         order = sorted(snapshots, key=lambda s: -s[2])
         ope["snapshots"] = [{"path": f"snapshots/policy_{i}.pt", "iteration": i, "eval_return": r, "fqe_estimate": e,
@@ -573,13 +573,14 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
     cell = headline / "runs" / "hopper_ddpg05_b1"
     kept = results / "runs" / "hopper_ddpg05_b1"
     # (algo, run name, final, best, last evaluation, estimate); bc seed 1 is no reproduction of the cell's run
-    rows = [("bail", "seed1,eval.snapshots=5", 1500.0, 3000.0, 1400.0, 90.0),
-            ("bc", "seed1", 900.0, 1200.0, 950.0, 95.0),
-            ("td3bc", "seed1,algo.epochs=25.6,eval.every_epochs=1.28", 1200.0, 2000.0, 1300.0, 80.0),
-            ("marwil", "seed1", 400.0, 700.0, 350.0, 60.0)]
-    for algo, name, final, best, last, estimate in rows:
+    # ... and action gap (td3bc's record is older than the gap: none)
+    rows = [("bail", "seed1,eval.snapshots=5", 1500.0, 3000.0, 1400.0, 90.0, 0.5),
+            ("bc", "seed1", 900.0, 1200.0, 950.0, 95.0, 0.9),
+            ("td3bc", "seed1,algo.epochs=25.6,eval.every_epochs=1.28", 1200.0, 2000.0, 1300.0, 80.0, None),
+            ("marwil", "seed1", 400.0, 700.0, 350.0, 60.0, 0.6)]
+    for algo, name, final, best, last, estimate, gap in rows:
         snapshots = [(10000, 2500.0, 70.0), (30000, 3000.0, 85.0), (50000, last, estimate)] if algo == "bail" else ()
-        _ope_kept_run(kept / algo / name, final, best, last, estimate, snapshots)
+        _ope_kept_run(kept / algo / name, final, best, last, estimate, snapshots, gap)
         reference = cell / algo / name.replace(",eval.snapshots=5", "")
         reference.mkdir(parents=True)
         (reference / "summary.json").write_text(json.dumps({"final_return": final + (algo == "bc"),
@@ -604,15 +605,21 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
     assert ranking["regret"] == pytest.approx(1400.0 - 950.0)
     assert ranking["spearman_ci"][0] <= ranking["spearman"] <= ranking["spearman_ci"][1]
     assert out["algorithm_ranking"]["selected"] == "bc" and out["algorithm_ranking"]["best"] == "bail"
+    # the gaps against FQE's overrating (rank by estimate minus rank by true return) of bail, bc and marwil
+    over = [2 - 3, 3 - 2, 1 - 1]  # ranks among the three: estimates 90, 95, 60; true returns 1400, 950, 350
+    assert out["gap_overrating"] == {"n": 3, "spearman": pytest.approx(spearmanr([0.5, 0.9, 0.6], over).statistic)}
+    assert out["gap_overrating"]["spearman"] == pytest.approx(1.0)  # the most overrated policy strays furthest
+    assert [a["mean_action_gap"] for a in out["algorithms"]] == [0.5, 0.9, None, 0.6]
     assert out["snapshot_selection"] == {"fqe_selected_return": 1400.0, "final_return": 1500.0, "best_return": 3000.0,
                                          "final_policy_return": 1400.0, "best_candidate_return": 3000.0}
     text = (results / "ope.md").read_text()
     assert text.startswith("Policies scored by FQE: 4 of 20 planned (trained: 5); BAIL runs with their snapshots "
                            "ranked: 1 of 5. Retrained runs equal to the paper_hopper study's kept run of the same job "
                            "(final and best return): 3 of 5.")
-    assert "| bc seed 1 | 95.00 | 950.0 | 900.0 | 901.0 | no (a platform unrecorded) |" in text
-    assert "| marwil seed 1 | 60.00 | 350.0 | 400.0 | 401.0 | **no** (same platform) |" in text
-    assert "| bail seed 2 | pending | pending | pending | pending | pending |" in text
+    assert "| bc seed 1 | 95.00 | 0.90 | 950.0 | 900.0 | 901.0 | no (a platform unrecorded) |" in text
+    assert "| marwil seed 1 | 60.00 | 0.60 | 350.0 | 400.0 | 401.0 | **no** (same platform) |" in text
+    assert "| td3bc seed 1 | 80.00 | pending | 1300.0 |" in text
+    assert "| bail seed 2 | pending | pending | pending | pending | pending | pending |" in text
     assert "| seed 1 | 3 | 50000 | 1400.0 | 1400.0 | 1500.0 | 3000.0 | 3000.0 |" in text
     assert (results / "ope.png").is_file()
 

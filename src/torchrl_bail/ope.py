@@ -38,8 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FQESettings", "OPEError", "fit_fqe", "fqe_update", "listed_snapshots", "ranking_quality", "score_run",
-           "select_snapshot", "main"]
+__all__ = ["FQESettings", "OPEError", "action_gap", "fit_fqe", "fqe_update", "listed_snapshots", "ranking_quality",
+           "score_run", "select_snapshot", "main"]
 
 OPE_FORMAT = 1
 #: the entries of a batch the fit reads
@@ -303,6 +303,47 @@ def _settings_record(settings: FQESettings) -> dict[str, Any]:
     return {**dataclasses.asdict(settings), "hidden": list(settings.hidden)}
 
 
+def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
+    """How far ``policy`` acts from the batch: the root mean square, over the batch's transitions and action
+    dimensions, of ``pi(s) - a``, each dimension divided by half its action range (``policy.record``'s
+    ``action_low``/``action_high``), so ``0`` is the batch's own actions and ``2`` the far end of the range.
+
+    A diagnostic beside FQE's estimate, not a part of it: FQE's target queries ``Q(s', pi(s'))``, and the further
+    ``pi`` leaves the batch's actions the more of its estimate is extrapolation (Fujimoto et al. 2019,
+    arXiv:1812.02900, sec. 3). A sampling policy (BCQ's) draws its actions from a generator seeded with ``seed``
+    (torch's global state is left as it was).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+        >>> policy = make_deterministic_actor(3, action_spec_from_bounds([-2.0], [2.0]), (8,))
+        >>> policy.record = {"action_low": [-2.0], "action_high": [2.0]}
+        >>> data = TensorDict({"observation": torch.randn(10, 3)}, [10])
+        >>> with torch.no_grad():
+        ...     data["action"] = policy(data.clone())["action"] + 1.0  # one unit off: half a half-range
+        >>> round(action_gap(policy, data), 6)
+        0.5
+    """
+    import torch
+
+    from torchrl_bail.policy import policy_actions
+
+    low = torch.as_tensor(policy.record["action_low"], dtype=torch.float64)
+    high = torch.as_tensor(policy.record["action_high"], dtype=torch.float64)
+    half_range = (high - low) / 2
+    observation, action = data["observation"], data["action"]
+    total, count = 0.0, 0
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        for start in range(0, observation.shape[0], chunk):
+            acted = policy_actions(policy, observation[start:start + chunk]).to("cpu", torch.float64)
+            gap = (acted - action[start:start + chunk].to("cpu", torch.float64)) / half_range
+            total += float(gap.square().sum())
+            count += gap.numel()
+    return math.sqrt(total / count)
+
+
 def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, device, progress: bool,
                 checkpoint_every_s: float, desc: str) -> dict[str, Any]:
     """Fits FQE for ``policy`` (from :func:`~torchrl_bail.policy.load_policy`) on ``batch`` and writes its record to
@@ -338,6 +379,7 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
         "wall_time_s": result["wall_time_s"],
         "resumed_at": result["resumed_at"],
         "curve": result["curve"],
+        "action_gap": action_gap(policy, batch.data, seed=seed),
         "versions": library_versions(),
     }
     write_json_atomic(out, ope)
@@ -504,7 +546,7 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     out = output_path(run_dir, best=best)
     snapshots = None if best else listed_snapshots(run_dir)
     kept = None if force else _kept(out, run_dir / ("policy_best.pt" if best else "policy.pt"))
-    if kept is not None and (not snapshots or "fqe_selected" in kept):
+    if kept is not None and (not snapshots or "fqe_selected" in kept) and "action_gap" in kept:
         if snapshots:
             _record_selection(run_dir, kept["fqe_selected"])  # a command stopped between ope.json and summary.json
         return kept, False
@@ -519,6 +561,11 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     if kept is None:
         kept = _fit_policy(policy, out, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
                            checkpoint_every_s=checkpoint_every_s, desc=run_dir.name)
+    elif "action_gap" not in kept:  # a record written before ope recorded it: no new fit, the gap added
+        from torchrl_bail.io import write_json_atomic
+
+        kept = {**kept, "action_gap": action_gap(policy, batch.data, seed=int(kept.get("seed", seed)))}
+        write_json_atomic(out, kept)
     if snapshots:
         kept = select_snapshot(run_dir, kept, policy, batch, settings=settings, seed=seed, device=device, force=force,
                                progress=progress, checkpoint_every_s=checkpoint_every_s, snapshots=snapshots)
