@@ -333,8 +333,10 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
     high = torch.as_tensor(policy.record["action_high"], dtype=torch.float64)
     half_range = (high - low) / 2
     observation, action = data["observation"], data["action"]
+    device = next(iter(policy.parameters()), torch.empty(0)).device
     total, count = 0.0, 0
-    with torch.random.fork_rng(devices=[]):
+    # torch.manual_seed seeds every device: the policy's GPU generator, if it has one, is restored too
+    with torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else []):
         torch.manual_seed(int(seed))
         for start in range(0, observation.shape[0], chunk):
             acted = policy_actions(policy, observation[start:start + chunk]).to("cpu", torch.float64)
