@@ -266,6 +266,42 @@ def test_a_slurm_preemption_signal_checkpoints_first_then_goes_to_submitits_requ
         signal.signal(signal.SIGUSR2, previous)
 
 
+def test_under_submitit_slurms_sigcont_and_the_handovers_sigterm_reach_no_logging_handler(monkeypatch):
+    """Slurm sends SIGCONT with each signal, and SIGCONT and SIGTERM when it stops a requeued job step; submitit's
+    handlers for them write a log record, and one written while the interrupted code writes the same log file fails
+    ("reentrant call", a traceback in the job's log, seen in a time-limit drill). So neither reaches them: not while
+    the loop runs, nor while submitit's own requeue runs; and afterwards its handlers are back."""
+    logged, requeue_saw = [], []
+
+    class Requeued(SystemExit):
+        pass
+
+    def submitit_requeue(signum, frame):  # Slurm stops the step as soon as `scontrol requeue` is issued
+        signal.raise_signal(signal.SIGCONT)
+        signal.raise_signal(signal.SIGTERM)
+        requeue_saw.append("requeued")
+        raise Requeued(-1)
+
+    def submitit_bypass(signum, frame):
+        logged.append(signal.Signals(signum).name)
+
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
+    monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
+    previous = {sig: signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else submitit_bypass)
+                for sig in (signal.SIGUSR2, signal.SIGTERM, signal.SIGCONT)}
+    try:
+        with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
+            signal.raise_signal(signal.SIGCONT)
+            signal.raise_signal(signal.SIGUSR2)
+            interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+        assert requeue_saw == ["requeued"] and logged == [], "submitit's logging handlers were called"
+        assert signal.getsignal(signal.SIGCONT) is submitit_bypass
+        assert signal.getsignal(signal.SIGTERM) is submitit_bypass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def test_under_submitit_sigterm_checkpoints_first_then_exits_143_for_slurms_requeue(monkeypatch, capsys):
     """Preemption, ``scontrol requeue`` and ``scancel`` send SIGTERM, which submitit only logs: the loop checkpoints at
     its next safe point, then the job exits 143 through ``SystemExit`` (which submitit's error handler lets pass, so no
