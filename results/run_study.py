@@ -1208,8 +1208,9 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                  true_return=_last_evaluation(run))
     if ref_summary is not None:
         entry["reproduces"] = all(summary.get(k) == ref_summary.get(k) for k in ("final_return", "best_return"))
-        entry["platforms"] = ("unrecorded" if not (summary.get("platform") and ref_summary.get("platform")) else
-                              "same" if summary["platform"] == ref_summary["platform"] else "different")
+        entry["platforms"] = _compare_records(summary, ref_summary, lambda p: {k: v for k, v in p.items()
+                                                                                 if k != "source"})
+        entry["sources"] = _compare_records(summary, ref_summary, lambda p: p.get("source"))
     ope = finished_ope(run)
     if ope is not None:
         entry["estimate"], entry["action_gap"] = ope["estimate"], ope.get("action_gap")
@@ -1224,6 +1225,13 @@ def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
                                              [c["eval_return"] for c in candidates])["spearman"]
                              if len(candidates) > 1 else None)}
     return entry
+
+
+def _compare_records(summary: dict, reference: dict, part) -> str:
+    """Whether ``part`` of two summaries' ``platform`` records agrees: ``same``, ``different`` or ``unrecorded``
+    (either summary lacks it)."""
+    mine, theirs = (part(s["platform"]) if s.get("platform") else None for s in (summary, reference))
+    return "unrecorded" if mine is None or theirs is None else "same" if mine == theirs else "different"
 
 
 def _gap_overrating(scored: list[dict]) -> dict | None:
@@ -1362,9 +1370,10 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     lines = [status, "", "| policy | FQE estimate | action gap | true return | final_return | paper_hopper's "
              "final_return | same run |", "|---|---|---|---|---|---|---|"]
     for p in policies:
-        same = {None: "pending", True: "yes", False: {"same": "**no** (same platform)", "different":
-                "no (another platform)", "unrecorded": "no (a platform unrecorded)"}.get(p.get("platforms"))}[
-            p["reproduces"]]
+        same = {None: "pending", True: "yes", False: (
+            "no (another code revision)" if p.get("platforms") == "same" and p.get("sources") == "different" else
+            {"same": "**no** (same platform)", "different": "no (another platform)",
+             "unrecorded": "no (a platform unrecorded)"}.get(p.get("platforms")))}[p["reproduces"]]
         lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['action_gap'], 2)} | "
                      f"{num(p['true_return'])} | "
                      f"{num(p['final_return'])} | {num(p['reference_final_return'])} | {same} |")
@@ -1374,11 +1383,12 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
               "final_return, the mean of the last 10 evaluations, is the figure the other reports use. Same run: "
               "the retrained run's final and best return equal those the paper_hopper study kept for the same job, "
               "to the last digit. Where they do not, the summaries' `platform` records (library versions, CPU model, "
-              "SIMD level) tell a bug (the same platform) from another machine's rounding, which grows over "
-              "training; the paper_hopper runs were made before summaries recorded it. Action gap: how far the "
-              "policy acts from the batch, the root mean square of its action minus the batch's over all 10^6 "
-              "transitions, per half action range (`torchrl_bail.ope.action_gap`; 0: the batch's own actions); the "
-              "further it is, the more of FQE's estimate is extrapolation.", ""]
+              "SIMD level, the code's git revision) tell a bug (the same platform and code) from another machine's "
+              "rounding, which grows over training, or from a change of the code; the paper_hopper runs were made "
+              "before summaries recorded it. Action gap: how far the policy acts from the batch, the root mean "
+              "square of its action minus the batch's over all 10^6 transitions, per half action range "
+              "(`torchrl_bail.ope.action_gap`; 0: the batch's own actions); the further it is, the more of FQE's "
+              "estimate is extrapolation.", ""]
     if ranking is None:
         lines.append("Ranking: pending (fewer than 2 scored policies).")
     else:

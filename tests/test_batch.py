@@ -156,3 +156,49 @@ def test_incomplete_directories_are_not_batches(tmp_path):
         load_batch(tmp_path / "b.tmp-1-abc")
     with pytest.raises(FileNotFoundError):
         load_batch(tmp_path / "nothing")
+
+
+def test_the_source_revision_names_the_checkouts_commit_and_whether_its_code_was_changed(tmp_path):
+    """A run records the git commit of the checkout it ran from, and whether ``src/`` or ``conf/`` differed from it
+    (the package version alone does not tell two states of the code apart); a package that is no checkout's
+    ``src/torchrl_bail`` (an install, even inside another repository) records none."""
+    import shutil
+    import subprocess
+
+    from torchrl_bail.data import source_revision
+
+    if shutil.which("git") is None:
+        pytest.skip("no git")
+
+    def git(repo, *args):
+        return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                              capture_output=True, text=True, check=True).stdout.strip()
+
+    def repository(package_path):
+        repo = tmp_path / package_path.split("/")[0]
+        package = repo / package_path.split("/", 1)[1]
+        package.mkdir(parents=True)
+        (package / "__init__.py").write_text("x = 1\n")
+        (repo / "conf").mkdir()
+        (repo / "conf" / "config.yaml").write_text("a: 1\n")
+        git(repo, "init", "-q")
+        git(repo, "add", ".")
+        git(repo, "commit", "-qm", "first")
+        return repo, package
+
+    repo, package = repository("checkout/src/torchrl_bail")
+    assert source_revision(package) == {"commit": git(repo, "rev-parse", "HEAD"), "modified": False}
+    (package / "__pycache__").mkdir()
+    (package / "__pycache__" / "__init__.cpython-311.pyc").write_bytes(b"untracked: no change of the code")
+    assert source_revision(package)["modified"] is False
+    (repo / "conf" / "config.yaml").write_text("a: 2\n")
+    assert source_revision(package)["modified"] is True
+    git(repo, "commit", "-qam", "second")
+    assert source_revision(package) == {"commit": git(repo, "rev-parse", "HEAD"), "modified": False}
+    (package / "__init__.py").write_text("x = 2\n")
+    assert source_revision(package)["modified"] is True
+    _, installed = repository("project/.venv/lib/site-packages/torchrl_bail")
+    assert source_revision(installed) is None
+    loose = tmp_path / "unpacked" / "torchrl_bail"
+    loose.mkdir(parents=True)
+    assert source_revision(loose) is None

@@ -587,16 +587,19 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
                                                             "best_return": best}))
     _ope_kept_run(kept / "pbail" / "seed1", 1800.0, 2600.0, 1900.0, None)  # trained, FQE still to run
     (cell / "pbail" / "seed1").mkdir(parents=True)
-    (cell / "pbail" / "seed1" / "summary.json").write_text(json.dumps({"final_return": 1800.0, "best_return": 2600.0}))
-    # marwil seed 1: both runs record one platform, and still differ (a bug, not rounding)
-    for path, final in ((kept / "marwil" / "seed1" / "summary.json", 400.0),
-                        (cell / "marwil" / "seed1" / "summary.json", 401.0)):
-        path.write_text(json.dumps({"final_return": final, "best_return": 700.0, "platform": {"cpu": "x"}}))
+    # marwil seed 1: both runs record one platform and one code revision, and still differ (a bug, not rounding);
+    # pbail seed 1: one platform, but the code changed between them
+    for path, final, commit in ((kept / "marwil" / "seed1" / "summary.json", 400.0, "a"),
+                                (cell / "marwil" / "seed1" / "summary.json", 401.0, "a"),
+                                (kept / "pbail" / "seed1" / "summary.json", 1800.0, "a"),
+                                (cell / "pbail" / "seed1" / "summary.json", 1801.0, "b")):
+        path.write_text(json.dumps({"final_return": final, "best_return": 700.0,
+                                    "platform": {"cpu": "x", "source": {"commit": commit, "modified": False}}}))
     out = run_study.ope_headline_report(results, headline)
     assert json.loads((results / "ope.json").read_text()) == json.loads(json.dumps(out))
     by_job = {p["job"]: p for p in out["policies"]}
     assert [by_job[f"hopper_ddpg05/{a}/seed1"]["reproduces"] for a in ("bail", "bc", "td3bc", "marwil", "pbail")] \
-        == [True, False, True, False, True]
+        == [True, False, True, False, False]
     assert by_job["hopper_ddpg05/bail/seed2"]["run"] is by_job["hopper_ddpg05/bail/seed2"]["reproduces"] is None
     ranking = out["ranking"]
     estimates, truths = [90.0, 95.0, 80.0, 60.0], [1400.0, 950.0, 1300.0, 350.0]  # the last evaluations, not final
@@ -615,9 +618,10 @@ def test_the_ope_report_ranks_the_scored_policies_and_checks_each_against_the_pa
     text = (results / "ope.md").read_text()
     assert text.startswith("Policies scored by FQE: 4 of 20 planned (trained: 5); BAIL runs with their snapshots "
                            "ranked: 1 of 5. Retrained runs equal to the paper_hopper study's kept run of the same job "
-                           "(final and best return): 3 of 5.")
+                           "(final and best return): 2 of 5.")
     assert "| bc seed 1 | 95.00 | 0.90 | 950.0 | 900.0 | 901.0 | no (a platform unrecorded) |" in text
     assert "| marwil seed 1 | 60.00 | 0.60 | 350.0 | 400.0 | 401.0 | **no** (same platform) |" in text
+    assert "| pbail seed 1 | pending | pending | 1900.0 | 1800.0 | 1801.0 | no (another code revision) |" in text
     assert "| td3bc seed 1 | 80.00 | pending | 1300.0 |" in text
     assert "| bail seed 2 | pending | pending | pending | pending | pending | pending |" in text
     assert "| seed 1 | 3 | 50000 | 1400.0 | 1400.0 | 1500.0 | 3000.0 | 3000.0 |" in text

@@ -13,6 +13,7 @@ from torchrl_bail.data.batch import (
     library_versions,
     load_batch,
     save_batch,
+    source_revision,
     validate_batch,
     write_json_atomic,
 )
@@ -26,6 +27,7 @@ __all__ = [
     "default_data_dir",
     "discounted_returns",
     "library_versions",
+    "source_revision",
     "load_batch",
     "monte_carlo_returns",
     "save_batch",

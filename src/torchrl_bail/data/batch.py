@@ -61,6 +61,7 @@ __all__ = [
     "load_batch",
     "cpu_model",
     "library_versions",
+    "source_revision",
     "platform_record",
     "write_json_atomic",
 ]
@@ -85,6 +86,36 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
+def source_revision(package: Path | None = None) -> dict[str, Any] | None:
+    """The git commit of the checkout this package (or the package folder ``package``) runs from, an editable
+    install's ``src/torchrl_bail``, and whether the checkout's tracked files under ``src/`` and ``conf/`` differ from
+    it; ``None`` for an installed package (even one inside another repository), or where git is missing. The package
+    version alone does not tell two states of the code apart.
+
+    Examples:
+        >>> revision = source_revision()
+        >>> revision is None or (len(revision["commit"]) == 40 and isinstance(revision["modified"], bool))
+        True
+    """
+    import subprocess
+
+    package = Path(package or Path(__file__).parents[1]).resolve()
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True, timeout=30,
+                              check=True).stdout.strip()
+
+    try:
+        root = Path(git("rev-parse", "--show-toplevel")).resolve()
+        if root / "src" / package.name != package:  # the package lies in someone else's repository (a venv in it)
+            return None
+        return {"commit": git("rev-parse", "HEAD"),
+                "modified": bool(git("status", "--porcelain", "--untracked-files=no", "--", str(root / "src"),
+                                     str(root / "conf")))}
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
 def cpu_model() -> str:
     """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
     import platform
@@ -101,18 +132,19 @@ def cpu_model() -> str:
 
 def platform_record() -> dict:
     """What a run's numbers depend on beyond its config and seed: the library versions (:func:`library_versions`),
-    Python's version, the CPU's model name (:func:`cpu_model`) and the SIMD level torch's CPU kernels use. Two runs of
-    one config and seed that agree here must give the same numbers on the CPU; runs that differ here may differ in the
-    last digits (another CPU kind rounds matrix products otherwise), and the difference grows over training.
+    the code's own git revision (:func:`source_revision`), Python's version, the CPU's model name (:func:`cpu_model`)
+    and the SIMD level torch's CPU kernels use. Two runs of one config and seed that agree here must give the same
+    numbers on the CPU; runs that differ here may differ in the last digits (another CPU kind rounds matrix products
+    otherwise), and the difference grows over training; or more, where the code changed between the revisions.
 
     Examples:
         >>> sorted(platform_record())
-        ['cpu', 'cpu_capability', 'python', 'versions']
+        ['cpu', 'cpu_capability', 'python', 'source', 'versions']
     """
     import platform
 
-    return {"versions": library_versions(), "python": platform.python_version(), "cpu": cpu_model(),
-            "cpu_capability": torch.backends.cpu.get_cpu_capability()}
+    return {"versions": library_versions(), "source": source_revision(), "python": platform.python_version(),
+            "cpu": cpu_model(), "cpu_capability": torch.backends.cpu.get_cpu_capability()}
 
 
 def _episode_boundaries(episode: torch.Tensor) -> torch.Tensor:
