@@ -174,17 +174,6 @@ def _do_nothing(signum: int, frame: Any) -> None:
 
 
 @contextlib.contextmanager
-def _quiet(handlers: dict[int, Any]) -> Iterator[None]:
-    """Puts ``handlers`` in place for the body, and the previous ones back afterwards."""
-    previous = {sig: signal.signal(sig, handler) for sig, handler in handlers.items()}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-@contextlib.contextmanager
 def checkpoint_before_requeue() -> Iterator[None]:
     """In a Slurm job (hydra-submitit launcher), both ways Slurm stops a job save the work first: the running loop
     writes its checkpoint at its next safe point (:mod:`torchrl_bail.interrupts`: within one update, or one episode of
@@ -199,9 +188,10 @@ def checkpoint_before_requeue() -> Iterator[None]:
       written for submitit (``SystemExit`` passes its error handler), so the launcher keeps waiting for the
       requeued job.
 
-    SIGCONT, which Slurm sends with each signal, and SIGTERM during the handover to submitit, are ignored silently:
-    submitit's handlers for them only log, and a log record written from a signal handler while the interrupted code
-    writes the same log file fails with "reentrant call" and a traceback in the job's log.
+    SIGCONT, which Slurm sends with each signal, is ignored silently for the rest of the job, and so is SIGTERM from
+    the handover to submitit's requeue on: submitit's handlers for them only log, and a log record written from a
+    signal handler while the interrupted code writes the same log file fails with "reentrant call" and a traceback
+    in the job's log.
 
     Once the body is done, the time-limit signal is ignored (a finished job that Slurm signals in its last minute
     still ends COMPLETED). No named semaphore is left for Python's resource tracker, which Slurm's requeue kills with
@@ -212,8 +202,9 @@ def checkpoint_before_requeue() -> Iterator[None]:
     if sig is None:
         yield
         return
+    signal.signal(signal.SIGCONT, signal.SIG_DFL)  # for the rest of the job (see above)
     try:
-        with handled([sig, signal.SIGTERM]), _quiet({signal.SIGCONT: signal.SIG_DFL}):
+        with handled([sig, signal.SIGTERM]):
             yield
     except Interrupted as err:
         if err.signum not in (sig, signal.SIGTERM):
@@ -232,12 +223,12 @@ def checkpoint_before_requeue() -> Iterator[None]:
           file=sys.stderr, flush=True)
     import subprocess
 
+    # Slurm stops the requeued job step with SIGCONT and SIGTERM, which submitit's handler only logs; from here on the
+    # job only ends (submitit's handler exits or raises), so SIGTERM does nothing, silently, until the process is gone
+    # (logging's flush at exit included); a Python handler, so the `scontrol` it runs gets the default SIGTERM back
+    signal.signal(signal.SIGTERM, _do_nothing)
     try:
-        # Slurm stops the requeued job step with SIGCONT and SIGTERM, which submitit's handlers only log: a log record
-        # written from a signal handler while this thread is writing the same log file fails ("reentrant call"), so
-        # here both do nothing, silently (a Python handler: the `scontrol` it runs gets the default SIGTERM back)
-        with _quiet({signal.SIGCONT: signal.SIG_DFL, signal.SIGTERM: _do_nothing}):
-            signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
+        signal.getsignal(sig)(sig, None)  # submitit: requeue, exit
     except subprocess.CalledProcessError as err:
         # Slurm carries the requeue out by stopping the job step with SIGTERM, and that can reach submitit's
         # `scontrol requeue` before it has exited (seen on a loaded core): the job is being requeued, so it ends as
