@@ -49,6 +49,8 @@ def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_
     assert all(math.isfinite(p["estimate"]) and math.isfinite(p["td_loss"]) for p in first["curve"])
     assert first["estimate"] == first["curve"][-1]["estimate"] and first["algo"] == "bc"
     assert first["num_transitions"] == 600 and first["num_episode_starts"] >= 1
+    assert first["platform"] == json.loads((tiny_run / "summary.json").read_text())["platform"], \
+        "the fit records the platform as the run's summary does"
     assert not (tiny_run / "ope_checkpoint.pt").exists()
 
     text = (tiny_run / "ope.json").read_text()

@@ -353,7 +353,7 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
     returns the record."""
     import torch
 
-    from torchrl_bail.data.batch import library_versions
+    from torchrl_bail.data.batch import platform_record
     from torchrl_bail.io import write_json_atomic
 
     record = policy.record
@@ -382,7 +382,7 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
         "resumed_at": result["resumed_at"],
         "curve": result["curve"],
         "action_gap": action_gap(policy, batch.data, seed=seed),
-        "versions": library_versions(),
+        "platform": platform_record(),
     }
     write_json_atomic(out, ope)
     checkpoint.unlink(missing_ok=True)
