@@ -1234,6 +1234,15 @@ def _compare_records(summary: dict, reference: dict, part) -> str:
     return "unrecorded" if mine is None or theirs is None else "same" if mine == theirs else "different"
 
 
+def _why_not_the_same_run(policy: dict) -> str:
+    """The "same run" cell of a retrained run that differs from the kept one: whether its platform, or only the code,
+    differs (else a bug, in bold), or is unrecorded."""
+    if policy.get("platforms") == "same" and policy.get("sources") == "different":
+        return "no (another code revision)"
+    return {"same": "**no** (same platform)", "different": "no (another platform)",
+            "unrecorded": "no (a platform unrecorded)"}.get(policy.get("platforms"))
+
+
 def _gap_overrating(scored: list[dict]) -> dict | None:
     """Spearman's rho between the scored policies' action gaps and FQE's overrating of each (its rank by estimate
     minus its rank by true return, ranks ascending, ties averaged), or ``None`` below 3 policies with a gap."""
@@ -1370,10 +1379,7 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     lines = [status, "", "| policy | FQE estimate | action gap | true return | final_return | paper_hopper's "
              "final_return | same run |", "|---|---|---|---|---|---|---|"]
     for p in policies:
-        same = {None: "pending", True: "yes", False: (
-            "no (another code revision)" if p.get("platforms") == "same" and p.get("sources") == "different" else
-            {"same": "**no** (same platform)", "different": "no (another platform)",
-             "unrecorded": "no (a platform unrecorded)"}.get(p.get("platforms")))}[p["reproduces"]]
+        same = {None: "pending", True: "yes", False: _why_not_the_same_run(p)}[p["reproduces"]]
         lines.append(f"| {p['algo']} seed {p['seed']} | {num(p['estimate'], 2)} | {num(p['action_gap'], 2)} | "
                      f"{num(p['true_return'])} | "
                      f"{num(p['final_return'])} | {num(p['reference_final_return'])} | {same} |")

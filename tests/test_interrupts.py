@@ -254,26 +254,23 @@ def test_a_slurm_preemption_signal_checkpoints_first_then_goes_to_submitits_requ
 
     monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
     monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
-    previous = signal.signal(signal.SIGUSR2, submitit_handler)
-    try:
-        with pytest.raises(Requeued):
-            with checkpoint_before_requeue():
-                with interrupts.safe_points():
-                    signal.raise_signal(signal.SIGUSR2)
-                    events.append("update")  # the signal waits for the safe point
-                    assert interrupts.requested() == signal.SIGUSR2
-                    events.append("checkpoint")
-                    interrupts.stop("the checkpoint at iteration 3 of 9 in run/checkpoint.pt")
-        assert events == ["update", "checkpoint", "requeue"]
-        assert signal.getsignal(signal.SIGUSR2) is submitit_handler, "submitit's handler is back in place"
-        assert capsys.readouterr().err.strip() == (
-            "torchrl_bail: SIGUSR2 from Slurm: saved the checkpoint at iteration 3 of 9 in run/checkpoint.pt; "
-            "handing over to submitit's requeue")
-        monkeypatch.delenv("SUBMITIT_FOLDER")  # not a submitit job: USR2 is left alone
-        with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
-            signal.raise_signal(signal.SIGUSR2)
-    finally:
-        signal.signal(signal.SIGUSR2, previous)
+    signal.signal(signal.SIGUSR2, submitit_handler)  # the fixture puts every handler back
+    with pytest.raises(Requeued):
+        with checkpoint_before_requeue():
+            with interrupts.safe_points():
+                signal.raise_signal(signal.SIGUSR2)
+                events.append("update")  # the signal waits for the safe point
+                assert interrupts.requested() == signal.SIGUSR2
+                events.append("checkpoint")
+                interrupts.stop("the checkpoint at iteration 3 of 9 in run/checkpoint.pt")
+    assert events == ["update", "checkpoint", "requeue"]
+    assert signal.getsignal(signal.SIGUSR2) is submitit_handler, "submitit's handler is back in place"
+    assert capsys.readouterr().err.strip() == (
+        "torchrl_bail: SIGUSR2 from Slurm: saved the checkpoint at iteration 3 of 9 in run/checkpoint.pt; "
+        "handing over to submitit's requeue")
+    monkeypatch.delenv("SUBMITIT_FOLDER")  # not a submitit job: USR2 is left alone
+    with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
+        signal.raise_signal(signal.SIGUSR2)
 
 
 def test_under_submitit_slurms_sigcont_and_the_handovers_sigterm_reach_no_logging_handler(monkeypatch):
@@ -298,20 +295,16 @@ def test_under_submitit_slurms_sigcont_and_the_handovers_sigterm_reach_no_loggin
 
     monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
     monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
-    previous = {sig: signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else submitit_bypass)
-                for sig in (signal.SIGUSR2, signal.SIGTERM, signal.SIGCONT)}
-    try:
-        with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
-            signal.raise_signal(signal.SIGCONT)
-            signal.raise_signal(signal.SIGUSR2)
-            interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
-        assert requeue_saw == ["requeued"] and logged == [], "submitit's logging handlers were called"
+    for sig in (signal.SIGUSR2, signal.SIGTERM, signal.SIGCONT):  # the fixture puts every handler back
+        signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else submitit_bypass)
+    with pytest.raises(Requeued), checkpoint_before_requeue(), interrupts.safe_points():
         signal.raise_signal(signal.SIGCONT)
-        signal.raise_signal(signal.SIGTERM)
-        assert logged == [], "submitit's logging handlers are back while the job ends"
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        signal.raise_signal(signal.SIGUSR2)
+        interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+    assert requeue_saw == ["requeued"] and logged == [], "submitit's logging handlers were called"
+    signal.raise_signal(signal.SIGCONT)
+    signal.raise_signal(signal.SIGTERM)
+    assert logged == [], "submitit's logging handlers are back while the job ends"
 
 
 def test_under_submitit_sigterm_checkpoints_first_then_exits_143_for_slurms_requeue(monkeypatch, capsys):
@@ -322,26 +315,22 @@ def test_under_submitit_sigterm_checkpoints_first_then_exits_143_for_slurms_requ
     calls = []
     monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
     monkeypatch.delenv("SUBMITIT_PREEMPT_SIGNAL", raising=False)
-    previous = {sig: signal.signal(sig, lambda signum, frame: calls.append(signum))
-                for sig in (signal.SIGUSR2, signal.SIGTERM)}
+    for sig in (signal.SIGUSR2, signal.SIGTERM):  # the fixture puts every handler back
+        signal.signal(sig, lambda signum, frame: calls.append(signum))
     submitit_term = signal.getsignal(signal.SIGTERM)
-    try:
-        with pytest.raises(SystemExit) as stopped:
-            with checkpoint_before_requeue(), interrupts.safe_points():
-                signal.raise_signal(signal.SIGTERM)
-                assert interrupts.requested() == signal.SIGTERM
-                interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
-        assert stopped.value.code == 143 and calls == [], "submitit's handlers were not called"
-        assert signal.getsignal(signal.SIGTERM) is submitit_term
-        assert capsys.readouterr().err.strip() == (
-            "torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): saved the checkpoint at iteration 4 of "
-            "9 in run/checkpoint.pt; exiting for Slurm's requeue")
-        with checkpoint_before_requeue():
-            pass
-        assert signal.getsignal(signal.SIGUSR2) is signal.SIG_IGN
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with pytest.raises(SystemExit) as stopped:
+        with checkpoint_before_requeue(), interrupts.safe_points():
+            signal.raise_signal(signal.SIGTERM)
+            assert interrupts.requested() == signal.SIGTERM
+            interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+    assert stopped.value.code == 143 and calls == [], "submitit's handlers were not called"
+    assert signal.getsignal(signal.SIGTERM) is submitit_term
+    assert capsys.readouterr().err.strip() == (
+        "torchrl_bail: SIGTERM from Slurm (preemption, requeue or cancel): saved the checkpoint at iteration 4 of "
+        "9 in run/checkpoint.pt; exiting for Slurm's requeue")
+    with checkpoint_before_requeue():
+        pass
+    assert signal.getsignal(signal.SIGUSR2) is signal.SIG_IGN
 
 
 def test_under_submitit_a_requeue_command_stopped_by_the_requeue_ends_the_job_for_slurms_requeue(monkeypatch, capsys):
@@ -358,21 +347,17 @@ def test_under_submitit_a_requeue_command_stopped_by_the_requeue_ends_the_job_fo
     def submitit_requeue(signum, frame):
         raise subprocess.CalledProcessError(next(failures), ["scontrol", "requeue", "9"])
 
-    previous = {sig: signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else signal.SIG_DFL)
-                for sig in (signal.SIGUSR2, signal.SIGTERM)}
-    try:
-        with pytest.raises(SystemExit) as stopped:
-            with checkpoint_before_requeue(), interrupts.safe_points():
-                signal.raise_signal(signal.SIGUSR2)
-                interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
-        assert stopped.value.code == 143
-        assert capsys.readouterr().err.strip().splitlines()[-1] == (
-            "torchrl_bail: Slurm stopped the job while requeueing it; exiting for the requeue")
-        signal.signal(signal.SIGUSR2, submitit_requeue)
-        with pytest.raises(subprocess.CalledProcessError):
-            with checkpoint_before_requeue(), interrupts.safe_points():
-                signal.raise_signal(signal.SIGUSR2)
-                interrupts.stop("the checkpoint at iteration 5 of 9 in run/checkpoint.pt")
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    for sig in (signal.SIGUSR2, signal.SIGTERM):  # the fixture puts every handler back
+        signal.signal(sig, submitit_requeue if sig == signal.SIGUSR2 else signal.SIG_DFL)
+    with pytest.raises(SystemExit) as stopped:
+        with checkpoint_before_requeue(), interrupts.safe_points():
+            signal.raise_signal(signal.SIGUSR2)
+            interrupts.stop("the checkpoint at iteration 4 of 9 in run/checkpoint.pt")
+    assert stopped.value.code == 143
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "torchrl_bail: Slurm stopped the job while requeueing it; exiting for the requeue")
+    signal.signal(signal.SIGUSR2, submitit_requeue)
+    with pytest.raises(subprocess.CalledProcessError):
+        with checkpoint_before_requeue(), interrupts.safe_points():
+            signal.raise_signal(signal.SIGUSR2)
+            interrupts.stop("the checkpoint at iteration 5 of 9 in run/checkpoint.pt")
