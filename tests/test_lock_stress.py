@@ -344,6 +344,23 @@ def journalled_collect_batch(*args, **kwargs):
     return batch
 
 catalogue.collect_batch = journalled_collect_batch
+from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
+save_checkpoint = CollectionCheckpoint.save
+
+def held_save(self, *args, **kwargs):
+    # the first command to save its checkpoint number {hold_at} (seeded) stops there, holding the batch's lock,
+    # until the test kills it: a kill mid-collection that no stall of the test's polling can miss (a collection
+    # of about a second went by unseen on a loaded 2-core CI machine)
+    save_checkpoint(self, *args, **kwargs)
+    if self.saves == {hold_at}:
+        try:
+            os.close(os.open(os.path.join(os.path.dirname(JOURNAL), "held"), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return
+        note("collect-held")
+        time.sleep(120)
+
+CollectionCheckpoint.save = held_save
 sys.argv = ["torchrl_bail.{command}", *{overrides!r}]
 runpy.run_module("torchrl_bail.{command}", run_name="__main__", alter_sys=True)
 """
@@ -413,23 +430,26 @@ class _Stress:
             self.batch = batch_path(collection_config(compose("config", overrides=self.collect)))
         self.lock = self.data / LOCKS / f"{self.batch.name}.lock"  # where ensure_batch puts the batch's lock
         self.pids: dict[int, str] = {}
+        rng = random.Random(SEED)
+        workers = [f"worker-{i}" for i in range(WORKERS)]
+        #: (from when, which job): a collector while it collects, the trainer while it waits for the batch, a
+        #: worker while it holds the lock, three workers whatever they do
+        self.plan = sorted([(rng.uniform(0.2, 1.0), "collecting"), (rng.uniform(0.5, 2.0), "train-waiting"),
+                            (rng.uniform(0.5, 3.0), "holding"),
+                            *((rng.uniform(0.5, 6.0), rng.choice(workers)) for _ in range(3))])
+        #: the collector is killed after its checkpoint number ``hold_at`` (of about 5), where it waits for the kill
+        self.hold_at = rng.randint(1, 3)
+        self.kills: list[dict] = []
         self.jobs = [self._command("collect-a", "collect", self.collect),
                      self._command("collect-b", "collect", self.collect),
                      self._command("train", "train", [*self.collect, *TRAIN])]
         self.jobs += [_Job(f"worker-{i}", textwrap.dedent(_WORKER).format(
             journal=str(self.journal), role=f"worker-{i}", src=str(SRC), seed=SEED * 100 + i, rounds=WORKER_ROUNDS,
             lock=str(self.lock)), self) for i in range(WORKERS)]
-        rng = random.Random(SEED)
-        workers = [j.name for j in self.jobs[3:]]
-        #: (from when, which job): a collector while it collects, the trainer while it waits for the batch, a
-        #: worker while it holds the lock, three workers whatever they do
-        self.plan = sorted([(rng.uniform(0.2, 1.0), "collecting"), (rng.uniform(0.5, 2.0), "train-waiting"),
-                            (rng.uniform(0.5, 3.0), "holding"),
-                            *((rng.uniform(0.5, 6.0), rng.choice(workers)) for _ in range(3))])
-        self.kills: list[dict] = []
 
     def _command(self, name: str, which: str, overrides: list[str]) -> _Job:
         code = textwrap.dedent(_COMMAND).format(journal=str(self.journal), role=name, command=which,
+                                                hold_at=self.hold_at,
                                                 overrides=[*overrides, f"hydra.run.dir={self.root / name}"])
         return _Job(name, code, self)
 
@@ -446,7 +466,8 @@ class _Stress:
         for _, event, pid, _ in rows:
             last[pid] = event
         if target == "collecting":
-            victim = next((j for j in self.jobs[:2] if j.running() and last.get(j.proc.pid) == "collect-start"), None)
+            # whichever command collects: usually a collector, the trainer if it took the lock first
+            victim = next((j for j in self.jobs[:3] if j.running() and last.get(j.proc.pid) == "collect-held"), None)
             return victim or ("skip" if any(e == "collect-done" for _, e, _, _ in rows) else None)
         if target == "holding":
             victim = next((j for j in self.jobs[3:] if j.running() and last.get(j.proc.pid) == "enter"), None)
@@ -501,8 +522,9 @@ class _Stress:
 
 def test_eight_jobs_one_batch_seeded_kills(tmp_path):
     """Two ``collect`` and one ``train`` command and five lock-level workers want one batch in one ``data_dir`` at
-    once, on one or two cores; seeded SIGKILLs hit a collector mid-collection, the trainer waiting for the batch, a
-    worker holding the lock and three workers at random, each restarted. The critical sections journalled inside
+    once, on one or two cores; seeded SIGKILLs hit a collector mid-collection (held at a seeded checkpoint until
+    killed), the trainer waiting for the batch, a worker holding the lock and three workers at random, each
+    restarted. The critical sections journalled inside
     the lock never overlap, a killed owner's lock is taken over exactly once, no live owner loses its lock, no log
     has an error, one batch is made and nothing else is left in ``data_dir``, and the training equals a rerun."""
     stress = _Stress(tmp_path)
