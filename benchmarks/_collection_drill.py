@@ -105,7 +105,8 @@ def collection_trial(rng: random.Random, workdir: str | os.PathLike, *, recipe: 
     """One kill-and-resume trial; ``True`` when the resumed batch's bytes equal the uninterrupted batch's.
 
     Starts a collection, waits for its first checkpoint, SIGKILLs it ``uniform(0, max_delay_s)`` seconds later
-    (a trial whose child finished before the kill says so and is checked all the same), resumes it in a new
+    (a trial whose child finished before the kill, or saved its batch before it, says so and is checked all the
+    same), resumes it in a new
     process and compares the batch with :func:`reference_digest`. ``overrides``: the config (default
     :data:`DRILL_OVERRIDES` of ``recipe``).
     """
@@ -129,6 +130,9 @@ def collection_trial(rng: random.Random, workdir: str | os.PathLike, *, recipe: 
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    # a child killed after its batch was saved (while removing its checkpoint or exiting) had finished: the batch's
+    # directory appears whole, by one rename of its .tmp- directory, so a metadata.json outside one tells
+    killed = killed and not [p for p in data_dir.glob("*/metadata.json") if ".tmp-" not in p.parent.name]
     result = finish_collection(overrides, data_dir)
     match = batch_digest(result["path"]) == reference
     log(f"{recipe}: {'killed' if killed else 'finished before the kill'}, resumed from step "
