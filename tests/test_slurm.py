@@ -168,7 +168,7 @@ def _iteration(run_dir: Path) -> int:
 
 
 def _sigterm_drill(slurm, data_dir, drill_reference, sweep: Path, stop) -> None:
-    """A drill on a SIGTERM path: ``stop(job, env)`` mid-run; the checkpoint comes within seconds of it, at an
+    """A drill on a SIGTERM path: ``stop(job, env)`` mid-run; the checkpoint comes within KillWait of it, at an
     iteration that only the signal could have saved, the job is requeued by Slurm and resumes to the reference."""
     env = _cluster_env(slurm)
     proc, job, run_dir = _drill(slurm, data_dir, sweep)
@@ -186,7 +186,9 @@ def _sigterm_drill(slurm, data_dir, drill_reference, sweep: Path, stop) -> None:
     iteration = _iteration(run_dir)
     err = _finish(proc)
     logs = _job_logs(sweep)
-    assert 0 <= saved_after < 5, (saved_after, logs)
+    # at the loop's next update: seconds, but a preemption waits for a scheduler pass first on a loaded machine;
+    # the bound is Slurm's own (KillWait, 30 s: SIGKILL after it), less a margin
+    assert 0 <= saved_after < 20, (saved_after, logs)
     assert 2000 < iteration < DRILL_UPDATES and iteration % 1000, iteration  # no evaluation's: the signal's
     assert f"saved the checkpoint at iteration {iteration} of {DRILL_UPDATES}" in logs
     assert "Traceback" not in logs and "Traceback" not in err, logs
