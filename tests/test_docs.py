@@ -368,12 +368,24 @@ def _table(text: str, key: str) -> dict[str, dict[str, str]]:
 
 def test_the_home_pages_headline_result_is_the_results_own():
     """Every figure of the home page's headline table is the one its results file holds: the study's Hopper DDPG
-    sigma = 0.5 row, and the paper-scale cell (results/paper_hopper: its report and its batch's metadata); BAIL, BC
-    and BCQ, the best of each row in bold, and the sentence on BCQ's order against BAIL is the data's."""
+    sigma = 0.5 row, the paper-scale cell (results/paper_hopper: its report and its batch's metadata) and the
+    Walker2d batch of the cross-batch study (results/paper_batches/cross_batch.json, complete); BAIL, BC and BCQ, the
+    best of each row in bold, and the sentences on BCQ's order against BAIL are the data's."""
     page = (ROOT / "docs" / "index.md").read_text()
     headline = page[page.index("## The headline result"):page.index("## Where to start")]
     home = _table(headline, "batch")
-    small, paper = home["50k transitions (`preset=study`)"], home["10^6 transitions, the paper's size (`preset=paper`)"]
+    small = home["Hopper-v5, 50k transitions (`preset=study`)"]
+    paper = home["Hopper-v5, 10^6 transitions, the paper's size (`preset=paper`)"]
+    walker = home["Walker2d-v5, 10^6 transitions (`preset=paper`)"]
+    across = {b["batch"]: b for b in json.loads(
+        (ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())["batches"]}["walker_ddpg05_b1"]
+    assert across["complete"]
+    assert [walker["the batch's own mean episode return"], walker["BAIL"], walker["BC"], walker["BCQ"]] == [
+        f"{across['metadata']['episode_return_mean']:.1f}",
+        *(f"{across['cells'][a]['final_return_mean']:.1f} ± {across['cells'][a]['final_return_std']:.1f}"
+          for a in ("bail", "bc", "bcq"))]
+    assert [across["cells"][a]["seeds"] for a in ("bail", "bc", "bcq")] == [5, 5, 3]
+    assert "2522 ± 51 on the Walker2d one" in " ".join(headline.split()) and across["published_bail"] == "2522 ± 51"
     study = _table((ROOT / "results" / "study" / "study.md").read_text(), "batch")["hopper_ddpg05_b1"]
     assert [small["the batch's own mean episode return"], small["BAIL"], small["BC"], small["BCQ"]] == [
         study["data"], study["bail"], study["bc"], study["bcq"]]
@@ -390,17 +402,19 @@ def test_the_home_pages_headline_result_is_the_results_own():
     assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and cell["bcq"]["seeds"] == "3"
     assert "over 5 seeds (BCQ: 3 seeds)" in page
     assert "2054 ± 158" in page and cell["bail"]["published (gym v2)"] == "2054 ± 158"
-    for row in (small, paper):  # the bold cell is the row's best mean
+    for row in (small, paper, walker):  # the bold cell is the row's best mean
         means = {algo: float(row[algo].split(" ± ")[0]) for algo in ("BAIL", "BC", "BCQ")}
         best = max(means, key=means.get)
-        assert f"**{row[best]}**" in headline and headline.count("**") == 4, (best, row)
+        assert f"**{row[best]}**" in headline and headline.count("**") == 6, (best, row)
     mean = {k: float(v.split(" ± ")[0]) for k, v in (("study bail", study["bail"]), ("study bcq", study["bcq"]),
                                                        ("cell bail", cell["bail"]["mean ± std"]),
                                                        ("cell bcq", cell["bcq"]["mean ± std"]))}
     text = " ".join(headline.split())
     assert "0.5 % on the 50k batch, where it ends below BAIL" in text and mean["study bcq"] < mean["study bail"]
-    assert "(10^5 updates) at the paper's size, where it ends above BAIL" in text
+    assert "(10^5 updates) at the paper's size. There it ends above BAIL on Hopper" in text
     assert mean["cell bcq"] > mean["cell bail"]
+    walker_claim = next(c for c in across["claims"] if c["claim"].startswith("BAIL above BCQ"))
+    assert "far below BAIL on Walker2d, where the claim holds" in text and walker_claim["verdict"].startswith("holds")
     verdict = next(c["verdict"] for c in json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())[
         "claims"] if (c["a"], c["b"]) == ("bail", "bcq"))
     assert verdict.startswith("does not hold") and "BAIL beats BCQ does not hold on this batch" in text
@@ -476,6 +490,23 @@ def test_readme_quotes_the_paper_scale_cell():
     bcq, bail = cell["groups"]["bcq"], cell["groups"]["bail"]
     assert (f"BCQ {bcq['final_return_mean']:.0f} ± {bcq['final_return_std']:.0f} ({bcq['seeds']} seeds) vs BAIL "
             f"{bail['final_return_mean']:.0f} ± {bail['final_return_std']:.0f} ({bail['seeds']} seeds)") in results
+
+
+def test_readme_quotes_the_complete_walker_batch_as_the_cross_batch_report_has_it():
+    """The README's Walker2d sentence is ``cross_batch.json``'s walker_ddpg05_b1 entry: complete, each central
+    cell's mean ± std and seeds, the authors' figure and the verdict of each claim."""
+    report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
+    walker = {b["batch"]: b for b in report["batches"]}["walker_ddpg05_b1"]
+    assert walker["complete"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    sentence = readme[readme.index("Walker2d's batch is complete:"):]
+    sentence = sentence[:sentence.index("differs between the two complete batches")]
+    cells = "; ".join(f"{algo} {_pm(walker['cells'][algo])} ({walker['cells'][algo]['seeds']} seeds)"
+                      for algo in ("bail", "pbail", "bc", "bcq"))
+    assert cells in sentence, cells
+    assert f"the authors' BAIL {walker['published_bail']} on gym's -v2 Walker2d" in sentence
+    for claim in walker["claims"]:
+        assert f"{claim['claim']}: {claim['verdict'].split(' (')[0]}" in sentence, claim["claim"]
 
 
 def test_the_results_pages_cross_batch_state_is_the_reports():
