@@ -349,8 +349,7 @@ save_checkpoint = CollectionCheckpoint.save
 
 def held_save(self, *args, **kwargs):
     # the first command to save its checkpoint number {hold_at} (seeded) stops there, holding the batch's lock,
-    # until the test kills it: a kill mid-collection that no stall of the test's polling can miss (a collection
-    # of about a second went by unseen on a loaded 2-core CI machine)
+    # until the test kills it: a kill mid-collection that does not hang on the test's polling catching a window
     save_checkpoint(self, *args, **kwargs)
     if self.saves == {hold_at}:
         try:
