@@ -64,6 +64,25 @@ def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_
     assert _ope(tiny_run)["estimate"] != first["estimate"]
 
 
+@pytest.mark.parametrize("algo", ["bcq", "bear", "iql", "pbail"])
+def test_every_algorithms_policy_is_scored_and_a_sampling_one_by_its_seed(algo, tiny_run_data_dir, tmp_path, capsys):
+    """The policies the OPE study scores at paper scale include BCQ's and BEAR's best-of-N, which sample: their fit
+    is as reproducible as a deterministic policy's (one seeded draw per state), and each algorithm's ``policy.pt``
+    loads and scores (BC's is the module's ``tiny_run``; BAIL's, MARWIL's and TD3+BC's are BC-shaped actors)."""
+    from torchrl_bail.train import run
+
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY_RUN, f"algo={algo}", *ALGO_CASES[algo].cli,
+                                           f"data_dir={tiny_run_data_dir}"])
+    run(cfg, tmp_path)
+    assert main([str(tmp_path), "--seed", "3", *FAST]) == 0
+    first = _ope(tmp_path)
+    assert first["algo"] == algo and math.isfinite(first["estimate"]) and math.isfinite(first["action_gap"])
+    assert main([str(tmp_path), "--seed", "3", "--force", *FAST]) == 0
+    assert _ope(tmp_path)["estimate"] == first["estimate"], "the same seed, the same estimate"
+    capsys.readouterr()
+
+
 def test_the_action_gap_is_recorded_and_added_to_an_older_record_without_a_new_fit(tiny_run, monkeypatch, capsys):
     """``ope.json`` carries how far the policy acts from the batch (:func:`torchrl_bail.ope.action_gap`); a record
     written before ope recorded it gets it on the next call, from the policy and batch alone: no fit runs again."""
