@@ -547,6 +547,21 @@ def test_the_ope_guide_shows_the_ope_report_as_its_kept_runs_rebuild_it(tmp_path
     assert "](../assets/ope_headline/ope.png)" in section and (kept / "ope.png").is_file()
 
 
+def test_the_ope_guide_reads_the_study_in_its_own_words_once_every_policy_is_scored():
+    """Until every planned policy is scored, the report's first line says the readings are preliminary and the guide
+    adds none; once all are, this fails until the guide gives the reading (how well FQE ranks, its regret, the
+    snapshot choice) in words of its own, beside the report."""
+    report = json.loads((ROOT / "results" / "ope_headline" / "ope.json").read_text())
+    scored = [p for p in report["policies"] if p.get("estimate") is not None]
+    page = (ROOT / "docs" / "guides" / "ope.md").read_text()
+    section = " ".join(page[page.index("## How well FQE ranks the paper cell's policies"):].split())
+    if len(scored) == len(report["policies"]):
+        assert report["status"].endswith("Every policy is scored.")
+        assert f"**Over the {len(scored)} policies:**" in section, "write the OPE study's reading in the guide"
+    else:
+        assert report["status"].endswith("are scored.") and "**Over the" not in section
+
+
 def _pm(group: dict) -> str:
     return f"{group['final_return_mean']:.0f} ± {group['final_return_std']:.0f}"
 
