@@ -436,7 +436,7 @@ class _Stress:
         self.plan = sorted([(rng.uniform(0.2, 1.0), "collecting"), (rng.uniform(0.5, 2.0), "train-waiting"),
                             (rng.uniform(0.5, 3.0), "holding"),
                             *((rng.uniform(0.5, 6.0), rng.choice(workers)) for _ in range(3))])
-        #: the collector is killed after its checkpoint number ``hold_at`` (of about 5), where it waits for the kill
+        #: the collecting command is killed after its checkpoint number ``hold_at`` (of about 5), where it waits
         self.hold_at = rng.randint(1, 3)
         self.kills: list[dict] = []
         self.jobs = [self._command("collect-a", "collect", self.collect),
@@ -525,9 +525,9 @@ def test_eight_jobs_one_batch_seeded_kills(tmp_path):
     """Two ``collect`` and one ``train`` command and five lock-level workers want one batch in one ``data_dir`` at
     once, on one or two cores; seeded SIGKILLs hit a collector mid-collection (held at a seeded checkpoint until
     killed), the trainer waiting for the batch, a worker holding the lock and three workers at random, each
-    restarted. The critical sections journalled inside
-    the lock never overlap, a killed owner's lock is taken over exactly once, no live owner loses its lock, no log
-    has an error, one batch is made and nothing else is left in ``data_dir``, and the training equals a rerun."""
+    restarted. The critical sections journalled inside the lock never overlap, a killed owner's lock is taken over
+    exactly once, no live owner loses its lock, no log has an error, one batch is made and nothing else is left in
+    ``data_dir``, and the training equals a rerun."""
     stress = _Stress(tmp_path)
     try:
         elapsed = stress.run(limit_s=150)
