@@ -132,7 +132,7 @@ def collection_trial(rng: random.Random, workdir: str | os.PathLike, *, recipe: 
             proc.wait()
     # a child killed after its batch was saved (while removing its checkpoint or exiting) had finished: the batch's
     # directory appears whole, by one rename of its .tmp- directory, so a metadata.json outside one tells
-    killed = killed and not [p for p in data_dir.glob("*/metadata.json") if ".tmp-" not in p.parent.name]
+    killed = killed and not any(".tmp-" not in p.parent.name for p in data_dir.glob("*/metadata.json"))
     result = finish_collection(overrides, data_dir)
     match = batch_digest(result["path"]) == reference
     log(f"{recipe}: {'killed' if killed else 'finished before the kill'}, resumed from step "

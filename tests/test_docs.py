@@ -366,6 +366,12 @@ def _table(text: str, key: str) -> dict[str, dict[str, str]]:
     return rows
 
 
+def _cross_batch_entry(batch: str) -> dict:
+    """``batch``'s entry of the cross-batch report (``results/paper_batches/cross_batch.json``)."""
+    report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
+    return next(b for b in report["batches"] if b["batch"] == batch)
+
+
 def test_the_home_pages_headline_result_is_the_results_own():
     """Every figure of the home page's headline table is the one its results file holds: the study's Hopper DDPG
     sigma = 0.5 row, the paper-scale cell (results/paper_hopper: its report and its batch's metadata) and the
@@ -377,8 +383,7 @@ def test_the_home_pages_headline_result_is_the_results_own():
     small = home["Hopper-v5, 50k transitions (`preset=study`)"]
     paper = home["Hopper-v5, 10^6 transitions, the paper's size (`preset=paper`)"]
     walker = home["Walker2d-v5, 10^6 transitions (`preset=paper`)"]
-    across = {b["batch"]: b for b in json.loads(
-        (ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())["batches"]}["walker_ddpg05_b1"]
+    across = _cross_batch_entry("walker_ddpg05_b1")
     assert across["complete"]
     assert [walker["the batch's own mean episode return"], walker["BAIL"], walker["BC"], walker["BCQ"]] == [
         f"{across['metadata']['episode_return_mean']:.1f}",
@@ -495,8 +500,7 @@ def test_readme_quotes_the_paper_scale_cell():
 def test_readme_quotes_the_complete_walker_batch_as_the_cross_batch_report_has_it():
     """The README's Walker2d sentence is ``cross_batch.json``'s walker_ddpg05_b1 entry: complete, each central
     cell's mean ± std and seeds, the authors' figure and the verdict of each claim."""
-    report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
-    walker = {b["batch"]: b for b in report["batches"]}["walker_ddpg05_b1"]
+    walker = _cross_batch_entry("walker_ddpg05_b1")
     assert walker["complete"]
     readme = " ".join((ROOT / "README.md").read_text().split())
     sentence = readme[readme.index("Walker2d's batch is complete:"):]

@@ -22,17 +22,20 @@ from torchrl_bail.ope import main
 FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress"]
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tiny_run_data_dir, tmp_path_factory):
-    """A BC run through the config on the session's tiny batch (``_contract.TINY_RUN``)."""
+def _train_tiny(algo: str, data_dir, run_dir: Path) -> Path:
+    """A run of ``algo`` through the config on the session's tiny batch (``_contract.TINY_RUN``), in ``run_dir``."""
     from torchrl_bail.train import run
 
-    run_dir = tmp_path_factory.mktemp("bc_run")
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[*TINY_RUN, "algo=bc", *ALGO_CASES["bc"].cli,
-                                           f"data_dir={tiny_run_data_dir}"])
+        cfg = compose("config", overrides=[*TINY_RUN, f"algo={algo}", *ALGO_CASES[algo].cli, f"data_dir={data_dir}"])
     run(cfg, run_dir)
     return run_dir
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_run_data_dir, tmp_path_factory):
+    """A BC run on the session's tiny batch."""
+    return _train_tiny("bc", tiny_run_data_dir, tmp_path_factory.mktemp("bc_run"))
 
 
 def _ope(run_dir, name="ope.json") -> dict:
@@ -65,22 +68,16 @@ def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_
 
 
 @pytest.mark.parametrize("algo", ["bcq", "bear", "iql", "pbail"])
-def test_every_algorithms_policy_is_scored_and_a_sampling_one_by_its_seed(algo, tiny_run_data_dir, tmp_path, capsys):
+def test_every_algorithms_policy_is_scored_and_a_sampling_one_by_its_seed(algo, tiny_run_data_dir, tmp_path):
     """The policies the OPE study scores at paper scale include BCQ's and BEAR's best-of-N, which sample: their fit
     is as reproducible as a deterministic policy's (one seeded draw per state), and each algorithm's ``policy.pt``
     loads and scores (BC's is the module's ``tiny_run``; BAIL's, MARWIL's and TD3+BC's are BC-shaped actors)."""
-    from torchrl_bail.train import run
-
-    with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[*TINY_RUN, f"algo={algo}", *ALGO_CASES[algo].cli,
-                                           f"data_dir={tiny_run_data_dir}"])
-    run(cfg, tmp_path)
-    assert main([str(tmp_path), "--seed", "3", *FAST]) == 0
-    first = _ope(tmp_path)
+    run_dir = _train_tiny(algo, tiny_run_data_dir, tmp_path)
+    assert main([str(run_dir), "--seed", "3", *FAST]) == 0
+    first = _ope(run_dir)
     assert first["algo"] == algo and math.isfinite(first["estimate"]) and math.isfinite(first["action_gap"])
-    assert main([str(tmp_path), "--seed", "3", "--force", *FAST]) == 0
-    assert _ope(tmp_path)["estimate"] == first["estimate"], "the same seed, the same estimate"
-    capsys.readouterr()
+    assert main([str(run_dir), "--seed", "3", "--force", *FAST]) == 0
+    assert _ope(run_dir)["estimate"] == first["estimate"], "the same seed, the same estimate"
 
 
 def test_the_action_gap_is_recorded_and_added_to_an_older_record_without_a_new_fit(tiny_run, monkeypatch, capsys):
