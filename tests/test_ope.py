@@ -129,6 +129,35 @@ def test_a_killed_fit_continues_to_the_uninterrupted_numbers(tiny_run, monkeypat
     assert not (tiny_run / "ope_best_checkpoint.pt").exists()
 
 
+def test_a_fit_stopped_before_its_first_timed_checkpoint_never_draws_the_policys_actions_again(
+        tiny_run_data_dir, tmp_path, monkeypatch):
+    """BCQ's best-of-N draws at every state and next state take minutes at 10^6 transitions: they are checkpointed
+    as soon as they are drawn, so a fit killed at its first update (long before the first timed checkpoint)
+    continues without running the policy again, to the uninterrupted fit's numbers."""
+    import torchrl_bail.ope as ope_module
+    from torchrl_bail.objectives.fqe import FQELoss
+
+    run_dir = _train_tiny("bcq", tiny_run_data_dir, tmp_path)
+    args = [str(run_dir), "--seed", "2", *FAST]
+    assert main(args) == 0
+    reference = _ope(run_dir)
+    (run_dir / "ope.json").unlink()
+
+    def killed(*args, **kwargs):
+        raise interrupts.Interrupted(signal.SIGTERM)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(ope_module, "fqe_update", killed)
+        assert main(args) == 128 + signal.SIGTERM
+    assert (run_dir / "ope_checkpoint.pt").exists() and not (run_dir / "ope.json").exists()
+
+    monkeypatch.setattr(FQELoss, "add_policy_actions", lambda *a, **k: pytest.fail("the actions were drawn again"))
+    assert main(args) == 0
+    resumed = _ope(run_dir)
+    assert resumed["estimate"] == reference["estimate"] and resumed["curve"] == reference["curve"]
+    assert not (run_dir / "ope_checkpoint.pt").exists()
+
+
 def test_a_run_whose_batch_is_not_in_the_cache(tiny_run, tmp_path, capsys):
     assert main([str(tiny_run), "--force", "--data-dir", str(tmp_path), *FAST]) == 2
     err = capsys.readouterr().err.strip()

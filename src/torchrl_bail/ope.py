@@ -143,7 +143,9 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     Seeded with ``seed``: torch's global generator draws the Q network's initial weights, then the policy's actions
     at every state and next state (computed once: :meth:`~torchrl_bail.objectives.fqe.FQELoss.add_policy_actions`;
     only a sampling policy such as BCQ's draws here); a generator of its own draws the mini-batches. The same seed,
-    data, settings, device and thread count give the same numbers.
+    data, settings, device and thread count give the same numbers. Those actions (minutes of draws for a sampling
+    policy at 10^6 transitions, with a bar of their own) are part of every checkpoint, and the first checkpoint is
+    written as soon as they are computed: a continued fit never computes them again.
 
     Args:
         policy (TensorDictModule): the policy to evaluate (``"observation" -> "action"``).
@@ -155,8 +157,9 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         seed (int): see above. Defaults to ``0``.
         device (str | torch.device): where the fit runs. Defaults to ``"cpu"``.
         progress (bool): a tqdm bar (ETA, the current estimate and TD loss). Defaults to ``False``.
-        checkpoint_path (str | Path, optional): where the fit checkpoints (every ``checkpoint_every_s`` seconds
-            and when Ctrl-C or SIGTERM arrives through :mod:`torchrl_bail.interrupts`) and what it continues from
+        checkpoint_path (str | Path, optional): where the fit checkpoints (once the policy's actions are computed,
+            every ``checkpoint_every_s`` seconds and when Ctrl-C or SIGTERM arrives through
+            :mod:`torchrl_bail.interrupts`) and what it continues from
             when that file holds a checkpoint of the same ``identity``.
         checkpoint_every_s (float): seconds between checkpoints. Defaults to ``300``.
         identity (dict, optional): what a checkpoint must match to be continued (settings and seed are added).
@@ -208,14 +211,21 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     loss = FQELoss(make_qvalue_network(obs_dim, act_dim, settings.hidden), policy, gamma=settings.gamma).to(device)
     # TorchRL's HardUpdate copies on the (interval + 1)-th step(): every target_update_period-th update here
     updater = HardUpdate(loss, value_network_update_interval=settings.target_update_period - 1)
-    loss.add_policy_actions(data)
+    action_keys = (loss.tensor_keys.policy_action, ("next", loss.tensor_keys.policy_action))
+    state = _read_checkpoint(checkpoint_path, identity)
+    if state is not None and "policy_actions" in state:  # (a checkpoint of an older version has none: drawn again)
+        for key, actions in zip(action_keys, state["policy_actions"], strict=True):
+            data.set(key, actions.to(device))
+    else:
+        with tqdm(total=2 * num, desc=f"{desc}: the policy's actions", unit="state", disable=not progress,
+                  dynamic_ncols=True, mininterval=0.5) as actions_bar:
+            loss.add_policy_actions(data, on_chunk=actions_bar.update)
     starts = data[episode_starts(data["episode"])]
     optimizer = torch.optim.Adam(loss.parameters(), lr=settings.lr)
     generator = torch.Generator(device=device).manual_seed(int(seed))
 
     done, curve, prior_wall_time = 0, [], 0.0
     td_sum, td_count = torch.zeros((), dtype=torch.float64, device=device), 0
-    state = _read_checkpoint(checkpoint_path, identity)
     if state is not None:
         loss.load_state_dict(state["loss"])
         optimizer.load_state_dict(state["optimizer"])
@@ -231,9 +241,13 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
             checkpoint = {"format": OPE_FORMAT, "identity": identity, "update": update, "loss": loss.state_dict(),
                           "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
                           "target_counter": updater.counter, "curve": curve, "td_sum": td_sum.cpu(),
-                          "td_count": td_count, "wall_time_s": prior_wall_time + time.perf_counter() - start}
+                          "td_count": td_count, "wall_time_s": prior_wall_time + time.perf_counter() - start,
+                          "policy_actions": [data.get(key).cpu() for key in action_keys]}
             write_atomic(checkpoint_path, lambda f: torch.save(checkpoint, f))
         return f"the FQE fit at update {update} in {checkpoint_path}"
+
+    if checkpoint_path is not None and state is None:
+        save(0)  # the policy's actions first: a stop before the first timed checkpoint never draws them again
 
     bar = tqdm(total=settings.updates, initial=done, desc=desc, unit="update", disable=not progress,
                dynamic_ncols=True, mininterval=0.5)

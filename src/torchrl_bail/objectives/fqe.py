@@ -8,6 +8,7 @@ command that scores a run's policy are in :mod:`torchrl_bail.ope`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -259,14 +260,24 @@ class FQELoss(LossModule):
             return self.policy_network(td).get(k.action)
 
     @torch.no_grad()
-    def add_policy_actions(self, tensordict: TensorDictBase, *, chunk: int = 65536) -> TensorDictBase:
+    def add_policy_actions(self, tensordict: TensorDictBase, *, chunk: int = 65536,
+                           on_chunk: Callable[[int], None] | None = None) -> TensorDictBase:
         """Writes ``pi(s)`` under ``tensor_keys.policy_action`` and ``pi(s')`` under ``("next", policy_action)``
         (``chunk`` rows at a time) into a ``[N]`` ``tensordict`` and returns it: the targets and
-        :meth:`policy_value` then read them instead of running the policy at every call."""
+        :meth:`policy_value` then read them instead of running the policy at every call. ``on_chunk``, when given,
+        is called with the number of rows of each chunk once it is done (``2 N`` rows in all: a progress bar's
+        ``update``; a sampling policy's ``2 N`` draws can take minutes)."""
         k = self.tensor_keys
+
+        def chunk_actions(part: torch.Tensor) -> torch.Tensor:
+            actions = self.policy_actions(part)
+            if on_chunk is not None:
+                on_chunk(part.shape[0])
+            return actions
+
         for observation_key in (k.observation, _next(k.observation)):
             observation = required_entry(self, tensordict, observation_key)
-            actions = torch.cat([self.policy_actions(part) for part in observation.split(chunk)])
+            actions = torch.cat([chunk_actions(part) for part in observation.split(chunk)])
             key = k.policy_action if observation_key == k.observation else _next(k.policy_action)
             tensordict.set(key, actions)
         return tensordict
