@@ -462,7 +462,16 @@ def whole_job_record(job: Job, record: dict, workdir: Path) -> dict:
     was interrupted: a killed process, a session's end) is charged its accumulated training time, the summary's
     ``wall_time_s`` (the checkpoint carries it across resumes; the minutes between the last checkpoint and a kill are
     lost, and so is each start-up), not this call's last part alone, which ``last_part_s`` keeps with the iterations
-    it resumed from; ``start`` is then the last part's."""
+    it resumed from; ``start`` is then the last part's. A resumed collection is charged likewise its batch's
+    ``collection_wall_time_s``, the time of all its parts (from env step ``collection_timed_from_step`` on)."""
+    if job.module == "torchrl_bail.collect":
+        batch = collected_batch(job, workdir)
+        meta = json.loads((batch / "metadata.json").read_text()) if batch is not None else {}
+        if meta.get("resumed_from_step") is None:
+            return record
+        return {**record, "wall_s": float(meta["collection_wall_time_s"]), "last_part_s": record["wall_s"],
+                "resumed_from_step": meta["resumed_from_step"],
+                "timed_from_step": meta.get("collection_timed_from_step", 0)}
     run = run_dir_of(job, workdir / "outputs") if job.module == "torchrl_bail.train" else None
     summary_path = run / "summary.json" if run is not None else None
     summary = json.loads(summary_path.read_text()) if summary_path is not None and summary_path.is_file() else {}
@@ -481,6 +490,17 @@ def wall_seconds(entry: float | dict) -> float:
 CACHED_AT = re.compile(r"^\S+: (?:collected|already cached) at (.+)$", re.MULTILINE)
 
 
+def collected_batch(job: Job, workdir: Path) -> Path | None:
+    """The batch directory (in the data dir) that a collect job's log in ``workdir/logs`` names last, when that
+    batch's ``metadata.json`` is there; else ``None``."""
+    log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
+    if job.module != "torchrl_bail.collect" or not log.is_file():
+        return None
+    entries = CACHED_AT.findall(log.read_text(errors="replace"))
+    batch = Path(entries[-1].strip()) if entries else None
+    return batch if batch is not None and (batch / "metadata.json").is_file() else None
+
+
 def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[Path]:
     """Copies the ``metadata.json`` of each batch a collect job of ``jobs`` has in the cache (the entry its log in
     ``workdir/logs`` names, in the data dir) to ``results/batches/<entry>.metadata.json``: the batch's statistics
@@ -488,14 +508,11 @@ def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[P
     is gone. A copy already kept with the same content is left alone; returns the files written."""
     kept = []
     for job in jobs:
-        log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
-        if job.module != "torchrl_bail.collect" or not log.is_file():
+        batch = collected_batch(job, workdir)
+        if batch is None:
             continue
-        entries = CACHED_AT.findall(log.read_text(errors="replace"))
-        source = Path(entries[-1].strip()) / "metadata.json" if entries else None
-        if source is None or not source.is_file():
-            continue
-        target = results / "batches" / f"{source.parent.name}.metadata.json"
+        source = batch / "metadata.json"
+        target = results / "batches" / f"{batch.name}.metadata.json"
         if target.is_file() and target.read_bytes() == source.read_bytes():
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -1070,7 +1087,8 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
                        if a in rows) and metadata is not None
         figure = plot_batch_curves(label, cells, metadata, results / f"curves_{label}.png")
         keys = ("episode_return_mean", "episode_return_min", "episode_return_max", "behaviour_final_return_mean10",
-                "collection_wall_time_s", "num_transitions", "num_episodes", "env_id", "recipe_hash")
+                "collection_wall_time_s", "collection_timed_from_step", "num_transitions", "num_episodes", "env_id",
+                "recipe_hash")
         batches.append({
             "batch": label, "results": _shown(root), "published_bail": published, "complete": complete,
             "metadata_file": None if meta_path is None else _shown(meta_path),
@@ -1098,18 +1116,25 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     def meta(b, key, fmt):
         return "pending" if b["metadata"] is None or b["metadata"].get(key) is None else fmt(b["metadata"][key])
 
+    def collection_time(b) -> str:  # a part of a resumed collection may not have been timed
+        timed_from = (b["metadata"] or {}).get("collection_timed_from_step")
+        return (meta(b, "collection_wall_time_s", lambda s: f"{s / 3600:.1f} h")
+                + (f" (env steps {timed_from:,} on)" if timed_from else ""))
+
     lines = [status, "",
              "| batch | data: mean episode return | behaviour agent's final return | collection time | "
              + " | ".join(algos) + " | published BAIL (gym -v2) |", "|---|---|---|---|" + "---|" * len(algos) + "---|"]
     for b in batches:
         lines.append(f"| {b['batch']} | {meta(b, 'episode_return_mean', _fmt)} | "
                      f"{meta(b, 'behaviour_final_return_mean10', _fmt)} | "
-                     f"{meta(b, 'collection_wall_time_s', lambda s: f'{s / 3600:.1f} h')} | "
+                     f"{collection_time(b)} | "
                      + " | ".join(_mean_cell(b["cells"].get(a)) for a in algos) + f" | {b['published_bail']} |")
     lines += ["", "Final return (the mean of a run's last evaluations), mean ± sample std over seeds. Data: the "
               "batch's mean episode return; behaviour agent's final return: the mean of its last 10 evaluations as "
-              "collection ended; collection time: wall time of the 10^6-step collection (all from the batch's "
-              "kept metadata.json). Published BAIL: the authors' figures, mean ± std over seeds, on gym's -v2 "
+              "collection ended; collection time: wall time of the 10^6-step collection, summed over its parts "
+              "when it was resumed from its checkpoint (\"env steps N on\": an older version's checkpoint, "
+              "which kept no time, held the steps before N) (all from the batch's kept metadata.json). "
+              "Published BAIL: the authors' figures, mean ± std over seeds, on gym's -v2 "
               "envs — for the three added batches from their repository's README table, for hopper_ddpg05_b1 the "
               "paper's Table 1. These runs use Gymnasium's -v5 (simulator and rewards changed), so the levels "
               "differ and the ordering of the algorithms is what compares.", "",

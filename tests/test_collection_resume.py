@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -68,9 +69,16 @@ def test_a_crashed_collection_resumes_to_the_same_bytes(tmp_path, monkeypatch, o
     assert not batch_path(cfg, data_dir).exists(), "a half-collected batch never appears under its final name"
     (partial,) = list((data_dir / PARTIAL).iterdir())
     assert {"segments", "state.pt"} <= {p.name for p in partial.iterdir()}
+    state = torch.load(partial / "state.pt", weights_only=True)
+    assert state["wall_time_s"] > 0
+    torch.save({**state, "wall_time_s": 1e6}, partial / "state.pt")  # as if the first part had taken 10^6 s
+    start = time.perf_counter()
     resumed = ensure_batch(cfg, progress=False, data_dir=data_dir)
+    last_part = time.perf_counter() - start
     step = resumed.metadata["resumed_from_step"]
     assert step is not None and 100 <= step <= 400
+    assert 1e6 < resumed.metadata["collection_wall_time_s"] < 1e6 + last_part, "the time of both parts"
+    assert resumed.metadata["collection_timed_from_step"] == reference.metadata["collection_timed_from_step"] == 0
     for key in reference.data.keys(True, True):
         assert torch.equal(reference.data[key], resumed.data[key]), key
     assert _files(reference.path / "data") == _files(resumed.path / "data"), "every data file, byte for byte"
@@ -92,6 +100,24 @@ def test_checkpoints_are_due_by_steps_or_seconds_and_an_incomplete_one_is_ignore
     assert CollectionCheckpoint(broken).load() is None
     (broken / "state.pt").write_bytes(b"half a pickle")
     assert CollectionCheckpoint(broken).load() is None
+
+
+def test_a_checkpoint_carries_the_collections_time_and_an_older_one_says_it_kept_none(tmp_path):
+    """A resumed collection's clock starts from the time its checkpoint carried; a checkpoint written before
+    checkpoints kept the time (no ``wall_time_s``) counts from its own env step, which the batch's metadata says."""
+    first = CollectionCheckpoint(tmp_path / "k", every_s=None, every_steps=1)
+    first.earlier_wall_time_s = 100.0  # as if 100 s of earlier parts were restored
+    first.save({"loop": {"t": 7}}, {})
+    state = first.load()
+    assert state["wall_time_s"] >= 100.0 and state["timed_from_step"] == 0
+    second = CollectionCheckpoint(tmp_path / "k")
+    second.restore_stores(state, {})
+    assert second.timed_from_step == 0 and second.wall_time_s >= state["wall_time_s"]
+
+    older = {k: v for k, v in state.items() if k not in ("wall_time_s", "timed_from_step")}
+    third = CollectionCheckpoint(tmp_path / "k")
+    third.restore_stores(older, {})
+    assert third.timed_from_step == 7 and third.wall_time_s < 100.0
 
 
 @pytest.mark.parametrize("recipe,overrides", [("ddpg", TINY_DDPG), ("sac", TINY_SAC)])

@@ -282,6 +282,21 @@ def test_a_resumed_job_is_charged_its_whole_training_time_not_its_last_part(run_
     assert run_study.whole_job_record(job, record, tmp_path) == {
         **record, "wall_s": 4100.0, "last_part_s": 1200.0, "resumed_from_iteration": [61000]}
 
+    # a collection: its batch's metadata (the batch its log names) carries the time of all its parts
+    collect = next(j for j in run_study.paper_batches_jobs() if j.module == "torchrl_bail.collect")
+    batch = tmp_path / "data" / "hopper_ddpg01_b1-0123abcd"
+    batch.mkdir(parents=True)
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / (collect.name.replace("/", "__") + ".log")).write_text(
+        f"collecting...\nhopper_ddpg01_b1: collected at {batch}\n")
+    meta = {"collection_wall_time_s": 7900.0, "resumed_from_step": None, "collection_timed_from_step": 0}
+    (batch / "metadata.json").write_text(json.dumps(meta))
+    assert run_study.whole_job_record(collect, record, tmp_path) == record
+    (batch / "metadata.json").write_text(json.dumps({**meta, "resumed_from_step": 412000,
+                                                     "collection_timed_from_step": 10837}))
+    assert run_study.whole_job_record(collect, record, tmp_path) == {
+        **record, "wall_s": 7900.0, "last_part_s": 1200.0, "resumed_from_step": 412000, "timed_from_step": 10837}
+
 
 def test_each_marwil_claim_reads_its_own_group_when_both_variants_ran(run_study):
     """The report names ``value_warmup_updates`` on both MARWIL groups once one overrides it; the faithful one (the

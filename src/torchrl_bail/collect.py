@@ -73,6 +73,7 @@ def collect(cfg: DictConfig) -> dict:
         "episode_return_max": float(returns.max()),
         "episode_return_min": float(returns.min()),
         "collection_wall_time_s": meta.get("collection_wall_time_s"),
+        "collection_timed_from_step": meta.get("collection_timed_from_step"),
         "resumed_from_step": meta.get("resumed_from_step"),
         "simulator_unstable_episodes": meta.get("simulator_unstable_episodes"),
     }
@@ -91,9 +92,12 @@ def _print_summary(s: dict) -> None:
     if s.get("behaviour_return") is not None:
         print(f"  behaviour policy return {s['behaviour_return']:.1f}")
     if s.get("collection_wall_time_s") is not None:
-        resumed = s.get("resumed_from_step")
+        resumed, timed_from = s.get("resumed_from_step"), s.get("collection_timed_from_step")
         print(f"  collection time {s['collection_wall_time_s']:.0f} s"
-              + (f" (resumed from its checkpoint at env step {resumed})" if resumed is not None else ""))
+              + (f" (all its parts; the last resumed from its checkpoint at env step {resumed})"
+                 if resumed is not None else "")
+              + (f" (from env step {timed_from} on: an older version's checkpoint kept no time)"
+                 if timed_from else ""))
     if s.get("simulator_unstable_episodes"):
         print(f"  {s['simulator_unstable_episodes']} episodes ended on a simulator instability (SimulatorGuard)")
     sys.stdout.flush()

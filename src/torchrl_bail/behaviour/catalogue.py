@@ -72,7 +72,6 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
     path = Path(path)
     root = path.parent
     recipe = recipe_of(cfg)
-    start = time.perf_counter()
     log.info("collecting %s (%s, %d transitions) into %s", batch_name(cfg), recipe.name, cfg.batch.steps,
              path)
     beat = liveness_settings(cfg)[1]
@@ -83,7 +82,8 @@ def collect_batch(cfg, path: str | os.PathLike, *, progress: bool = True):
         with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
             data, extra = recipe.collect(cfg, scratch=scratch, progress=progress, data_dir=root,
                                          checkpoint=checkpoint)
-            metadata = batch_metadata(cfg, extra, wall_time_s=time.perf_counter() - start)
+            metadata = batch_metadata(cfg, extra, wall_time_s=checkpoint.wall_time_s,
+                                      timed_from_step=checkpoint.timed_from_step)
             HEARTBEAT.check()  # our lock was taken over (a suspended job?): the new owner makes this batch
             batch = save_batch(data, path, metadata)
         recipe.remove_checkpoint(cfg, root, checkpoint)  # the shared SAC run's: under its lock

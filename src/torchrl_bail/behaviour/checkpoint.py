@@ -8,8 +8,8 @@ is the batch's directory name, or the SAC run's, hash included) and is written o
   store (the batch; in oracle mode also the agent's replay store), each written once;
 * ``state.pt`` -- everything else, written *last*: the loop (env steps, episodes, returns so far), the sinks'
   counters, the list of segments, the RNG states (torch, NumPy and ``random`` global generators, and the
-  collection env's ``np_random``), and the recipe's own state (agent networks, target networks, optimizers,
-  alpha, evaluations so far, ...).
+  collection env's ``np_random``), the recipe's own state (agent networks, target networks, optimizers,
+  alpha, evaluations so far, ...), and the collection's wall time so far (:attr:`CollectionCheckpoint.wall_time_s`).
 
 Every file is written to a temporary name and renamed into place (:func:`~torchrl_bail.io.atomic_path`), so a
 kill at any moment leaves the previous complete checkpoint (segments named in ``state.pt`` exist before it is
@@ -110,6 +110,9 @@ class CollectionCheckpoint:
     Keyword Args:
         every_s: seconds of work between checkpoints (``None``: not time-based).
         every_steps: env steps between checkpoints (``None``: not step-based). Both ``None``: never saves.
+
+    Its clock (:attr:`wall_time_s`) starts when it is made, at the start of the collection's process, and a
+    checkpoint carries it across a kill: a batch made in several parts records the time of all of them.
     """
 
     def __init__(self, directory: Path, *, every_s: float | None = 120.0, every_steps: int | None = None):
@@ -121,6 +124,18 @@ class CollectionCheckpoint:
         self._saved_rows: dict[str, int] = {}
         self._segments: dict[str, list[str]] = {}
         self.saves = 0
+        self._part_start = time.perf_counter()
+        #: the wall seconds of the earlier processes of this collection (restored from the checkpoint)
+        self.earlier_wall_time_s = 0.0
+        #: the env step from which :attr:`wall_time_s` counts: 0, unless the collection resumed from a checkpoint
+        #: of an older version, which kept no time (its steps' time is then unknown)
+        self.timed_from_step = 0
+
+    @property
+    def wall_time_s(self) -> float:
+        """The collection's wall seconds so far: this process's since this object was made, plus the earlier
+        processes' (from :attr:`timed_from_step` on) when it resumed from a checkpoint."""
+        return self.earlier_wall_time_s + time.perf_counter() - self._part_start
 
     @classmethod
     def for_config(cls, cfg, data_dir: Path, key: str) -> CollectionCheckpoint:
@@ -173,7 +188,8 @@ class CollectionCheckpoint:
                 self._segments.setdefault(name, []).append(fname)
                 self._saved_rows[name] = n
         state = {**state, "format": FORMAT, "segments": {k: list(v) for k, v in self._segments.items()},
-                 "saved_rows": dict(self._saved_rows)}
+                 "saved_rows": dict(self._saved_rows), "wall_time_s": self.wall_time_s,
+                 "timed_from_step": self.timed_from_step}
         with atomic_path(self.directory / STATE_FILE) as tmp:
             torch.save(state, tmp)
         self.saves += 1
@@ -192,6 +208,10 @@ class CollectionCheckpoint:
         self._segments = {k: list(v) for k, v in state["segments"].items()}
         self._saved_rows = dict(state["saved_rows"])
         self._last_step = int(state["loop"]["t"])
+        if "wall_time_s" in state:
+            self.earlier_wall_time_s, self.timed_from_step = float(state["wall_time_s"]), int(state["timed_from_step"])
+        else:  # an older version's checkpoint: the time of the steps it holds is unknown
+            self.earlier_wall_time_s, self.timed_from_step = 0.0, self._last_step
         self._last_time = time.monotonic()
 
     def remove(self) -> None:

@@ -280,12 +280,13 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
                 action = action + sigma * torch.randn(act_dim)
             return torch.maximum(torch.minimum(action, high), low)
 
-        train_time = [0.0]
+        train_time = [0.0, 0]  # seconds in the agent's updates and the updates made in them (checkpointed)
 
         def on_episode_end(length: int, ret: float, t: int) -> None:
-            t0 = time.perf_counter()
+            t0, before = time.perf_counter(), agent.updates
             agent.train(buffers.replay, length)
             train_time[0] += time.perf_counter() - t0
+            train_time[1] += agent.updates - before
 
         tracker = ReturnTracker(steps, desc=f"collect {batch_name(cfg)}", progress=progress)
         runner = BehaviourRun(env, act, on_episode_end=on_episode_end, tracker=tracker)
@@ -293,9 +294,10 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         if checkpoint is not None:
             def load(state: dict) -> None:
                 agent.load_state_dict(state["agent"])
+                train_time[:] = state.get("train_time", [0.0, 0])  # (an older version's checkpoint has none)
 
-            resumable = Resumable(checkpoint, runner, buffers, state=lambda: {"agent": agent.state_dict()},
-                                  load=load)
+            resumable = Resumable(checkpoint, runner, buffers, load=load,
+                                  state=lambda: {"agent": agent.state_dict(), "train_time": list(train_time)})
         data, wall = collect_timed(buffers, runner, resumable=resumable)
     finally:
         env.close()
@@ -312,7 +314,7 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
         "behaviour_final_return_mean10": float(sum(returns[-10:]) / max(1, len(returns[-10:]))),
         "env_steps_per_s": runner.t / max(wall, 1e-9),
-        "updates_per_s": agent.updates / max(train_time[0], 1e-9),
+        "updates_per_s": train_time[1] / max(train_time[0], 1e-9),
     }
     log.info("DDPG collection done: %d env steps, %d gradient steps, %.1f env steps/s", runner.t, agent.updates,
              extra["env_steps_per_s"])

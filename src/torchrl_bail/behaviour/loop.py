@@ -323,7 +323,8 @@ def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
     in every case; returns ``(batch, wall seconds)``. With a ``resumable``
     (:class:`~torchrl_bail.behaviour.checkpoint.Resumable`) the run first resumes from its last checkpoint, if
     any, and saves checkpoints as it goes, and at an episode end after Ctrl-C or SIGTERM, before it stops
-    (:mod:`torchrl_bail.interrupts`)."""
+    (:mod:`torchrl_bail.interrupts`); the wall seconds then include those of the earlier processes the checkpoint
+    carried (:attr:`~torchrl_bail.behaviour.checkpoint.CollectionCheckpoint.wall_time_s`)."""
     start = time.perf_counter()
     try:
         if resumable is not None:
@@ -339,4 +340,5 @@ def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
     finally:
         if runner.tracker is not None:
             runner.tracker.close()
-    return data, time.perf_counter() - start
+    earlier = resumable.checkpoint.earlier_wall_time_s if resumable is not None else 0.0
+    return data, earlier + time.perf_counter() - start

@@ -410,13 +410,13 @@ def ensure_sac_run(cfg, *, progress: bool = True, data_dir=None) -> SACRun:
         run_cfg = _run_cfg(cfg)
         checkpoint = run_checkpoint(run_cfg, root)
         with scratch_directory(root, path.name, heartbeat_every_s=beat) as scratch:
-            start = time.perf_counter()
             data, record, snapshots = train_sac(run_cfg, scratch=scratch, progress=progress, checkpoint=checkpoint)
             run = _save_run(path, record, snapshots)
             by_product = batch_path(run_cfg, root)
             if not by_product.exists():
                 extra = _sac_batch_extra(run, data.shape[0])
-                meta = batch_metadata(run_cfg, extra, wall_time_s=time.perf_counter() - start)
+                meta = batch_metadata(run_cfg, extra, wall_time_s=checkpoint.wall_time_s,
+                                      timed_from_step=checkpoint.timed_from_step)
                 try:
                     save_batch(data, by_product, meta)
                     log.info("saved the SAC training batch of this run as %s", by_product)

@@ -197,8 +197,12 @@ def batch_path(cfg, data_dir: str | os.PathLike | None = None) -> Path:
     return data_dir_of(cfg, data_dir) / f"{batch_name(cfg)}-{recipe_hash(cfg)}"
 
 
-def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float) -> dict:
-    """The metadata every collected batch carries (``save_batch`` adds stats and versions)."""
+def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float, timed_from_step: int = 0) -> dict:
+    """The metadata every collected batch carries (``save_batch`` adds stats and versions).
+
+    ``wall_time_s`` is the collection's, summed over the processes of a collection resumed from its checkpoint;
+    ``timed_from_step`` the env step it counts from (``0``; a resume from an older version's checkpoint, which kept no
+    time, counts from that checkpoint's step)."""
     identity = recipe_identity(cfg)
     low, high = extra.pop("action_low"), extra.pop("action_high")
     return {
@@ -216,6 +220,7 @@ def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float) -> dict
         "action_high": [float(x) for x in high],
         "oracle": oracle_settings(cfg) is not None,
         "collection_wall_time_s": float(wall_time_s),
+        "collection_timed_from_step": int(timed_from_step),
         **extra,
     }
 
