@@ -317,7 +317,7 @@ def _settings_record(settings: FQESettings) -> dict[str, Any]:
     return {**dataclasses.asdict(settings), "hidden": list(settings.hidden)}
 
 
-def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
+def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: bool = False) -> float:
     """How far ``policy`` acts from the batch: the root mean square, over the batch's transitions and action
     dimensions, of ``pi(s) - a``, each dimension divided by half its action range (``policy.record``'s
     ``action_low``/``action_high``), so ``0`` is the batch's own actions and ``2`` the far end of the range.
@@ -325,7 +325,8 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
     A diagnostic beside FQE's estimate, not a part of it: FQE's target queries ``Q(s', pi(s'))``, and the further
     ``pi`` leaves the batch's actions the more of its estimate is extrapolation (Fujimoto et al. 2019,
     arXiv:1812.02900, sec. 3). A sampling policy (BCQ's) draws its actions from a generator seeded with ``seed``
-    (torch's global state is left as it was).
+    (torch's global state is left as it was); at 10^6 transitions those draws take minutes, hence ``progress`` (a
+    tqdm bar over the states).
 
     Examples:
         >>> import torch
@@ -342,6 +343,7 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
     import torch
 
     from torchrl_bail.policy import policy_actions
+    from torchrl_bail.progress import tqdm
 
     low = torch.as_tensor(policy.record["action_low"], dtype=torch.float64)
     high = torch.as_tensor(policy.record["action_high"], dtype=torch.float64)
@@ -350,13 +352,16 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536) -> float:
     device = next(iter(policy.parameters()), torch.empty(0)).device
     total, count = 0.0, 0
     # torch.manual_seed seeds every device: the policy's GPU generator, if it has one, is restored too
-    with torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else []):
+    with torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else []), \
+            tqdm(total=observation.shape[0], desc="action gap", unit="state", disable=not progress,
+                 dynamic_ncols=True, mininterval=0.5) as bar:
         torch.manual_seed(int(seed))
         for start in range(0, observation.shape[0], chunk):
             acted = policy_actions(policy, observation[start:start + chunk]).to("cpu", torch.float64)
             gap = (acted - action[start:start + chunk].to("cpu", torch.float64)) / half_range
             total += float(gap.square().sum())
             count += gap.numel()
+            bar.update(acted.shape[0])
     return math.sqrt(total / count)
 
 
@@ -395,7 +400,7 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
         "wall_time_s": result["wall_time_s"],
         "resumed_at": result["resumed_at"],
         "curve": result["curve"],
-        "action_gap": action_gap(policy, batch.data, seed=seed),
+        "action_gap": action_gap(policy, batch.data, seed=seed, progress=progress),
         "platform": platform_record(),
     }
     write_json_atomic(out, ope)
@@ -580,7 +585,8 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     elif "action_gap" not in kept:  # a record written before ope recorded it: no new fit, the gap added
         from torchrl_bail.io import write_json_atomic
 
-        kept = {**kept, "action_gap": action_gap(policy, batch.data, seed=int(kept.get("seed", seed)))}
+        kept = {**kept, "action_gap": action_gap(policy, batch.data, seed=int(kept.get("seed", seed)),
+                                                 progress=progress)}
         write_json_atomic(out, kept)
     if snapshots:
         kept = select_snapshot(run_dir, kept, policy, batch, settings=settings, seed=seed, device=device, force=force,
