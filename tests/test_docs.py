@@ -562,6 +562,29 @@ def test_the_ope_guide_reads_the_study_in_its_own_words_once_every_policy_is_sco
     if len(scored) == len(report["policies"]):
         assert report["status"].endswith("Every policy is scored.")
         assert f"**Over the {len(scored)} policies:**" in section, "write the OPE study's reading in the guide"
+        rank, algos, snaps = report["ranking"], report["algorithm_ranking"], report["snapshot_selection"]
+        low, high = rank["spearman_ci"]
+        same = sum(p["reproduces"] is True for p in report["policies"])
+        for quoted in (f"{rank['spearman']:.2f} [{low:.2f}, {high:.2f}]", f"gets {rank['selected_return']:.1f}",
+                       f"returns {rank['best_return']:.1f}",
+                       f"regret is {rank['regret']:.1f}, {100 * rank['regret_fraction']:.0f} % of the best",
+                       f"rho is {algos['spearman']:.2f} and the regret {algos['regret']:.1f}",
+                       f"(rho {report['gap_overrating']['spearman']:.2f} between the action gap",
+                       f"returns {snaps['fqe_selected_return']:.1f} on average",
+                       f"final policy would give {snaps['final_policy_return']:.1f}",
+                       f"among the 5 snapshots {snaps['best_candidate_return']:.1f}",
+                       f"`final_return` is {snaps['final_return']:.1f}", f"evaluations, {snaps['best_return']:.1f}",
+                       f"{same} of the {len(scored)} retrained runs equal"):
+            assert quoted in section, quoted
+        readme = " ".join((ROOT / "README.md").read_text().split())
+        for quoted in (f"{len(scored)} of the headline batch's policies", f"{rank['spearman']:.2f} [{low:.2f}, "
+                       f"{high:.2f}]", f"gives up {rank['regret']:.1f} of the best policy's {rank['best_return']:.1f}",
+                       f"returns {snaps['fqe_selected_return']:.1f} on average over 5 runs, against "
+                       f"{snaps['final_policy_return']:.1f} for the final policy"):
+            assert quoted in readme, quoted
+        home = " ".join((ROOT / "docs" / "index.md").read_text().split())
+        assert (f"{rank['spearman']:.2f} [{low:.2f}, {high:.2f}], and its top pick returns "
+                f"{rank['selected_return']:.1f} where the best policy returns {rank['best_return']:.1f}") in home
     else:
         assert report["status"].endswith("are scored.") and "**Over the" not in section
 
