@@ -3,6 +3,7 @@ the registry (a recipe put there by a test is the one that runs)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,6 +14,7 @@ from torchrl_bail import config_dir
 from torchrl_bail.batch_schemas import BATCH_SCHEMAS
 from torchrl_bail.behaviour import ddpg, execution, sac_run
 from torchrl_bail.behaviour.catalogue import ensure_batch
+from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.recipes import RECIPES, Recipe, recipe_of, register_recipe
 from torchrl_bail.data.cache import batch_path, recipe_hash
 from torchrl_bail.data.formats import transitions
@@ -33,8 +35,14 @@ def test_every_recipe_registers_itself_beside_its_code_and_has_a_schema():
         recipe_of(SimpleNamespace(batch=SimpleNamespace(recipe="dqn")))
 
 
-class _Checkpoint:
+class _Checkpoint(CollectionCheckpoint):
+    """A checkpoint that is never written (a recipe's ``checkpoint`` returns a ``CollectionCheckpoint``: its clock
+    times the collection); records its removal."""
+
     removed = False
+
+    def __init__(self):
+        super().__init__(Path("never-written"), every_s=None, every_steps=None)
 
     def remove(self):
         self.removed = True

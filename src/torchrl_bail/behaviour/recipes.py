@@ -60,7 +60,9 @@ class Recipe(ABC):
         ``checkpoint``; ``data_dir`` is the batch cache (for what the recipe shares there)."""
 
     def checkpoint(self, cfg, data_dir: Path, name: str) -> CollectionCheckpoint:
-        """Where the collection of the batch ``name`` checkpoints. Default: its own ``.partial/<name>``."""
+        """Where the collection of the batch ``name`` checkpoints. Default: its own ``.partial/<name>``. Made at the
+        start of the collection: its clock (:attr:`CollectionCheckpoint.wall_time_s`) gives the batch's
+        ``collection_wall_time_s``."""
         return CollectionCheckpoint.for_config(cfg, data_dir, name)
 
     def remove_checkpoint(self, cfg, data_dir: Path, checkpoint: CollectionCheckpoint) -> None:
