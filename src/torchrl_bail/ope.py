@@ -99,6 +99,15 @@ class FQESettings:
         return self
 
 
+def _bar(total: int, desc: str, unit: str, progress: bool, **kwargs):
+    """A tqdm bar of this command (ETA; off without ``progress``): the fit's, and the policy's passes over the
+    batch, which take minutes for a sampling policy at 10^6 transitions."""
+    from torchrl_bail.progress import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True, mininterval=0.5,
+                **kwargs)
+
+
 def _as_float(value) -> float:
     return float(value.item() if hasattr(value, "item") else value)
 
@@ -195,7 +204,6 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     from torchrl_bail.io import write_atomic
     from torchrl_bail.modules import make_qvalue_network
     from torchrl_bail.objectives.fqe import FQELoss, episode_starts
-    from torchrl_bail.progress import tqdm
 
     settings = (settings or FQESettings()).check()
     device = torch.device(device)
@@ -217,8 +225,7 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         for key, actions in zip(action_keys, state["policy_actions"], strict=True):
             data.set(key, actions.to(device))
     else:
-        with tqdm(total=2 * num, desc=f"{desc}: the policy's actions", unit="state", disable=not progress,
-                  dynamic_ncols=True, mininterval=0.5) as actions_bar:
+        with _bar(2 * num, f"{desc}: the policy's actions", "state", progress) as actions_bar:
             loss.add_policy_actions(data, on_chunk=actions_bar.update)
     starts = data[episode_starts(data["episode"])]
     optimizer = torch.optim.Adam(loss.parameters(), lr=settings.lr)
@@ -249,8 +256,7 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     if checkpoint_path is not None and state is None:
         save(0)  # the policy's actions first: a stop before the first timed checkpoint never draws them again
 
-    bar = tqdm(total=settings.updates, initial=done, desc=desc, unit="update", disable=not progress,
-               dynamic_ncols=True, mininterval=0.5)
+    bar = _bar(settings.updates, desc, "update", progress, initial=done)
     # signals wait for the end of an update (interrupts.safe_points); the bar is closed on every way out
     with interrupts.safe_points(), contextlib.closing(bar):
         last_save = time.monotonic()
@@ -343,7 +349,6 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
     import torch
 
     from torchrl_bail.policy import policy_actions
-    from torchrl_bail.progress import tqdm
 
     low = torch.as_tensor(policy.record["action_low"], dtype=torch.float64)
     high = torch.as_tensor(policy.record["action_high"], dtype=torch.float64)
@@ -353,8 +358,7 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
     total, count = 0.0, 0
     # torch.manual_seed seeds every device: the policy's GPU generator, if it has one, is restored too
     with torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else []), \
-            tqdm(total=observation.shape[0], desc="action gap", unit="state", disable=not progress,
-                 dynamic_ncols=True, mininterval=0.5) as bar:
+            _bar(observation.shape[0], "action gap", "state", progress) as bar:
         torch.manual_seed(int(seed))
         for start in range(0, observation.shape[0], chunk):
             acted = policy_actions(policy, observation[start:start + chunk]).to("cpu", torch.float64)
