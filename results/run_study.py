@@ -983,12 +983,21 @@ def _matrix(batches: list[dict], algo: str, entered: list[str]) -> np.ndarray:
     return np.array([c[:n] for c in columns]).T
 
 
+def _against(row: dict, side: str) -> str:
+    """The batches that go the other way of an across-batch reading (their own probability of improvement on
+    ``side`` of 0.5), as a clause to append to it; "" when none does."""
+    against = [batch for batch, p in row["per_batch"].items() if (p < 0.5 if side == "below" else p > 0.5)]
+    return f", though {side} 0.5 on {', '.join(against)}" if against else ""
+
+
 def cross_batch_aggregate(batches: list[dict]) -> dict:
     """Over all batches, on the normalised scale (:data:`NORMALISATION`): each algorithm's IQM with its 95 %
     stratified-bootstrap interval over the batches where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds, and for each of
     :data:`CROSS_BATCH_PAIRS` the probability of improvement (rliable) with its interval over the batches where both
-    have them. A batch without kept metadata enters nothing. Unequal seeds: each batch gives its first ``n`` seeds,
-    ``n`` the fewest of the batches entered (so 5-seed BAIL stays 5 where every batch has 5)."""
+    have them, with each batch's own value beside it (``per_batch``: the interval is over seeds, not over which
+    batches were drawn, so it cannot show the batches disagreeing). A batch without kept metadata enters nothing.
+    Unequal seeds: each batch gives its first ``n`` seeds, ``n`` the fewest of the batches entered (so 5-seed BAIL
+    stays 5 where every batch has 5)."""
     from rliable import metrics
 
     def ready(batch: dict, algo: str) -> bool:
@@ -1008,18 +1017,21 @@ def cross_batch_aggregate(batches: list[dict]) -> dict:
     pairs = []
     for a, b in CROSS_BATCH_PAIRS:
         entered = [x["batch"] for x in batches if ready(x, a) and ready(x, b)]
-        row = {"a": a, "b": b, "batches": entered, "p": None, "ci_low": None, "ci_high": None, "seeds": None}
+        row = {"a": a, "b": b, "batches": entered, "p": None, "ci_low": None, "ci_high": None, "seeds": None,
+               "per_batch": {}}
         if entered:
             x, y = _matrix(batches, a, entered), _matrix(batches, b, entered)
             row["p"], row["ci_low"], row["ci_high"] = _seeded_interval([x, y], metrics.probability_of_improvement)
             row["seeds"] = [int(x.shape[0]), int(y.shape[0])]
+            row["per_batch"] = {batch: float(metrics.probability_of_improvement(x[:, [i]], y[:, [i]]))
+                                for i, batch in enumerate(entered)}
         if len(entered) < total:
             row["reading"] = (f"pending ({len(entered)} of {total} batches entered; the reading needs every batch "
                               f"with {MIN_SEEDS_FOR_VERDICT} seeds of both)")
         elif row["ci_low"] > 0.5:
-            row["reading"] = f"{a} above {b} across batches (the interval lies above 0.5)"
+            row["reading"] = f"{a} above {b} across batches (the interval lies above 0.5)" + _against(row, "below")
         elif row["ci_high"] < 0.5:
-            row["reading"] = f"{a} below {b} across batches (the interval lies below 0.5)"
+            row["reading"] = f"{a} below {b} across batches (the interval lies below 0.5)" + _against(row, "above")
         else:
             row["reading"] = "no difference shown (the interval contains 0.5)"
         pairs.append(row)
@@ -1166,15 +1178,20 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
                      f"{row['seeds_per_batch']} | {_fmt(row['iqm'], 3)} [{_fmt(row['ci_low'], 3)}, "
                      f"{_fmt(row['ci_high'], 3)}] |")
     lines += ["", "| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
-              "| reading |", "|---|---|---|---|---|"]
+              "| per batch | reading |", "|---|---|---|---|---|---|"]
     for p in aggregate["probability_of_improvement"]:
         entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {len(batches)})" if p["batches"] else "none"
         value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
         seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
-        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {p['reading']} |")
+        per_batch = ", ".join(f"{batch} {_fmt(v, 2)}" for batch, v in p["per_batch"].items())
+        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {per_batch} | {p['reading']} |")
     lines += ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above a run "
               "of the second on the same batch, averaged over the batches entered; the reading needs all "
-              f"{len(batches)} batches, and then says 'above' when the whole interval lies above 0.5."]
+              f"{len(batches)} batches, and then says 'above' when the whole interval lies above 0.5, naming any "
+              "batch whose own value lies on the other side. The interval is over seeds within these batches, not "
+              "over which batches were drawn: a batch where every run of one algorithm ends above every run of the "
+              "other gives 1 (or 0) in every bootstrap replication, so batches that disagree that cleanly give a "
+              "one-point interval (0.5 [0.5, 0.5] for one such batch each way). Read it with the per-batch column."]
     figures = ", ".join(f"`{_shown(results / b['figure'])}`" for b in batches if b["figure"]) or "none yet"
     lines += ["", f"Learning curves, one figure per batch (updates on a linear axis, each seed's "
               f"evaluations averaged per {CURVE_WINDOW_UPDATES} updates; the mean over seeds, a band from the lowest "

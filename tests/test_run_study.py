@@ -417,7 +417,7 @@ def test_the_aggregate_normalises_by_each_batchs_own_episodes(run_study, cross_b
     both have 3 seeds; P(BAIL > BCQ) < 0.5 there."""
     from scipy.stats import trim_mean
 
-    out, _ = cross_batch
+    out, results = cross_batch
     norm = [(x - 100.0) / 3000.0 for x in HEADLINE_RUNS["bail"]] + [(x - 50.0) / 2000.0 for x in WALKER_RUNS["bail"]]
     assert out["batches"][0]["cells"]["bail"]["per_seed_normalised"] == pytest.approx(norm[:5])
     bail = out["aggregate"]["iqm"]["bail"]
@@ -431,6 +431,9 @@ def test_the_aggregate_normalises_by_each_batchs_own_episodes(run_study, cross_b
     assert over_bc["p"] > 0.5 and 0.5 < over_bc["ci_low"] <= over_bc["p"] <= over_bc["ci_high"]
     assert over_bcq["p"] < 0.5 and over_bcq["ci_high"] < 0.5 and over_bcq["seeds"] == [5, 3]
     assert over_bc["reading"].startswith("pending (1 of 4 batches entered")
+    assert over_bc["per_batch"] == {"hopper_ddpg05_b1": pytest.approx(over_bc["p"])}  # one batch: its own value
+    text = (results / "cross_batch.md").read_text()
+    assert f"| hopper_ddpg05_b1 {over_bcq['p']:.2f} | pending (1 of 4" in text
 
 
 def test_the_cross_batch_report_with_no_runs_is_all_pending(run_study, tmp_path):
@@ -647,3 +650,29 @@ def test_the_ope_report_with_no_runs_is_all_pending(run_study, tmp_path):
     out = run_study.ope_headline_report(tmp_path / "ope", tmp_path / "no_headline")
     assert out["ranking"] is None and out["snapshot_selection"] is None and out["figure"] == "ope.png"
     assert "Ranking: pending" in (tmp_path / "ope" / "ope.md").read_text()
+
+
+def test_the_probability_of_improvement_names_the_batches_that_go_the_other_way(run_study):
+    """Four batches, BAIL above BCQ on three (every BAIL run above every BCQ run) and below on one: the aggregate is
+    0.75 with a one-point interval (the bootstrap is over seeds, and clean batches give 1 or 0 in every replication);
+    the per-batch values show the split and the reading names the batch that goes the other way."""
+    def batch(name: str, bail: list[float], bcq: list[float]) -> dict:
+        return {"batch": name, "metadata": {"episode_return_min": 0.0, "episode_return_max": 1.0},
+                "cells": {"bail": {"seeds": len(bail), "per_seed_normalised": bail},
+                          "bcq": {"seeds": len(bcq), "per_seed_normalised": bcq}}}
+
+    up, down = ([0.6, 0.7, 0.8], [0.2, 0.3, 0.4]), ([0.2, 0.3, 0.4], [0.6, 0.7, 0.8])
+    batches = [batch("b1", *up), batch("b2", *down), batch("b3", *up), batch("b4", *up)]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 200)
+        out = run_study.cross_batch_aggregate(batches)
+    row = next(p for p in out["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+    assert row["per_batch"] == {"b1": 1.0, "b2": 0.0, "b3": 1.0, "b4": 1.0}
+    assert row["p"] == pytest.approx(0.75) and row["ci_low"] == pytest.approx(0.75) == row["ci_high"]
+    assert row["reading"] == "bail above bcq across batches (the interval lies above 0.5), though below 0.5 on b2"
+    batches[1] = batch("b2", *up)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 200)
+        row = next(p for p in run_study.cross_batch_aggregate(batches)["probability_of_improvement"]
+                   if (p["a"], p["b"]) == ("bail", "bcq"))
+    assert row["reading"] == "bail above bcq across batches (the interval lies above 0.5)"
