@@ -43,7 +43,7 @@ probabilities of improvement over all of them, each batch's final returns min-ma
 (:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept, with zero, some or all runs.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
 with the checkpoint's progress (updates done / scheduled) where one exists and the time the updates left take at
-the run's pace so far.
+the run's pace so far; its last line prices what is left in hours of one core (:func:`work_left`).
 """
 
 from __future__ import annotations
@@ -406,6 +406,62 @@ def _time_left(state: dict, run: Path, running: bool) -> str:
     if running:
         left -= time.time() - (run / "checkpoint.pt").stat().st_mtime
     return f", about {max(left, 0.0) / 60:.0f} min left"
+
+
+#: the studies whose jobs run at a study's scale (``preset=paper``, the same schedules), so whose recorded costs price
+#: its jobs of a kind it has not recorded yet (``--status``'s estimate of the work left)
+COST_PEERS = {"paper_batches": ("paper_hopper",), "paper_hopper": ("paper_batches",)}
+
+
+def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
+    """What ``name`` should cost: the median recorded seconds of the jobs of its kind in ``timings`` (its study's
+    ``timings.json``) on its batch (``<batch>/<algo>/seed…`` without the seed; ``collect/…``: any collection), else of
+    its algorithm on the study's other batches, else in ``elsewhere`` (the records of its :data:`COST_PEERS`);
+    ``None`` where nothing of its kind is recorded."""
+    parts = name.split("/")
+
+    def same_algo(records: dict) -> list[str]:
+        if parts[0] == "collect":
+            return [k for k in records if k.startswith("collect/")]
+        return [k for k in records if k.split("/")[-2:-1] == parts[-2:-1]
+                and k.startswith("ope/") == name.startswith("ope/")]
+
+    prefix = "/".join(parts[:-1]) + "/"
+    tiers = [(timings, [k for k in timings if k.startswith(prefix) and parts[0] != "collect"]),
+             (timings, same_algo(timings)), (elsewhere, same_algo(elsewhere))]
+    for records, keys in tiers:
+        costs = [wall_seconds(records[k]) for k in keys]
+        if costs:
+            return float(np.median(costs))
+    return None
+
+
+def work_left(states: list[tuple[str, str]], timings: dict, elsewhere: dict | None = None) -> str:
+    """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core:
+    a job whose status gives its time left counts that; any other, its kind's recorded cost
+    (:func:`_recorded_cost`), scaled by the share of updates its checkpoint has left (a partial collection, whose
+    step count the status gives without the batch's size, at its whole cost). Jobs of a kind nothing has recorded
+    yet are counted apart."""
+    total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if not s.startswith("done")]
+    collecting = sum("steps collected" in state for _, state in unfinished)
+    for name, state in unfinished:
+        left = re.search(r"about (\d+) min left", state)
+        if left:
+            total += 60 * int(left.group(1))
+            continue
+        cost = _recorded_cost(name, timings, elsewhere or {})
+        if cost is None:
+            unknown += 1
+            continue
+        progress = re.search(r"\((\d+)/(\d+) updates", state)
+        total += cost * (1 - int(progress.group(1)) / int(progress.group(2)) if progress else 1)
+    if not unfinished:
+        return "nothing left to run"
+    return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "
+            f"{len(unfinished)} unfinished jobs (a running job at its own pace, any other at the median recorded "
+            "cost of its algorithm: on its batch, else on the study's others, else in the other studies)"
+            + (f"; {unknown} of a kind with no recorded cost" if unknown else "")
+            + (f"; {collecting} partial collection{'s' if collecting > 1 else ''} priced whole" if collecting else ""))
 
 
 def conditions() -> dict:
@@ -1536,6 +1592,11 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(f"{state:<{width}}  {name}" for name, state in states))
         counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")
+        own, elsewhere = args.results / "timings.json", {}
+        for peer in COST_PEERS.get(args.study, ()):
+            path = args.results.parent / peer / "timings.json"
+            elsewhere.update(json.loads(path.read_text()) if path.exists() else {})
+        print(work_left(states, json.loads(own.read_text()) if own.exists() else {}, elsewhere))
         return 0
     args.workdir.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)

@@ -676,3 +676,25 @@ def test_the_probability_of_improvement_names_the_batches_that_go_the_other_way(
         row = next(p for p in run_study.cross_batch_aggregate(batches)["probability_of_improvement"]
                    if (p["a"], p["b"]) == ("bail", "bcq"))
     assert row["reading"] == "bail above bcq across batches (the interval lies above 0.5)"
+
+
+def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
+    """``--status``'s last line: a running job's own time left, any other job its kind's median recorded cost (its
+    batch first, then the study's other batches, then the peer studies), scaled by the updates its checkpoint has
+    left; a kind nothing recorded is counted apart."""
+    timings = {"b1/bail/seed1": {"wall_s": 1000.0}, "b1/bail/seed2": {"wall_s": 3000.0},
+               "b2/bail/seed1": {"wall_s": 9000.0}, "b1/bc/seed1": 2000.0, "collect/b1": {"wall_s": 7200.0}}
+    elsewhere = {"hopper/bcq/seed1": 3600.0, "hopper/bc/seed1": 99999.0}  # the study's own bc record comes first
+    states = [("b1/bail/seed3", "left"),                                 # its batch's median: 2000 s
+              ("b2/bail/seed2", "left (2500/10000 updates)"),            # 9000 x 3/4 = 6750 s
+              ("b3/bc/seed1", "left"),                                   # the study's other batch: 2000 s
+              ("b3/bcq/seed1", "left"),                                  # the peer study: 3600 s
+              ("b3/iql/seed1", "left"),                                  # nothing recorded
+              ("b1/bc/seed2", "running (10/100 updates, about 30 min left)"),  # its own pace: 1800 s
+              ("b1/bail/seed1", "done")]
+    line = run_study.work_left(states, timings, elsewhere)
+    assert line.startswith(f"left to run: about {(2000 + 6750 + 2000 + 3600 + 1800) / 3600:.1f} h of one core for 5 "
+                           "of the 6 unfinished jobs") and line.endswith("; 1 of a kind with no recorded cost")
+    line = run_study.work_left([("collect/b2", "left (500 steps collected)")], timings)
+    assert line.startswith("left to run: about 2.0 h") and line.endswith("; 1 partial collection priced whole")
+    assert run_study.work_left([("b1/bail/seed1", "done")], timings) == "nothing left to run"
