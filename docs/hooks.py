@@ -5,9 +5,9 @@
   field's name;
 * ``assets/data_flow.svg``, the Concepts page's figure, drawn by ``docs/gen_data_flow.py``;
 * ``assets/<study>/*.png``: the figures of ``results/study``, ``results/paper_hopper``, ``results/marwil_stall``,
-  ``results/getting_started`` and ``results/ope_headline``, served from where their scripts (or the run) wrote them,
-  so the Results page, Getting started, the OPE guide and the README show the same files; and the envelope plots
-  the paper cell's report names (``assets/paper_hopper/envelope_<run>.png``).
+  ``results/getting_started``, ``results/ope_headline`` and ``results/paper_batches``, served from where their
+  scripts (or the run) wrote them, so the Results page, Getting started, the OPE guide and the README show the same
+  files; and the envelope plots the paper cell's report names (``assets/paper_hopper/envelope_<run>.png``).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def on_files(files, config):
         raise PluginError(str(err)) from None
     files.append(File.generated(config, PAGE, content=content))
     files.append(File.generated(config, "assets/data_flow.svg", content=_load("gen_data_flow").draw()))
-    for study in ("study", "paper_hopper", "marwil_stall", "getting_started", "ope_headline"):
+    for study in ("study", "paper_hopper", "marwil_stall", "getting_started", "ope_headline", "paper_batches"):
         for figure in sorted((ROOT / "results" / study).glob("*.png")):
             files.append(File.generated(config, f"assets/{study}/{figure.name}", abs_src_path=str(figure)))
     cell = json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())

@@ -1094,6 +1094,76 @@ def cross_batch_aggregate(batches: list[dict]) -> dict:
     return {"normalisation": NORMALISATION, "iqm": iqm, "probability_of_improvement": pairs}
 
 
+#: the markers that tell the batches apart in the aggregate figure, in :func:`cross_batches` order
+BATCH_MARKERS = ("o", "s", "^", "D")
+
+
+def plot_cross_batch_aggregate(batches: list[dict], aggregate: dict, path: Path) -> Path | None:
+    """Saves :func:`cross_batch_aggregate_figure` to ``path``; ``None`` (nothing written) while it has nothing to
+    show."""
+    from torchrl_bail.plots import save_figure
+
+    fig = cross_batch_aggregate_figure(batches, aggregate)
+    return None if fig is None else save_figure(fig, path)
+
+
+def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
+    """The figure ``cross_batch_aggregate.png``: the aggregate of :func:`cross_batch_aggregate` with each batch beside
+    it.
+    Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 % interval
+    (black), and on each batch where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds the IQM of that batch's normalised
+    final returns alone (a marker per batch); right, the same for each probability of improvement. Where the
+    batches' markers fall on both sides of an aggregate, the batches disagree, which the interval (over seeds)
+    does not show. ``None`` while no algorithm has entered a batch."""
+    from rliable import metrics
+
+    from torchrl_bail.plots import new_figure
+
+    algos = [a for a in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA if a in aggregate["iqm"]]
+    pairs = [p for p in aggregate["probability_of_improvement"] if p["p"] is not None]
+    if not algos:
+        return None
+    markers = {b["batch"]: BATCH_MARKERS[i % len(BATCH_MARKERS)] for i, b in enumerate(batches)}
+    fig = new_figure(figsize=(10.0, 0.45 * max(len(algos), 4) + 1.6), layout="constrained")
+    left, right = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
+    seen = set()
+
+    def batch_point(ax, x: float, y: float, batch: str) -> None:
+        ax.plot(x, y, linestyle="none", marker=markers[batch], markersize=6, markerfacecolor="none",
+                color=f"C{list(markers).index(batch)}", label=None if batch in seen else batch)
+        seen.add(batch)
+
+    for y, algo in enumerate(algos):
+        row = aggregate["iqm"][algo]
+        left.errorbar(row["iqm"], y, xerr=[[row["iqm"] - row["ci_low"]], [row["ci_high"] - row["iqm"]]],
+                      fmt="|", color="black", markersize=14, capsize=4, linewidth=2)
+        for b in batches:
+            if b["batch"] in row["batches"]:
+                batch_point(left, float(metrics.aggregate_iqm(np.array(b["cells"][algo]["per_seed_normalised"]))),
+                            y, b["batch"])
+    left.set_yticks(range(len(algos)), algos)
+    left.invert_yaxis()
+    left.set_xlabel("normalised final return (0: the batch's worst episode, 1: its best)")
+    left.set_title("IQM over the batches entered [95 % CI], and per batch", fontsize="medium")
+    left.grid(axis="x", alpha=0.3)
+    for y, p in enumerate(pairs):
+        right.errorbar(p["p"], y, xerr=[[p["p"] - p["ci_low"]], [p["ci_high"] - p["p"]]], fmt="|", color="black",
+                       markersize=14, capsize=4, linewidth=2)
+        for batch, value in p["per_batch"].items():
+            batch_point(right, value, y, batch)
+    right.set_yticks(range(len(pairs)), [f"P({p['a']} > {p['b']})" for p in pairs])
+    right.set_ylim(-0.5, max(len(pairs), 1) - 0.5)
+    right.invert_yaxis()
+    right.axvline(0.5, color="gray", linestyle="--", linewidth=1)
+    right.set_xlim(-0.05, 1.05)
+    right.set_xlabel("probability that a run of the first ends above a run of the second")
+    right.set_title("Probability of improvement [95 % CI], and per batch", fontsize="medium")
+    right.grid(axis="x", alpha=0.3)
+    fig.legend(loc="outside lower center", ncol=len(seen), fontsize="small", title="batch (hollow markers)")
+    fig.suptitle("Across batches: interval over seeds (black), each batch on its own (markers)")
+    return fig
+
+
 def _fmt(x: float | None, digits: int = 1) -> str:
     return "" if x is None else f"{x:.{digits}f}"
 
@@ -1118,6 +1188,44 @@ def _iqm_cell(cell: dict | None) -> str:
     text = (f"{_fmt(cell['final_return_iqm'])} [{_fmt(cell['final_return_iqm_ci_low'])}, "
             f"{_fmt(cell['final_return_iqm_ci_high'])}]")
     return text + (f" ({seeds} of {scheduled} seeds)" if seeds < scheduled else "")
+
+
+def _aggregate_lines(aggregate: dict, algos: list[str], n_batches: int, figure: Path | None) -> list[str]:
+    """The cross-batch report's "Over all batches" section (:func:`cross_batch_aggregate`'s tables, and the figure
+    of :func:`plot_cross_batch_aggregate` where there is one), as Markdown lines."""
+    lines = [f"**Over all batches.** Normalisation: {NORMALISATION}. Min-max by the batch itself because every "
+             "batch's metadata carries both bounds (the v5 reference scores have no expert end yet) and the four "
+             "batches differ in env and behaviour quality; it changes no ordering within a batch. A batch enters "
+             f"an algorithm's IQM when the algorithm has {MIN_SEEDS_FOR_VERDICT} seeds there, and a comparison "
+             f"when both sides have; each batch gives its first n seeds (seed order), n the fewest of the batches "
+             f"entered. Intervals: rliable's stratified bootstrap (over seeds within each batch), 95 %.", "",
+             "| algorithm | batches entered | seeds per batch | IQM of normalised final return [95 % CI] |",
+             "|---|---|---|---|"]
+    for algo in algos:
+        row = aggregate["iqm"].get(algo)
+        lines.append(f"| {algo} | pending (no batch with {MIN_SEEDS_FOR_VERDICT} seeds) |  |  |" if row is None else
+                     f"| {algo} | {', '.join(row['batches'])} ({len(row['batches'])} of {n_batches}) | "
+                     f"{row['seeds_per_batch']} | {_fmt(row['iqm'], 3)} [{_fmt(row['ci_low'], 3)}, "
+                     f"{_fmt(row['ci_high'], 3)}] |")
+    lines += ["", "| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
+              "| per batch | reading |", "|---|---|---|---|---|---|"]
+    for p in aggregate["probability_of_improvement"]:
+        entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {n_batches})" if p["batches"] else "none"
+        value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
+        seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
+        per_batch = ", ".join(f"{batch} {_fmt(v, 2)}" for batch, v in p["per_batch"].items())
+        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {per_batch} | {p['reading']} |")
+    lines += ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above a run "
+              "of the second on the same batch, averaged over the batches entered; the reading needs all "
+              f"{n_batches} batches, and then says 'above' when the whole interval lies above 0.5, naming any "
+              "batch whose own value lies on the other side. The interval is over seeds within these batches, not "
+              "over which batches were drawn: a batch where every run of one algorithm ends above every run of the "
+              "other gives 1 (or 0) in every bootstrap replication, so batches that disagree that cleanly give a "
+              "one-point interval (0.5 [0.5, 0.5] for one such batch each way). Read it with the per-batch column."]
+    if figure is not None:
+        lines += ["", "Both tables at a glance, with each batch on its own beside the aggregate: "
+                  f"`{_shown(figure)}`."]
+    return lines
 
 
 def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
@@ -1163,6 +1271,7 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
             "metadata": None if metadata is None else {k: metadata.get(k) for k in keys},
             "cells": rows, "claims": claims, "figure": None if figure is None else figure.name})
     aggregate = cross_batch_aggregate(batches)
+    aggregate_figure = plot_cross_batch_aggregate(batches, aggregate, results / "cross_batch_aggregate.png")
     across = []
     for claim, *_ in CROSS_BATCH_CLAIMS:
         verdicts = [next(c["verdict"] for c in b["claims"] if c["claim"] == claim) for b in batches]
@@ -1179,6 +1288,7 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     algos = [*CROSS_BATCH_CENTRAL, *shown_extra]
     out = {"status": status, "complete_batches": done, "min_seeds_for_verdict": MIN_SEEDS_FOR_VERDICT,
            "batches": batches, "claims_across_batches": across, "aggregate": aggregate,
+           "aggregate_figure": None if aggregate_figure is None else aggregate_figure.name,
            "bootstrap": {"reps": CROSS_BATCH_REPS, "seed": CROSS_BATCH_SEED}}
 
     def meta(b, key, fmt):
@@ -1219,35 +1329,7 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     lines += ["", f"A verdict needs {MIN_SEEDS_FOR_VERDICT} seeds on both sides (the paper cell's rule: 'holds' for "
               "an 'above' claim means the first group's IQM interval lies wholly above the second's; for ≈ that the "
               "intervals overlap, no difference shown, which is not proof of equality).", "",
-              f"**Over all batches.** Normalisation: {NORMALISATION}. Min-max by the batch itself because every "
-              "batch's metadata carries both bounds (the v5 reference scores have no expert end yet) and the four "
-              "batches differ in env and behaviour quality; it changes no ordering within a batch. A batch enters "
-              f"an algorithm's IQM when the algorithm has {MIN_SEEDS_FOR_VERDICT} seeds there, and a comparison "
-              f"when both sides have; each batch gives its first n seeds (seed order), n the fewest of the batches "
-              f"entered. Intervals: rliable's stratified bootstrap (over seeds within each batch), 95 %.", "",
-              "| algorithm | batches entered | seeds per batch | IQM of normalised final return [95 % CI] |",
-              "|---|---|---|---|"]
-    for algo in algos:
-        row = aggregate["iqm"].get(algo)
-        lines.append(f"| {algo} | pending (no batch with {MIN_SEEDS_FOR_VERDICT} seeds) |  |  |" if row is None else
-                     f"| {algo} | {', '.join(row['batches'])} ({len(row['batches'])} of {len(batches)}) | "
-                     f"{row['seeds_per_batch']} | {_fmt(row['iqm'], 3)} [{_fmt(row['ci_low'], 3)}, "
-                     f"{_fmt(row['ci_high'], 3)}] |")
-    lines += ["", "| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
-              "| per batch | reading |", "|---|---|---|---|---|---|"]
-    for p in aggregate["probability_of_improvement"]:
-        entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {len(batches)})" if p["batches"] else "none"
-        value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
-        seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
-        per_batch = ", ".join(f"{batch} {_fmt(v, 2)}" for batch, v in p["per_batch"].items())
-        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {per_batch} | {p['reading']} |")
-    lines += ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above a run "
-              "of the second on the same batch, averaged over the batches entered; the reading needs all "
-              f"{len(batches)} batches, and then says 'above' when the whole interval lies above 0.5, naming any "
-              "batch whose own value lies on the other side. The interval is over seeds within these batches, not "
-              "over which batches were drawn: a batch where every run of one algorithm ends above every run of the "
-              "other gives 1 (or 0) in every bootstrap replication, so batches that disagree that cleanly give a "
-              "one-point interval (0.5 [0.5, 0.5] for one such batch each way). Read it with the per-batch column."]
+              *_aggregate_lines(aggregate, algos, len(batches), aggregate_figure)]
     figures = ", ".join(f"`{_shown(results / b['figure'])}`" for b in batches if b["figure"]) or "none yet"
     lines += ["", f"Learning curves, one figure per batch (updates on a linear axis, each seed's "
               f"evaluations averaged per {CURVE_WINDOW_UPDATES} updates; the mean over seeds, a band from the lowest "

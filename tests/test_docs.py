@@ -526,6 +526,9 @@ def test_the_results_pages_cross_batch_state_is_the_reports():
         assert "**Across the four batches:**" in section, "write the cross-batch verdict on the Results page"
     assert [b["batch"] for b in report["batches"]][0] == "hopper_ddpg05_b1" and len(report["batches"]) == 4
     assert report["status"] in (ROOT / "results" / "paper_batches" / "cross_batch.md").read_text()
+    figures = [report["aggregate_figure"], *(b["figure"] for b in report["batches"] if b["figure"])]
+    shown = re.findall(r"!\[[^\]]*\]\(assets/paper_batches/([^)]+)\)", page[page.index("## Across batches"):])
+    assert shown == figures, "the Results page shows the report's figures: the aggregate, then each batch's curves"
 
 
 def test_the_ope_guide_shows_the_ope_report_as_its_kept_runs_rebuild_it(tmp_path):

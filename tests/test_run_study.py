@@ -698,3 +698,38 @@ def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
     line = run_study.work_left([("collect/b2", "left (500 steps collected)")], timings)
     assert line.startswith("left to run: about 2.0 h") and line.endswith("; 1 partial collection priced whole")
     assert run_study.work_left([("b1/bail/seed1", "done")], timings) == "nothing left to run"
+
+
+def test_the_aggregate_figure_puts_each_batch_beside_the_interval(run_study, cross_batch):
+    """``cross_batch_aggregate.png``: per algorithm the aggregate IQM's interval and one marker per batch it entered,
+    at the IQM of that batch's normalised returns alone (skewed seeds here, so a mean would sit elsewhere); per
+    comparison, a marker per batch at its own probability of improvement. Kept beside the report, named in it."""
+    import numpy as np
+    from rliable import metrics
+
+    out, results = cross_batch
+    assert out["aggregate_figure"] == "cross_batch_aggregate.png" and (results / "cross_batch_aggregate.png").is_file()
+    assert "cross_batch_aggregate.png`." in (results / "cross_batch.md").read_text()
+
+    def batch(name: str, bail: list[float], bcq: list[float]) -> dict:
+        return {"batch": name, "metadata": {}, "cells": {"bail": {"seeds": len(bail), "per_seed_normalised": bail},
+                                                          "bcq": {"seeds": len(bcq), "per_seed_normalised": bcq}}}
+
+    batches = [batch("b1", [0.1, 0.5, 0.52, 0.54, 0.95], [0.3, 0.4, 0.45]),
+               batch("b2", [0.6, 0.62, 0.64, 0.66, 0.0], [0.7, 0.2, 0.75, 0.8]), batch("b3", [0.5, 0.6], [0.1] * 3)]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 200)
+        aggregate = run_study.cross_batch_aggregate(batches)
+    left, right = run_study.cross_batch_aggregate_figure(batches, aggregate).axes
+    assert [t.get_text() for t in left.get_yticklabels()] == ["bail", "bcq"]
+
+    def markers(ax) -> list[tuple[float, int]]:
+        return sorted((round(float(line.get_xdata()[0]), 9), int(line.get_ydata()[0])) for line in ax.get_lines()
+                      if line.get_linestyle() == "None" and line.get_marker() in run_study.BATCH_MARKERS)
+
+    iqm = [round(float(metrics.aggregate_iqm(np.array(b["cells"][algo]["per_seed_normalised"]))), 9)
+           for algo in ("bail", "bcq") for b in batches[:2]]  # b3's BAIL has 2 seeds: not entered
+    assert markers(left) == sorted([(iqm[0], 0), (iqm[1], 0), (iqm[2], 1), (iqm[3], 1), (0.1, 1)])
+    assert iqm[0] != round(float(np.mean(batches[0]["cells"]["bail"]["per_seed_normalised"])), 9)
+    poi = next(p for p in aggregate["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+    assert markers(right) == sorted((round(v, 9), 0) for v in poi["per_batch"].values()) and len(poi["per_batch"]) == 2
