@@ -127,3 +127,19 @@ def test_a_sigkilled_collection_resumes_to_the_same_bytes(tmp_path, recipe, over
     assert collection_trial(random.Random(0), tmp_path, recipe=recipe, overrides=overrides, max_delay_s=0.5,
                             log=lines.append), lines
     assert "resumed from step None" not in lines[0] or "finished before the kill" in lines[0]
+
+
+def test_the_env_step_rate_counts_the_steps_its_time_covers(tmp_path):
+    """``env_steps_per_s`` divides by the collection's time the steps that time covers: every step, or, resumed from
+    an older version's checkpoint (its steps' time unknown), those after that checkpoint's step."""
+    from types import SimpleNamespace
+
+    from torchrl_bail.behaviour.loop import env_steps_per_s
+
+    runner = SimpleNamespace(t=1000)
+    assert env_steps_per_s(runner, 10.0) == 100.0
+    checkpoint = CollectionCheckpoint(tmp_path / "k", every_s=None, every_steps=1)
+    assert env_steps_per_s(runner, 10.0, SimpleNamespace(checkpoint=checkpoint)) == 100.0  # timed from step 0
+    checkpoint.restore_stores({"loop": {"t": 400}, "segments": {}, "saved_rows": {}}, {})  # an older version's
+    assert checkpoint.timed_from_step == 400
+    assert env_steps_per_s(runner, 10.0, SimpleNamespace(checkpoint=checkpoint)) == 60.0

@@ -55,6 +55,7 @@ from torchrl_bail.behaviour.loop import (
     agent_kwargs,
     collect_timed,
     env_bounds,
+    env_steps_per_s,
     make_collection_env,
     seed_all,
 )
@@ -313,7 +314,7 @@ def collect_ddpg(cfg, *, scratch: Path, progress: bool = True, agent_hook=None,
         "simulator_unstable_episodes": runner.unstable_episodes,
         "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
         "behaviour_final_return_mean10": float(sum(returns[-10:]) / max(1, len(returns[-10:]))),
-        "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "env_steps_per_s": env_steps_per_s(runner, wall, resumable),
         "updates_per_s": train_time[1] / max(train_time[0], 1e-9),
     }
     log.info("DDPG collection done: %d env steps, %d gradient steps, %.1f env steps/s", runner.t, agent.updates,

@@ -26,6 +26,7 @@ from torchrl_bail.behaviour.loop import (
     ReturnTracker,
     collect_timed,
     env_bounds,
+    env_steps_per_s,
     make_collection_env,
     seed_all,
 )
@@ -115,7 +116,7 @@ def collect_sac_exec(cfg, *, scratch: Path, progress: bool = True, data_dir=None
         },
         "behaviour_return": evaluation["return_mean"],
         "env_steps": runner.t,
-        "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "env_steps_per_s": env_steps_per_s(runner, wall, resumable),
         "simulator_unstable_episodes": runner.unstable_episodes,
         "resumed_from_step": resumable.resumed_from_step if resumable is not None else None,
     }

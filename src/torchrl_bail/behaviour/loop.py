@@ -37,7 +37,7 @@ from torchrl_bail.progress import tqdm
 from torchrl_bail.simulator import make_guarded_env
 
 __all__ = ["TRANSITION_KEYS", "agent_kwargs", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker",
-           "BehaviourRun", "collect_timed"]
+           "BehaviourRun", "collect_timed", "env_steps_per_s"]
 
 #: the keys one stored transition carries (TED layout); ``episode`` (and ``oracle_return``) are added per episode
 TRANSITION_KEYS = (
@@ -315,6 +315,14 @@ class _EpisodeRows:
                      "reward": torch.from_numpy(np.asarray(self.reward, dtype=np.float32)).unsqueeze(-1),
                      "done": terminated | truncated, "terminated": terminated, "truncated": truncated},
         }, [n])
+
+
+def env_steps_per_s(runner: BehaviourRun, wall: float, resumable=None) -> float:
+    """The collection's env steps per wall second, over the steps ``wall`` (:func:`collect_timed`'s) timed: all of
+    them, or, for a collection resumed from an older version's checkpoint, which kept no time, those from its step
+    on (:attr:`~torchrl_bail.behaviour.checkpoint.CollectionCheckpoint.timed_from_step`)."""
+    timed_from = resumable.checkpoint.timed_from_step if resumable is not None else 0
+    return (runner.t - timed_from) / max(wall, 1e-9)
 
 
 def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,

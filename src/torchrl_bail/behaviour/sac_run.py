@@ -49,6 +49,7 @@ from torchrl_bail.behaviour.loop import (
     agent_kwargs,
     collect_timed,
     env_bounds,
+    env_steps_per_s,
     make_collection_env,
     seed_all,
 )
@@ -339,7 +340,7 @@ def _sac_record(cfg, identity: dict, obs_dim: int, low: torch.Tensor, high: torc
         "wall_time_s": wall,
         "train_time_s": timers["train"],
         "eval_time_s": timers["eval"],
-        "env_steps_per_s": runner.t / max(wall, 1e-9),
+        "env_steps_per_s": env_steps_per_s(runner, wall, resumable),
         "updates_per_s": agent.updates / max(timers["train"], 1e-9),
         "final_alpha": float(agent.loss.log_alpha.detach().exp()),
         "simulator_unstable_episodes": runner.unstable_episodes,
