@@ -9,6 +9,7 @@ import sys
 
 import pytest
 from _contract import ALGO_CASES
+from _summaries import comparable
 
 TINY = [
     "+exp=hopper_ddpg05", "preset=quick",
@@ -66,12 +67,7 @@ def test_same_seed_gives_the_same_summary_whether_the_batch_was_collected_or_cac
     a, b = tmp_path / "a", tmp_path / "b"
     _train(a, fresh, "seed=3", "batch.steps=600", "batch.start_steps=200", f"algo={algo}", *ALGO_TINY[algo])
     _train(b, fresh, "seed=3", "batch.steps=600", "batch.start_steps=200", f"algo={algo}", *ALGO_TINY[algo])
-    sa, sb = _summary(a), _summary(b)
-    for s in (sa, sb):
-        for volatile in ("wall_time_s", "run_dir"):
-            s.pop(volatile)
-        s["platform"].pop("source")  # the checkout's commit: a commit landing between the two runs is not a result
-    assert sa == sb
+    assert comparable(_summary(a)) == comparable(_summary(b))
 
 
 @pytest.mark.parametrize("algo", [name for name in ALGO_CASES if name != "bail"])  # BAIL: the tests above
@@ -107,3 +103,16 @@ def test_ablations_are_config_switches(tmp_path, data_dir, ablation):
         assert s["envelope_fraction_below"] is None and not (run_dir / "envelope.png").exists()
     else:  # a least-squares fit sits in the middle of the returns: far from an upper envelope
         assert s["envelope_fraction_below"] > 0.2
+
+
+def test_comparable_summaries_differ_in_any_result_and_in_nothing_else():
+    """What the same-seed checks compare (tests/_summaries.py): every key but the run's wall time, paths, resume
+    points and the checkout's commit; any result that differs still shows."""
+    summary = {"final_return": 1.5, "selected_fraction": 0.3, "wall_time_s": 12.0, "run_dir": "/a", "batch_path": "/b",
+               "resumed_from_iteration": [], "platform": {"cpu": "x", "source": {"commit": "abc", "modified": False}}}
+    again = {**summary, "wall_time_s": 99.0, "run_dir": "/c", "batch_path": "/d", "resumed_from_iteration": [5],
+             "platform": {"cpu": "x", "source": {"commit": "def", "modified": True}}}
+    assert comparable(summary) == comparable(again) == {"final_return": 1.5, "selected_fraction": 0.3,
+                                                         "platform": {"cpu": "x"}}
+    assert comparable({**again, "final_return": 1.25}) != comparable(summary)
+    assert comparable({**again, "platform": {"cpu": "y", "source": {}}}) != comparable(summary)

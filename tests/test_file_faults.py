@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import torch
 from _contract import ALGO_CASES, TINY_RUN
+from _summaries import comparable
 from hydra import compose, initialize_config_dir
 
 import torchrl_bail.io as io_module
@@ -31,9 +32,6 @@ from torchrl_bail.resume import ResumeError
 from torchrl_bail.train import run as train_run
 
 REPO = Path(__file__).resolve().parents[1]
-VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
-
-
 def run(cfg, run_dir: Path) -> dict:
     """The single-seed run's summary."""
     (summary,) = train_run(cfg, run_dir)
@@ -47,7 +45,7 @@ def _cfg(data_dir, *overrides):
 
 
 def _result(summary: dict) -> dict:
-    return {k: v for k, v in summary.items() if k not in VOLATILE}
+    return comparable(summary)
 
 
 def _summary(run_dir: Path) -> dict:

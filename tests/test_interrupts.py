@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _summaries import comparable
 
 from torchrl_bail import interrupts
 from torchrl_bail.cli import checkpoint_before_requeue, continue_command
@@ -44,7 +45,6 @@ TINY_TRAIN = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1000", "batch.s
               "batch.agent.actor_hidden=[16,16]", "batch.agent.critic_hidden=[16,16]", "env.max_episode_steps=50",
               "eval.episodes=2", "eval.max_steps=50", "returns.horizon=50", "progress=false", "algo=bc",
               "algo.policy.hidden=[64,64]", "algo.batch_size=100", "algo.epochs=0.12", "eval.every_epochs=0.03"]
-SUMMARY_VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 METADATA_VOLATILE = ("created_at", "collection_wall_time_s", "env_steps_per_s", "updates_per_s", "resumed_from_step")
 
 
@@ -158,7 +158,7 @@ def trained(tmp_path_factory):
 def _outputs(run_dir: Path) -> dict[str, object]:
     summary = json.loads((run_dir / "summary.json").read_text())
     logs = {p.relative_to(run_dir).as_posix(): p.read_text() for p in sorted((run_dir / "logs").rglob("*.csv"))}
-    return {"summary": {k: v for k, v in summary.items() if k not in SUMMARY_VOLATILE}, "logs": logs,
+    return {"summary": comparable(summary), "logs": logs,
             "policy": (run_dir / "policy.pt").stat().st_size > 0}
 
 

@@ -19,6 +19,8 @@ import threading
 import time
 from pathlib import Path
 
+from _summaries import comparable
+
 from torchrl_bail.data import locks
 from torchrl_bail.data.locks import HEARTBEAT, LOCKS, LockHeld, file_lock, host_name
 
@@ -259,7 +261,6 @@ COLLECT = ["+exp=hopper_ddpg05", "preset=quick", "progress=false", "batch.steps=
 #: a tiny BC run on it: one update, one evaluation
 TRAIN = ["algo=bc", "algo.epochs=0.0005", "algo.policy.hidden=[8,8]", "samples_per_epoch=1000000", "seed=3",
          "eval.episodes=1", "eval.max_steps=50", "eval.every_epochs=0.0005", "returns.horizon=50"]
-SUMMARY_VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 WORKERS = 5
 WORKER_ROUNDS = 10
 
@@ -567,9 +568,7 @@ def test_eight_jobs_one_batch_seeded_kills(tmp_path):
                             f"hydra.run.dir={tmp_path / 'rerun'}"], capture_output=True, text=True, cwd=tmp_path,
                            env=_ENV, timeout=300)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    summary = {k: v for k, v in json.loads((tmp_path / "train" / "summary.json").read_text()).items()
-               if k not in SUMMARY_VOLATILE}
-    assert summary == {k: v for k, v in json.loads((tmp_path / "rerun" / "summary.json").read_text()).items()
-                       if k not in SUMMARY_VOLATILE}
+    assert comparable(json.loads((tmp_path / "train" / "summary.json").read_text())) == \
+        comparable(json.loads((tmp_path / "rerun" / "summary.json").read_text()))
     print(f"\n{elapsed:.1f} s for the 8 jobs, {len(intervals)} critical sections, kills: "
           + ", ".join(f"{k['name']} ({k['why']}{', owner' if k['owned'] else ''})" for k in stress.kills))

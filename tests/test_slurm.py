@@ -24,11 +24,11 @@ from pathlib import Path
 import pytest
 import torch
 from _contract import TINY_RUN
+from _summaries import comparable
 
 pytestmark = pytest.mark.slurm
 ROOT = Path(__file__).resolve().parents[1]
 CLUSTER = ROOT / "tests" / "slurm"
-SUMMARY_VOLATILE = ("wall_time_s", "run_dir", "batch_path", "resumed_from_iteration")
 #: a drill's job: 40000 updates (about a minute on an idle core: long enough that a time-limit signal, which Slurm
 #: may send well before ``signal_delay_s``, finds it training), an evaluation (and its checkpoint) every 1000 and no
 #: timed checkpoints, so that a checkpoint at any other iteration can only have been written on the signal
@@ -88,12 +88,10 @@ def _finish(proc: subprocess.Popen, timeout: float = 600) -> str:
 
 def _summaries(root: Path) -> dict[str, dict]:
     """Every run's summary under ``root`` by its path relative to ``root``, less the keys that differ between two
-    runs of the same job (wall time, paths, where it resumed from)."""
+    runs of the same job (``comparable`` of tests/_summaries.py)."""
     out = {}
     for path in sorted(root.rglob("summary.json")):
-        summary = json.loads(path.read_text())
-        for key in SUMMARY_VOLATILE:
-            summary.pop(key)
+        summary = comparable(json.loads(path.read_text()))
         logs = {p.relative_to(path.parent).as_posix(): p.read_text() for p in (path.parent / "logs").rglob("*.csv")}
         out[path.parent.relative_to(root).as_posix()] = {"summary": summary, "logs": logs}
     return out
