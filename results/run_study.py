@@ -459,7 +459,7 @@ def work_left(states: list[tuple[str, str]], timings: dict, elsewhere: dict | No
         return "nothing left to run"
     return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "
             f"{len(unfinished)} unfinished jobs (a running job at its own pace, any other at the median recorded "
-            "cost of its algorithm: on its batch, else on the study's others, else in the other studies)"
+            "cost of its algorithm: on its batch, else on the study's others, else in its peer study's records)"
             + (f"; {unknown} of a kind with no recorded cost" if unknown else "")
             + (f"; {collecting} partial collection{'s' if collecting > 1 else ''} priced whole" if collecting else ""))
 
@@ -1108,9 +1108,8 @@ def plot_cross_batch_aggregate(batches: list[dict], aggregate: dict, path: Path)
 
 
 def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
-    """The figure ``cross_batch_aggregate.png``: the aggregate of :func:`cross_batch_aggregate` with each batch beside
-    it.
-    Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 % interval
+    """The figure ``cross_batch_aggregate.png``: the aggregate of :func:`cross_batch_aggregate` with each batch
+    beside it. Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 % interval
     (black), and on each batch where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds the IQM of that batch's normalised
     final returns alone (a marker per batch); right, the same for each probability of improvement. Where the
     batches' markers fall on both sides of an aggregate, the batches disagree, which the interval (over seeds)
