@@ -1109,10 +1109,10 @@ def plot_cross_batch_aggregate(batches: list[dict], aggregate: dict, path: Path)
 
 def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
     """The figure ``cross_batch_aggregate.png``: the aggregate of :func:`cross_batch_aggregate` with each batch
-    beside it. Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 % interval
-    (black), and on each batch where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds the IQM of that batch's normalised
-    final returns alone (a marker per batch); right, the same for each probability of improvement. Where the
-    batches' markers fall on both sides of an aggregate, the batches disagree, which the interval (over seeds)
+    beside it. Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 %
+    interval (black), and on each batch where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds the IQM of that batch's
+    normalised final returns alone (a marker per batch); right, the same for each probability of improvement. Where
+    the batches' markers fall on both sides of an aggregate, the batches disagree, which the interval (over seeds)
     does not show. ``None`` while no algorithm has entered a batch."""
     from rliable import metrics
 
