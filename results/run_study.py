@@ -56,6 +56,7 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -469,12 +470,18 @@ def conditions() -> dict:
     return {"load": [round(x, 2) for x in os.getloadavg()], "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
-def run_job(job: Job, workdir: Path, data_dir: Path | None,
-            results: Path | None = None) -> tuple[Job, int | None, float, dict]:
+def run_job(job: Job, workdir: Path, data_dir: Path | None, results: Path | None = None,
+            stop: threading.Event | None = None) -> tuple[Job, int | None, float, dict]:
     """Runs ``job`` (its output appended to ``workdir/logs/<job>.log``); returns its exit code (``None``: it had
-    finished in an earlier call, its log or its kept summary in ``results`` says so, and nothing ran), wall
-    seconds and the job's record for ``timings.json``: wall seconds, torch threads, the CPUs the job may run on,
-    the load averages at its start and end (a load near the job's own threads is a quiet machine), the CPU."""
+    finished in an earlier call, its log or its kept summary in ``results`` says so, or ``stop`` is set, and nothing
+    ran), wall seconds and the job's record for ``timings.json``: wall seconds, torch threads, the CPUs the job may run
+    on, the load averages at its start and end (a load near the job's own threads is a quiet machine), the CPU.
+
+    A collect job's batch metadata goes to ``results`` as soon as it ends (:func:`keep_batch_metadata`), before the
+    next job can start: a batch unlike the kept one sets ``stop`` (no job of the queue starts after it; running ones
+    go on) and raises :class:`BatchMismatch`."""
+    if stop is not None and stop.is_set():
+        return job, None, 0.0, {}
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     if data_dir is not None:
         env["TORCHRL_BAIL_DATA_DIR"] = str(data_dir)
@@ -510,6 +517,13 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None,
         finally:
             pid_file.unlink(missing_ok=True)
     seconds = time.perf_counter() - start
+    if rc == 0 and results is not None and job.module == "torchrl_bail.collect":
+        try:
+            keep_batch_metadata(workdir, results, [job])
+        except BatchMismatch:
+            if stop is not None:
+                stop.set()
+            raise
     return job, rc, seconds, {"wall_s": seconds, **record, "end": conditions()}
 
 
@@ -557,11 +571,20 @@ def collected_batch(job: Job, workdir: Path) -> Path | None:
     return batch if batch is not None and (batch / "metadata.json").is_file() else None
 
 
+class BatchMismatch(RuntimeError):
+    """A batch made again (its data dir lost, say) holds other data than the one whose metadata and runs are kept."""
+
+
 def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[Path]:
     """Copies the ``metadata.json`` of each batch a collect job of ``jobs`` has in the cache (the entry its log in
     ``workdir/logs`` names, in the data dir) to ``results/batches/<entry>.metadata.json``: the batch's statistics
     (episode returns, the behaviour agent's final return, collection time) stay with the results once the data dir
-    is gone. A copy already kept with the same content is left alone; returns the files written."""
+    is gone; returns the files written. A batch whose metadata is already kept was made again, its cache lost: with
+    the same data (:data:`~torchrl_bail.data.batch.STATISTICS_KEYS`, to every digit) the kept copy stays, the record
+    of the collection the kept runs trained on; with other data it raises :class:`BatchMismatch`, since runs on the
+    new copy would not compare with the kept ones."""
+    from torchrl_bail.data.batch import STATISTICS_KEYS
+
     kept = []
     for job in jobs:
         batch = collected_batch(job, workdir)
@@ -569,7 +592,15 @@ def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[P
             continue
         source = batch / "metadata.json"
         target = results / "batches" / f"{batch.name}.metadata.json"
-        if target.is_file() and target.read_bytes() == source.read_bytes():
+        if target.is_file():
+            made, before = json.loads(source.read_text()), json.loads(target.read_text())
+            differ = [k for k in STATISTICS_KEYS if made.get(k) != before.get(k)]
+            if differ:
+                raise BatchMismatch(
+                    f"{batch} holds other data than the batch kept in {target}: "
+                    + "; ".join(f"{k} {made.get(k)!r} here, {before.get(k)!r} kept" for k in differ)
+                    + ". Runs on it would not compare with the kept runs of its cells: put the original batch in the "
+                    "data dir, or move that batch's kept runs and metadata aside to make its cells again")
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(source, target)
@@ -1639,6 +1670,39 @@ def write_reports(study: str, results: Path, headline: Path) -> str:
             "paper_batches": "study.md, cross_batch.md", "ope_headline": "study.md, ope.md"}[study]
 
 
+def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Path, parallel: int) -> list[str]:
+    """Runs ``jobs`` in order, ``parallel`` at a time (:func:`run_job`), printing ``[k/N] <job>: ok in S s`` as each
+    ends and recording its cost in ``results/timings.json``; returns the names of the jobs that failed. One queue,
+    batches first: training starts while the last batches are still being collected (a job whose batch another job
+    is collecting waits on the batch's lock, then reuses it)."""
+    timings_path = results / "timings.json"
+    failed = []
+    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+        stop = threading.Event()
+        futures = {pool.submit(run_job, j, workdir.resolve(), data_dir, results, stop): j for j in jobs}
+        for done, future in enumerate(as_completed(futures), 1):
+            try:
+                job, rc, seconds, record = future.result()
+            except BatchMismatch as err:
+                print(f"[{done}/{len(jobs)}] {futures[future].name}: FAILED ({err}); no other job starts", flush=True)
+                failed.append(futures[future].name)
+                continue
+            if rc is None:
+                continue  # finished in an earlier call
+            # read again before each write: another runner (another CPU's job) may have recorded since
+            timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
+            if rc == 0:
+                timings.setdefault(job.name, whole_job_record(job, record, workdir))
+            print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
+                  f"in {seconds:.0f} s", flush=True)
+            if rc != 0:
+                failed.append(job.name)
+            tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
+            tmp.replace(timings_path)
+    return failed
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--study", choices=sorted(STUDIES), default="study",
@@ -1681,30 +1745,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     args.workdir.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)
-    timings_path = args.results / "timings.json"
-    failed = []
-    if not args.report_only:
-        # one queue, batches first: training starts while the last batches are still being collected (a job
-        # whose batch another job is collecting waits on the batch's lock, then reuses it)
-        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            futures = [pool.submit(run_job, j, args.workdir.resolve(), args.data_dir, args.results) for j in jobs]
-            for done, future in enumerate(as_completed(futures), 1):
-                job, rc, seconds, record = future.result()
-                if rc is None:
-                    continue  # finished in an earlier call
-                # read again before each write: another runner (another CPU's job) may have recorded since
-                timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-                if rc == 0:
-                    timings.setdefault(job.name, whole_job_record(job, record, args.workdir))
-                    keep_batch_metadata(args.workdir, args.results, [job])  # a collect job's batch, at once
-                print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
-                      f"in {seconds:.0f} s", flush=True)
-                if rc != 0:
-                    failed.append(job.name)
-                tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
-                tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
-                tmp.replace(timings_path)
-    copied = gather(args.workdir, args.results, STUDIES[args.study](), policies=args.study != "study")
+    failed = [] if args.report_only else run_queue(jobs, args.workdir, args.data_dir, args.results, args.jobs)
+    try:
+        copied = gather(args.workdir, args.results, STUDIES[args.study](), policies=args.study != "study")
+    except BatchMismatch as err:
+        print(f"run_study: {err}; nothing gathered, no report written", file=sys.stderr)
+        return 1
     reports = write_reports(args.study, args.results, args.headline)
     kept = len(list((args.results / "runs").glob("*/*/*/summary.json")))
     print(f"{len(copied)} runs copied from {args.workdir / 'outputs'}; {kept} runs in {args.results / 'runs'}; "

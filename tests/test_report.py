@@ -126,6 +126,23 @@ def test_bad_summary_is_one_line_naming_the_file(tmp_path, capsys, content, expe
     assert len(err.splitlines()) == 1 and str(tmp_path / "run" / "summary.json") in err and expected in err
 
 
+def test_runs_of_one_batch_on_different_data_are_refused(tmp_path, capsys):
+    """Two copies of one recipe (same name and hash) with other transitions, say one made again on another CPU
+    kind: their runs are refused as one cell, naming both; another batch may hold other data."""
+    for seed in (1, 2):
+        _write_run(tmp_path, "hopper_ddpg05_b1", "bc", seed, 100.0 * seed)
+    _write_run(tmp_path, "hopper_sac_b1", "bc", 1, 100.0)
+    other = tmp_path / "hopper_sac_b1_bc_envelope_s1" / "summary.json"
+    other.write_text(json.dumps({**json.loads(other.read_text()), "dataset_mean_episode_return": 612.5}))
+    assert len(group_runs(find_runs([tmp_path]))) == 2
+    remade = tmp_path / "hopper_ddpg05_b1_bc_envelope_s2" / "summary.json"
+    remade.write_text(json.dumps({**json.loads(remade.read_text()), "dataset_mean_episode_return": 500.25}))
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "hopper_ddpg05_b1_bc_envelope_s1 and " in err and "hopper_ddpg05_b1_bc_envelope_s2 name one batch" in err
+    assert "dataset_mean_episode_return 500.0 vs 500.25" in err
+
+
 def test_missing_directory_and_empty_tree(tmp_path, capsys):
     assert main([str(tmp_path / "missing")]) == 2
     assert main([str(tmp_path)]) == 1

@@ -478,6 +478,65 @@ def test_report_only_keeps_the_collected_batchs_metadata_and_rebuilds_from_kept_
     assert (results / "curves_walker_ddpg05_b1.png").is_file() and not (tmp_path / "another" / "outputs").exists()
 
 
+def _made_again(work: Path, data: Path, meta: dict) -> Path:
+    """The data dir entry of walker_ddpg05_b1 made again with ``meta``, and its collect job's log naming it."""
+    entry = data / "walker_ddpg05_b1-1234abcd"
+    entry.mkdir(parents=True)
+    (entry / "metadata.json").write_text(json.dumps(meta))
+    (work / "logs").mkdir(parents=True, exist_ok=True)
+    (work / "logs" / "collect__walker_ddpg05_b1.log").write_text(f"walker_ddpg05_b1: collected at {entry}\n")
+    return entry
+
+
+def test_a_batch_made_again_keeps_the_first_record_when_its_data_match_and_is_refused_when_not(run_study,
+                                                                                               tmp_path):
+    """Made again with the same statistics (another collection time, another date), the kept metadata stays, the
+    record of the batch the kept runs trained on; with another mean return, :class:`BatchMismatch` names it."""
+    results, work, data = (tmp_path / d for d in ("results", "work", "data"))
+    kept = results / "batches" / "walker_ddpg05_b1-1234abcd.metadata.json"
+    kept.parent.mkdir(parents=True)
+    kept.write_text(json.dumps(WALKER_META))
+    entry = _made_again(work, data, {**WALKER_META, "collection_wall_time_s": 4000.0, "created_at": "today"})
+    collect = run_study.Job("collect/walker_ddpg05_b1", [], "torchrl_bail.collect")
+    assert run_study.keep_batch_metadata(work, results, [collect]) == []
+    assert json.loads(kept.read_text()) == WALKER_META
+    (entry / "metadata.json").write_text(json.dumps({**WALKER_META, "episode_return_mean": 412.5}))
+    with pytest.raises(run_study.BatchMismatch, match=r"episode_return_mean 412\.5 here, 400\.0 kept"):
+        run_study.keep_batch_metadata(work, results, [collect])
+    assert json.loads(kept.read_text()) == WALKER_META
+
+
+def test_a_batch_made_again_with_other_data_stops_the_queue_and_the_report(run_study, tmp_path, monkeypatch, capsys):
+    """The queue's collect job makes walker_ddpg05_b1 again (its data dir lost) and it comes out other than the kept
+    one: the job fails, naming the difference, no training job starts on it, and no report is rebuilt."""
+    headline, results, work, data = (tmp_path / d for d in ("paper_hopper", "paper_batches", "work", "data"))
+    _fake_batch(run_study, headline, "hopper_ddpg05_b1", "abcd1234", HEADLINE_RUNS, HEADLINE_META)
+    _fake_batch(run_study, results, "walker_ddpg05_b1", "1234abcd", {}, WALKER_META)
+    entry = _made_again(work, data, {**WALKER_META, "episode_return_mean": 412.5})
+    started = []
+
+    class Process:  # what run_job starts: the collect job only logs the entry it made, as collect does
+        pid = 1
+
+        def __init__(self, argv, stdout, **kwargs):
+            started.append(argv[2])
+            stdout.write(f"walker_ddpg05_b1: collected at {entry}\n")
+            stdout.flush()
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(run_study.subprocess, "Popen", Process)
+    assert run_study.main(["--study", "paper_batches", "--only", "walker_ddpg05_b1", "--jobs", "1",
+                           "--workdir", str(work), "--results", str(results), "--headline", str(headline)]) == 1
+    assert started == ["torchrl_bail.collect"]
+    out, err = capsys.readouterr()
+    assert "collect/walker_ddpg05_b1: FAILED (" in out and "no other job starts" in out
+    assert "episode_return_mean 412.5 here, 400.0 kept" in out and "nothing gathered, no report written" in err
+    assert not (results / "cross_batch.md").exists()
+    assert json.loads((results / "batches" / "walker_ddpg05_b1-1234abcd.metadata.json").read_text()) == WALKER_META
+
+
 def test_gather_keeps_the_paper_scale_policies_and_never_a_checkpoint(run_study, tmp_path):
     """A paper-scale study keeps each finished run's ``policy.pt`` beside its summary (what ``torchrl_bail.ope``
     scores later); the 50k study keeps none; neither keeps a checkpoint."""

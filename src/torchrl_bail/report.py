@@ -63,7 +63,8 @@ from torchrl_bail.resume import ADDED_KEYS, RENAMED_KEYS
 from torchrl_bail.run_dirs import RUN_ONLY_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
-           "summarise", "format_markdown", "fqe_selected_return", "numpy_seed", "main", "NON_SEPARATING_KEYS"]
+           "summarise", "format_markdown", "fqe_selected_return", "numpy_seed", "main", "NON_SEPARATING_KEYS",
+           "check_one_data_per_batch"]
 
 #: the algorithms' order in tables and figures: their schemas' (the registry's)
 ALGO_ORDER = list(ALGO_SCHEMAS)
@@ -72,6 +73,9 @@ REQUIRED_KEYS = ("algo", "seed", "final_return", "best_return")
 #: config keys (with everything under them) that never separate groups: the run-only keys the schema marks, the
 #: seed, Hydra's node and the batch identity (``env``, ``batch``, ``dataset``: a run's batch already groups it)
 NON_SEPARATING_KEYS = (*RUN_ONLY_KEYS, "seed", "hydra", "dataset", "env", "batch")
+#: what a run's summary.json says of the data it trained on: every run of one batch (name and recipe hash) must agree
+#: on all of them, or its scores do not compare (:func:`check_one_data_per_batch`)
+DATA_KEYS = ("num_transitions", "num_episodes", "dataset_mean_episode_return", "dataset_max_episode_return")
 
 
 class ReportError(ValueError):
@@ -197,7 +201,24 @@ def find_runs(paths: list[Path]) -> list[Run]:
         for f in files:
             summary = _read_summary(f)
             runs.append(Run(f.parent, summary, _read_config(f.parent), _batch_identity(summary)))
+    check_one_data_per_batch(runs)
     return runs
+
+
+def check_one_data_per_batch(runs: list[Run]) -> None:
+    """Raises :class:`ReportError` when two runs of one batch (the same name and recipe hash) trained on different
+    data, as their summaries' :data:`DATA_KEYS` tell: a batch made again on another kind of CPU or with other library
+    versions follows the same recipe but holds other transitions, and runs on the two copies are not one cell. Runs
+    whose summaries predate a key are not compared on it."""
+    first: dict[tuple, Run] = {}
+    for run in runs:
+        seen = first.setdefault(run.batch, run)
+        differ = [k for k in DATA_KEYS if k in run.summary and k in seen.summary and run.summary[k] != seen.summary[k]]
+        if differ:
+            said = "; ".join(f"{k} {seen.summary[k]!r} vs {run.summary[k]!r}" for k in differ)
+            raise ReportError(f"{seen.run_dir} and {run.run_dir} name one batch ({run.batch[0]}, recipe "
+                              f"{run.batch[1]}) but trained on different data ({said}): report the runs of each copy "
+                              "of the batch apart")
 
 
 # ---------------------------------------------------------------------------------------------------------------

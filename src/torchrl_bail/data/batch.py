@@ -57,6 +57,7 @@ __all__ = [
     "FORMAT_VERSION",
     "validate_batch",
     "batch_statistics",
+    "STATISTICS_KEYS",
     "save_batch",
     "load_batch",
     "cpu_model",
@@ -289,18 +290,19 @@ def _episode_sums(td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     return sums, lengths
 
 
+#: the keys of :func:`batch_statistics`, which every batch's ``metadata.json`` holds: what the data say of
+#: themselves. Two copies of one batch agree on each; a batch made again from its recipe on another kind of CPU or
+#: with other library versions differs, while its provenance (when, how long) differs on any remaking.
+STATISTICS_KEYS = ("num_transitions", "num_episodes", "episode_return_mean", "episode_return_std",
+                   "episode_return_min", "episode_return_max", "episode_length_mean")
+
+
 def batch_statistics(td: TensorDictBase) -> dict[str, Any]:
-    """Sizes and behaviour episode-return statistics (undiscounted), JSON-serialisable."""
+    """Sizes and behaviour episode-return statistics (undiscounted), JSON-serialisable: :data:`STATISTICS_KEYS`."""
     sums, lengths = _episode_sums(td)
-    return {
-        "num_transitions": int(td.batch_size[0]),
-        "num_episodes": int(sums.numel()),
-        "episode_return_mean": float(sums.mean()),
-        "episode_return_std": float(sums.std(unbiased=False)),
-        "episode_return_min": float(sums.min()),
-        "episode_return_max": float(sums.max()),
-        "episode_length_mean": float(lengths.double().mean()),
-    }
+    values = (int(td.batch_size[0]), int(sums.numel()), float(sums.mean()), float(sums.std(unbiased=False)),
+              float(sums.min()), float(sums.max()), float(lengths.double().mean()))
+    return dict(zip(STATISTICS_KEYS, values, strict=True))
 
 
 @dataclass
