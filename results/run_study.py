@@ -306,8 +306,30 @@ def _is_running(log: Path) -> bool:
     return log.is_file() and time.time() - log.stat().st_mtime < 600
 
 
-def _collected_steps(job: Job, data_dir: Path | None) -> str:
-    """`` (N steps collected)``: the env steps of the last checkpoint of the batch's partial collection, if any."""
+@dataclass(frozen=True)
+class JobState:
+    """Where one job stands (:func:`job_status`); ``str()`` gives it as ``--status`` prints it, e.g. ``running
+    (2500/10000 updates, about 25 min left)``."""
+
+    state: str                                #: ``done``, ``running`` or ``left``
+    updates: tuple[int, int] | None = None    #: a training run's checkpoint: updates done, scheduled
+    seconds_left: float | None = None         #: what those updates left take at the run's pace so far
+    steps_collected: int | None = None        #: a partial collection's last checkpoint: env steps made
+    detail: str = ""                          #: any other progress (an FQE job's fits)
+
+    def __str__(self) -> str:
+        if self.updates is not None:
+            detail = f"{self.updates[0]}/{self.updates[1]} updates" + (
+                "" if self.seconds_left is None else f", about {self.seconds_left / 60:.0f} min left")
+        elif self.steps_collected is not None:
+            detail = f"{self.steps_collected} steps collected"
+        else:
+            detail = self.detail
+        return self.state + (f" ({detail})" if detail else "")
+
+
+def _collected_steps(job: Job, data_dir: Path | None) -> int | None:
+    """The env steps of the last checkpoint of the batch's partial collection, if any."""
     from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
     from torchrl_bail.data.cache import default_data_dir
     from torchrl_bail.data.locks import PARTIAL
@@ -316,7 +338,7 @@ def _collected_steps(job: Job, data_dir: Path | None) -> str:
     batch = f"{named['+exp']}_b{named.get('batch.index', 1)}"
     partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch}-*")
     steps = [s for s in (CollectionCheckpoint(p, every_s=None).steps for p in partials) if s is not None]
-    return f" ({max(steps)} steps collected)" if steps else ""
+    return max(steps) if steps else None
 
 
 def landed(job: Job, results: Path | None) -> bool:
@@ -346,38 +368,39 @@ def ope_finished(run: Path) -> bool:
     return finished_ope(run) is not None
 
 
-def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> str:
-    """``done``, ``running`` or ``left``, with the progress of its checkpoint (``updates done/scheduled``) or of its
-    partial collection (``steps collected``) where there is one. A job whose summary is kept in ``results`` is
-    done."""
+def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> JobState:
+    """``done``, ``running`` or ``left``, with the progress of its checkpoint (updates done / scheduled, and the time
+    the rest takes) or of its partial collection (steps collected) where there is one. A job whose summary is kept
+    in ``results`` is done."""
+    done = JobState("done")
     if landed(job, results):
-        return "done"
+        return done
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
-    running = _is_running(log)
+    unfinished = "running" if _is_running(log) else "left"
     if job.module == "torchrl_bail.ope":
         run = run_dir_of(job, workdir / "outputs")
         if run is not None and ope_finished(run):
-            return "done"
-        return ("running" if running else "left") + ("" if run is None else _ope_progress(run))
+            return done
+        return JobState(unfinished, detail="" if run is None else _ope_progress(run))
     if job.module != "torchrl_bail.train":
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
-            return "done"
-        return ("running" if running else "left") + _collected_steps(job, data_dir)
+            return done
+        return JobState(unfinished, steps_collected=_collected_steps(job, data_dir))
     run = run_dir_of(job, workdir / "outputs")
     if run is not None and (run / "summary.json").is_file():
-        return "done"
-    progress = ""
-    if run is not None and (run / "checkpoint.pt").is_file():
-        import torch
+        return done
+    if run is None or not (run / "checkpoint.pt").is_file():
+        return JobState(unfinished)
+    import torch
 
-        state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
-        progress = f" ({state['iteration']}/{state['iterations']} updates{_time_left(state, run, running)})"
-    return ("running" if running else "left") + progress
+    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    return JobState(unfinished, (state["iteration"], state["iterations"]),
+                    _seconds_left(state, run, unfinished == "running"))
 
 
 def _ope_progress(run: Path) -> str:
-    """`` (k of n fits, u/U updates)``: an FQE job's finished fits (``ope.json``, then one per snapshot but the
+    """``k of n fits, u/U updates``: an FQE job's finished fits (``ope.json``, then one per snapshot but the
     last, which has the final policy's weights) and the progress of the fit it checkpointed, if any; empty before
     its training has finished."""
     try:
@@ -386,7 +409,7 @@ def _ope_progress(run: Path) -> str:
         return ""
     fits = max(1, len(snapshots))
     done = (run / "ope.json").is_file() + len(list(run.glob("snapshots/ope_*.json")))
-    progress = f" ({min(done, fits)} of {fits} fit{'s' if fits != 1 else ''}"
+    progress = f"{min(done, fits)} of {fits} fit{'s' if fits != 1 else ''}"
     checkpoints = sorted([*run.glob("*_checkpoint.pt"), *run.glob("snapshots/*_checkpoint.pt")],
                          key=lambda p: p.stat().st_mtime)
     if checkpoints:
@@ -394,19 +417,19 @@ def _ope_progress(run: Path) -> str:
 
         state = torch.load(checkpoints[-1], map_location="cpu", weights_only=False)
         progress += f", {state['update']}/{state['identity']['settings']['updates']} updates"
-    return progress + ")"
+    return progress
 
 
-def _time_left(state: dict, run: Path, running: bool) -> str:
-    """``, about N min left``: the updates left at the run's own pace so far (its checkpoint's training seconds per
-    update, evaluations included), less what a running job has done since that checkpoint; empty before any."""
+def _seconds_left(state: dict, run: Path, running: bool) -> float | None:
+    """The seconds the updates left take at the run's own pace so far (its checkpoint's training seconds per update,
+    evaluations included), less what a running job has done since that checkpoint; ``None`` before any."""
     done, wall = state["iteration"], state.get("wall_time_s")
     if not done or not wall:
-        return ""
+        return None
     left = (state["iterations"] - done) * wall / done
     if running:
         left -= time.time() - (run / "checkpoint.pt").stat().st_mtime
-    return f", about {max(left, 0.0) / 60:.0f} min left"
+    return max(left, 0.0)
 
 
 #: the studies whose jobs run at a study's scale (``preset=paper``, the same schedules), so whose recorded costs price
@@ -437,25 +460,23 @@ def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
     return None
 
 
-def work_left(states: list[tuple[str, str]], timings: dict, elsewhere: dict | None = None) -> str:
+def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict | None = None) -> str:
     """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core:
     a job whose status gives its time left counts that; any other, its kind's recorded cost
     (:func:`_recorded_cost`), scaled by the share of updates its checkpoint has left (a partial collection, whose
     step count the status gives without the batch's size, at its whole cost). Jobs of a kind nothing has recorded
     yet are counted apart."""
-    total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if not s.startswith("done")]
-    collecting = sum("steps collected" in state for _, state in unfinished)
+    total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if s.state != "done"]
+    collecting = sum(state.steps_collected is not None for _, state in unfinished)
     for name, state in unfinished:
-        left = re.search(r"about (\d+) min left", state)
-        if left:
-            total += 60 * int(left.group(1))
+        if state.seconds_left is not None:
+            total += state.seconds_left
             continue
         cost = _recorded_cost(name, timings, elsewhere or {})
         if cost is None:
             unknown += 1
             continue
-        progress = re.search(r"\((\d+)/(\d+) updates", state)
-        total += cost * (1 - int(progress.group(1)) / int(progress.group(2)) if progress else 1)
+        total += cost * (1 - state.updates[0] / state.updates[1] if state.updates else 1)
     if not unfinished:
         return "nothing left to run"
     return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "
@@ -1733,9 +1754,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.status:
         states = [(j.name, job_status(j, args.workdir, args.data_dir, args.results)) for j in jobs]
-        width = max(len(state) for _, state in states)
-        print("\n".join(f"{state:<{width}}  {name}" for name, state in states))
-        counts = {k: sum(state.startswith(k) for _, state in states) for k in ("done", "running", "left")}
+        width = max(len(str(state)) for _, state in states)
+        print("\n".join(f"{str(state):<{width}}  {name}" for name, state in states))
+        counts = {k: sum(state.state == k for _, state in states) for k in ("done", "running", "left")}
         print(", ".join(f"{v} {k}" for k, v in counts.items()) + f" of {len(states)} jobs")
         own, elsewhere = args.results / "timings.json", {}
         for peer in COST_PEERS.get(args.study, ()):

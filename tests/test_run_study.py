@@ -175,29 +175,30 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     checkpoint.save({"loop": {"t": 21195}}, {})  # what a collection's checkpoint at env step 21195 records
     collect_log.write_text("collecting hopper_ddpg05_b1\n")
     collect_log.with_suffix(".pid").write_text(f"{os.getpid()}\n")  # a live process: this one
-    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "running (21195 steps collected)"
+    collect = jobs["collect/hopper_ddpg05"]
+    assert str(run_study.job_status(collect, tmp_path, data_dir)) == "running (21195 steps collected)"
     collect_log.with_suffix(".pid").write_text("999999999\n")  # a pid no process has
-    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path, data_dir) == "left (21195 steps collected)"
+    assert str(run_study.job_status(collect, tmp_path, data_dir)) == "left (21195 steps collected)"
     collect_log.with_suffix(".pid").unlink()
     collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
-    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path) == "done"
-    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path) == "left"
-    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "left (2500/10000 updates)"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path)) == "done"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path)) == "left"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == "left (2500/10000 updates)"
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")  # written just now
-    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == "running (2500/10000 updates)"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == "running (2500/10000 updates)"
     # with the training seconds its checkpoint records: the updates left at the run's pace (7500 x 0.2 s = 25 min)
     torch.save({"iteration": 2500, "iterations": 10000, "wall_time_s": 500.0}, half / "checkpoint.pt")
-    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
         "running (2500/10000 updates, about 25 min left)")
     os.utime(half / "checkpoint.pt", (time.time() - 600, time.time() - 600))  # saved 10 min ago, still running
-    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
         "running (2500/10000 updates, about 15 min left)")
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")
     os.utime(tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log", (time.time() - 900, time.time() - 900))
-    assert run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path) == (
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
         "left (2500/10000 updates, about 25 min left)")  # nothing runs: the whole remainder
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")
-    assert run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path) == "done"
+    assert str(run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path)) == "done"
     results = tmp_path / "results"
     assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path),
                            "--results", str(results)]) == 0
@@ -206,10 +207,10 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     kept = results / "runs" / "hopper_ddpg05_b1" / "bail" / "seed2"
     kept.mkdir(parents=True)
     (kept / "summary.json").write_text("{}")
-    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path, results=results) == "done"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bail/seed2"], tmp_path, results=results)) == "done"
     assert run_study.landed(jobs["hopper_ddpg05/bail/seed2"], results)
     assert not run_study.landed(jobs["hopper_ddpg05/bail/seed3"], results)
-    assert run_study.job_status(jobs["hopper_ddpg05/bail/seed3"], tmp_path, results=results) == "left"
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bail/seed3"], tmp_path, results=results)) == "left"
 
 
 def _kept(results: Path, algo: str, finals: list[float]) -> None:
@@ -594,11 +595,11 @@ def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_recor
     run(cfg, run_dir)
     log = workdir / "logs" / "ope__hopper_ddpg05__bc__seed1.log"
     os.utime(log, (time.time() - 900, time.time() - 900))  # no runner has written it for 15 min
-    assert run_study.job_status(ope, workdir) == "left (0 of 2 fits)"
+    assert str(run_study.job_status(ope, workdir)) == "left (0 of 2 fits)"
     import torch
 
     torch.save({"update": 20, "identity": {"settings": {"updates": 40}}}, run_dir / "ope_checkpoint.pt")
-    assert run_study.job_status(ope, workdir) == "left (0 of 2 fits, 20/40 updates)"
+    assert str(run_study.job_status(ope, workdir)) == "left (0 of 2 fits, 20/40 updates)"
     (run_dir / "ope_checkpoint.pt").unlink()
     monkeypatch.setattr(run_study, "OPE_FLAGS", [*run_study.OPE_FLAGS, "--updates", "40", "--hidden", "16,16"])
     _, rc, _, record = run_study.run_job(ope, workdir, tiny_run_data_dir)
@@ -606,14 +607,14 @@ def test_an_ope_job_scores_its_training_jobs_run_once_and_gather_keeps_its_recor
     assert record["threads"] == 1 and run_study.ope_finished(run_dir)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["fqe_selected"] == json.loads((run_dir / "ope.json").read_text())["fqe_selected"]
-    assert run_study.job_status(ope, workdir) == "done"
+    assert str(run_study.job_status(ope, workdir)) == "done"
     assert run_study.run_job(ope, workdir, tiny_run_data_dir)[1] is None  # nothing runs again
     results = tmp_path / "results"
     (kept,) = run_study.gather(workdir, results, policies=True)
     assert (kept / "ope.json").read_bytes() == (run_dir / "ope.json").read_bytes()
     snapshot_fits = sorted(p.name for p in (run_dir / "snapshots").glob("ope_*.json"))
     assert snapshot_fits and sorted(p.name for p in (kept / "snapshots").iterdir()) == snapshot_fits
-    assert run_study.landed(ope, results) and run_study.job_status(ope, tmp_path / "elsewhere", results=results) \
+    assert run_study.landed(ope, results) and str(run_study.job_status(ope, tmp_path / "elsewhere", results=results)) \
         == "done"
 
 
@@ -744,19 +745,20 @@ def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
     timings = {"b1/bail/seed1": {"wall_s": 1000.0}, "b1/bail/seed2": {"wall_s": 3000.0},
                "b2/bail/seed1": {"wall_s": 9000.0}, "b1/bc/seed1": 2000.0, "collect/b1": {"wall_s": 7200.0}}
     elsewhere = {"hopper/bcq/seed1": 3600.0, "hopper/bc/seed1": 99999.0}  # the study's own bc record comes first
-    states = [("b1/bail/seed3", "left"),                                 # its batch's median: 2000 s
-              ("b2/bail/seed2", "left (2500/10000 updates)"),            # 9000 x 3/4 = 6750 s
-              ("b3/bc/seed1", "left"),                                   # the study's other batch: 2000 s
-              ("b3/bcq/seed1", "left"),                                  # the peer study: 3600 s
-              ("b3/iql/seed1", "left"),                                  # nothing recorded
-              ("b1/bc/seed2", "running (10/100 updates, about 30 min left)"),  # its own pace: 1800 s
-              ("b1/bail/seed1", "done")]
+    state = run_study.JobState
+    states = [("b1/bail/seed3", state("left")),                          # its batch's median: 2000 s
+              ("b2/bail/seed2", state("left", (2500, 10000))),           # 9000 x 3/4 = 6750 s
+              ("b3/bc/seed1", state("left")),                            # the study's other batch: 2000 s
+              ("b3/bcq/seed1", state("left")),                           # the peer study: 3600 s
+              ("b3/iql/seed1", state("left")),                           # nothing recorded
+              ("b1/bc/seed2", state("running", (10, 100), 1500.0)),      # its own pace: 1500 s (not 2000 x 0.9)
+              ("b1/bail/seed1", state("done"))]
     line = run_study.work_left(states, timings, elsewhere)
-    assert line.startswith(f"left to run: about {(2000 + 6750 + 2000 + 3600 + 1800) / 3600:.1f} h of one core for 5 "
+    assert line.startswith(f"left to run: about {(2000 + 6750 + 2000 + 3600 + 1500) / 3600:.1f} h of one core for 5 "
                            "of the 6 unfinished jobs") and line.endswith("; 1 of a kind with no recorded cost")
-    line = run_study.work_left([("collect/b2", "left (500 steps collected)")], timings)
+    line = run_study.work_left([("collect/b2", state("left", steps_collected=500))], timings)
     assert line.startswith("left to run: about 2.0 h") and line.endswith("; 1 partial collection priced whole")
-    assert run_study.work_left([("b1/bail/seed1", "done")], timings) == "nothing left to run"
+    assert run_study.work_left([("b1/bail/seed1", state("done"))], timings) == "nothing left to run"
 
 
 def test_the_aggregate_figure_puts_each_batch_beside_the_interval(run_study, cross_batch):
