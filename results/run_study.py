@@ -42,8 +42,9 @@ probabilities of improvement over all of them, each batch's final returns min-ma
 (:func:`normalised_return`). Every collect job's batch metadata is kept in ``<results>/batches``
 (:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept, with zero, some or all runs.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
-with the checkpoint's progress (updates done / scheduled) where one exists and the time the updates left take at
-the run's pace so far; its last line prices what is left in hours of one core (:func:`work_left`).
+with the checkpoint's progress (updates done / scheduled, or a collection's transitions kept / wanted) where one
+exists and the time the rest takes at the job's pace so far; its last line prices what is left in hours of one core
+(:func:`work_left`).
 """
 
 from __future__ import annotations
@@ -313,14 +314,17 @@ class JobState:
 
     state: str                                #: ``done``, ``running`` or ``left``
     updates: tuple[int, int] | None = None    #: a training run's checkpoint: updates done, scheduled
-    seconds_left: float | None = None         #: what those updates left take at the run's pace so far
-    steps_collected: int | None = None        #: a partial collection's last checkpoint: env steps made
+    seconds_left: float | None = None         #: what the updates or transitions left take at the job's pace so far
+    transitions: tuple[int, int] | None = None  #: a partial collection's last checkpoint: transitions kept, wanted
+    steps_collected: int | None = None        #: the same from an older checkpoint, which names no size: env steps
     detail: str = ""                          #: any other progress (an FQE job's fits)
 
     def __str__(self) -> str:
+        left = "" if self.seconds_left is None else f", about {self.seconds_left / 60:.0f} min left"
         if self.updates is not None:
-            detail = f"{self.updates[0]}/{self.updates[1]} updates" + (
-                "" if self.seconds_left is None else f", about {self.seconds_left / 60:.0f} min left")
+            detail = f"{self.updates[0]}/{self.updates[1]} updates{left}"
+        elif self.transitions is not None:
+            detail = f"{self.transitions[0]}/{self.transitions[1]} transitions{left}"
         elif self.steps_collected is not None:
             detail = f"{self.steps_collected} steps collected"
         else:
@@ -328,17 +332,27 @@ class JobState:
         return self.state + (f" ({detail})" if detail else "")
 
 
-def _collected_steps(job: Job, data_dir: Path | None) -> int | None:
-    """The env steps of the last checkpoint of the batch's partial collection, if any."""
-    from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
+def _collection_state(job: Job, data_dir: Path | None, unfinished: str) -> JobState:
+    """An unfinished collect job with the last checkpoint of its batch's partial collection, if any: the transitions
+    kept out of the batch's size and the time the rest takes at the collection's pace so far (less what a running
+    job has done since), or, from an older checkpoint that names no size, its env steps."""
+    from torchrl_bail.behaviour.checkpoint import STATE_FILE, CollectionCheckpoint
     from torchrl_bail.data.cache import default_data_dir
     from torchrl_bail.data.locks import PARTIAL
 
     named = dict(arg.split("=", 1) for arg in job.args)
     batch = f"{named['+exp']}_b{named.get('batch.index', 1)}"
     partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch}-*")
-    steps = [s for s in (CollectionCheckpoint(p, every_s=None).steps for p in partials) if s is not None]
-    return max(steps) if steps else None
+    found = [(state, p) for p in partials if (state := CollectionCheckpoint(p, every_s=None).load()) is not None]
+    if not found:
+        return JobState(unfinished)
+    state, partial = max(found, key=lambda f: int(f[0]["loop"]["t"]))
+    kept, size = state["buffers"]["kept"], state["buffers"].get("steps")
+    if size is None:
+        return JobState(unfinished, steps_collected=int(state["loop"]["t"]))
+    wall = None if state.get("timed_from_step") else state.get("wall_time_s")  # else its first steps are untimed
+    return JobState(unfinished, transitions=(int(kept), int(size)),
+                    seconds_left=_seconds_left(kept, size, wall, partial / STATE_FILE, unfinished == "running"))
 
 
 def landed(job: Job, results: Path | None) -> bool:
@@ -386,7 +400,7 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
             return done
-        return JobState(unfinished, steps_collected=_collected_steps(job, data_dir))
+        return _collection_state(job, data_dir, unfinished)
     run = run_dir_of(job, workdir / "outputs")
     if run is not None and (run / "summary.json").is_file():
         return done
@@ -396,7 +410,8 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
 
     state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
     return JobState(unfinished, (state["iteration"], state["iterations"]),
-                    _seconds_left(state, run, unfinished == "running"))
+                    _seconds_left(state["iteration"], state["iterations"], state.get("wall_time_s"),
+                                  run / "checkpoint.pt", unfinished == "running"))
 
 
 def _ope_progress(run: Path) -> str:
@@ -420,15 +435,15 @@ def _ope_progress(run: Path) -> str:
     return progress
 
 
-def _seconds_left(state: dict, run: Path, running: bool) -> float | None:
-    """The seconds the updates left take at the run's own pace so far (its checkpoint's training seconds per update,
-    evaluations included), less what a running job has done since that checkpoint; ``None`` before any."""
-    done, wall = state["iteration"], state.get("wall_time_s")
+def _seconds_left(done: int, total: int, wall: float | None, checkpoint: Path, running: bool) -> float | None:
+    """The seconds the ``total - done`` units left (updates, transitions) take at the job's own pace so far (the
+    ``wall`` seconds its ``checkpoint`` records for the ``done`` ones: a run's evaluations included), less what a
+    running job has done since that checkpoint; ``None`` before any, or where the checkpoint records no time."""
     if not done or not wall:
         return None
-    left = (state["iterations"] - done) * wall / done
+    left = (total - done) * wall / done
     if running:
-        left -= time.time() - (run / "checkpoint.pt").stat().st_mtime
+        left -= time.time() - checkpoint.stat().st_mtime
     return max(left, 0.0)
 
 
@@ -463,8 +478,8 @@ def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
 def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict | None = None) -> str:
     """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core:
     a job whose status gives its time left counts that; any other, its kind's recorded cost
-    (:func:`_recorded_cost`), scaled by the share of updates its checkpoint has left (a partial collection, whose
-    step count the status gives without the batch's size, at its whole cost). Jobs of a kind nothing has recorded
+    (:func:`_recorded_cost`), scaled by the share of updates or transitions its checkpoint has left (a partial
+    collection whose older checkpoint names no batch size, at its whole cost). Jobs of a kind nothing has recorded
     yet are counted apart."""
     total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if s.state != "done"]
     collecting = sum(state.steps_collected is not None for _, state in unfinished)
@@ -476,7 +491,8 @@ def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict
         if cost is None:
             unknown += 1
             continue
-        total += cost * (1 - state.updates[0] / state.updates[1] if state.updates else 1)
+        progress = state.updates or state.transitions
+        total += cost * (1 - progress[0] / progress[1] if progress else 1)
     if not unfinished:
         return "nothing left to run"
     return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "

@@ -71,6 +71,8 @@ def test_a_crashed_collection_resumes_to_the_same_bytes(tmp_path, monkeypatch, o
     assert {"segments", "state.pt"} <= {p.name for p in partial.iterdir()}
     state = torch.load(partial / "state.pt", weights_only=True)
     assert state["wall_time_s"] > 0
+    # the transitions kept and the batch's size, which run_study.py --status reads for its progress and time left
+    assert 0 < state["buffers"]["kept"] < state["buffers"]["steps"] == reference.num_transitions
     torch.save({**state, "wall_time_s": 1e6}, partial / "state.pt")  # as if the first part had taken 10^6 s
     start = time.perf_counter()
     resumed = ensure_batch(cfg, progress=False, data_dir=data_dir)

@@ -172,13 +172,22 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     data_dir = tmp_path / "data"
     partial = data_dir / ".partial" / "hopper_ddpg05_b1-1234"
     checkpoint = CollectionCheckpoint(partial, every_s=None)
-    checkpoint.save({"loop": {"t": 21195}}, {})  # what a collection's checkpoint at env step 21195 records
+    # what an older version's collection checkpoint at env step 21195 records: no batch size, so no time left
+    checkpoint.save({"loop": {"t": 21195}, "buffers": {"kept": 21195, "episode_id": 80}}, {})
     collect_log.write_text("collecting hopper_ddpg05_b1\n")
     collect_log.with_suffix(".pid").write_text(f"{os.getpid()}\n")  # a live process: this one
     collect = jobs["collect/hopper_ddpg05"]
     assert str(run_study.job_status(collect, tmp_path, data_dir)) == "running (21195 steps collected)"
     collect_log.with_suffix(".pid").write_text("999999999\n")  # a pid no process has
     assert str(run_study.job_status(collect, tmp_path, data_dir)) == "left (21195 steps collected)"
+    # today's: the batch's size, and 600 s for the first 200000 transitions (earlier processes of the collection):
+    # the 800000 left take 40 min at that pace, counted in the work left
+    checkpoint.earlier_wall_time_s = 600.0
+    checkpoint.save({"loop": {"t": 200000}, "buffers": {"kept": 200000, "steps": 10**6, "episode_id": 900}}, {})
+    state = run_study.job_status(collect, tmp_path, data_dir)
+    assert state.transitions == (200000, 10**6) and str(state) == "left (200000/1000000 transitions, about 40 min left)"
+    assert run_study.work_left([("collect/b", state)], {}).startswith(
+        "left to run: about 0.7 h of one core for 1 of the 1")
     collect_log.with_suffix(".pid").unlink()
     collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
     assert str(run_study.job_status(jobs["hopper_ddpg05/bail/seed1"], tmp_path)) == "done"

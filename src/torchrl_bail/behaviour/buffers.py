@@ -172,7 +172,9 @@ class BehaviourBuffers:
         return stores
 
     def state_dict(self) -> dict[str, int]:
-        return {"kept": self.sink.kept, "episode_id": self.sink.episode_id}
+        """The transitions kept so far, the batch's size (for progress reports: ``run_study.py --status``) and the
+        next episode's id."""
+        return {"kept": self.sink.kept, "steps": self.steps, "episode_id": self.sink.episode_id}
 
     def load_state_dict(self, state: dict[str, int]) -> None:
         self.sink.kept = int(state["kept"])
