@@ -612,14 +612,30 @@ class BatchMismatch(RuntimeError):
     """A batch made again (its data dir lost, say) holds other data than the one whose metadata and runs are kept."""
 
 
+def _record_remake(path: Path, remade: dict, same: tuple[str, ...]) -> bool:
+    """Adds ``remade`` (a remaking's metadata fields that differ from the kept batch's) to the ``remakes`` of the
+    JSON file at ``path``, beside ``same`` (the statistics found equal), unless it is already there or empty;
+    returns whether the file changed."""
+    from torchrl_bail.io import write_json_atomic
+
+    record = json.loads(path.read_text()) if path.is_file() else {"same": list(same), "remakes": []}
+    if not remade or remade in record["remakes"]:
+        return False
+    record["remakes"].append(remade)
+    write_json_atomic(path, record)
+    return True
+
+
 def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[Path]:
     """Copies the ``metadata.json`` of each batch a collect job of ``jobs`` has in the cache (the entry its log in
     ``workdir/logs`` names, in the data dir) to ``results/batches/<entry>.metadata.json``: the batch's statistics
     (episode returns, the behaviour agent's final return, collection time) stay with the results once the data dir
     is gone; returns the files written. A batch whose metadata is already kept was made again, its cache lost: with
     the same data (:data:`~torchrl_bail.data.batch.STATISTICS_KEYS`, to every digit) the kept copy stays, the record
-    of the collection the kept runs trained on; with other data it raises :class:`BatchMismatch`, since runs on the
-    new copy would not compare with the kept ones."""
+    of the collection the kept runs trained on, and ``<entry>.remakes.json`` lists each remaking's own record (the
+    fields in which its metadata differ: when, how long, on which versions), the evidence that the recipe makes the
+    same batch again; with other data it raises :class:`BatchMismatch`, since runs on the new copy would not compare
+    with the kept ones."""
     from torchrl_bail.data.batch import STATISTICS_KEYS
 
     kept = []
@@ -638,6 +654,9 @@ def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[P
                     + "; ".join(f"{k} {made.get(k)!r} here, {before.get(k)!r} kept" for k in differ)
                     + ". Runs on it would not compare with the kept runs of its cells: put the original batch in the "
                     "data dir, or move that batch's kept runs and metadata aside to make its cells again")
+            remakes = target.with_name(f"{batch.name}.remakes.json")
+            if _record_remake(remakes, {k: v for k, v in made.items() if v != before.get(k)}, STATISTICS_KEYS):
+                kept.append(remakes)
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(source, target)

@@ -501,15 +501,21 @@ def _made_again(work: Path, data: Path, meta: dict) -> Path:
 def test_a_batch_made_again_keeps_the_first_record_when_its_data_match_and_is_refused_when_not(run_study,
                                                                                                tmp_path):
     """Made again with the same statistics (another collection time, another date), the kept metadata stays, the
-    record of the batch the kept runs trained on; with another mean return, :class:`BatchMismatch` names it."""
+    record of the batch the kept runs trained on, and the remaking's own fields are listed beside it (once, however
+    often it is gathered); with another mean return, :class:`BatchMismatch` names it."""
     results, work, data = (tmp_path / d for d in ("results", "work", "data"))
     kept = results / "batches" / "walker_ddpg05_b1-1234abcd.metadata.json"
     kept.parent.mkdir(parents=True)
     kept.write_text(json.dumps(WALKER_META))
     entry = _made_again(work, data, {**WALKER_META, "collection_wall_time_s": 4000.0, "created_at": "today"})
     collect = run_study.Job("collect/walker_ddpg05_b1", [], "torchrl_bail.collect")
+    remakes = results / "batches" / "walker_ddpg05_b1-1234abcd.remakes.json"
+    assert run_study.keep_batch_metadata(work, results, [collect]) == [remakes]
     assert run_study.keep_batch_metadata(work, results, [collect]) == []
     assert json.loads(kept.read_text()) == WALKER_META
+    record = json.loads(remakes.read_text())
+    assert record["remakes"] == [{"collection_wall_time_s": 4000.0, "created_at": "today"}]
+    assert "episode_return_mean" in record["same"] and "num_transitions" in record["same"]
     (entry / "metadata.json").write_text(json.dumps({**WALKER_META, "episode_return_mean": 412.5}))
     with pytest.raises(run_study.BatchMismatch, match=r"episode_return_mean 412\.5 here, 400\.0 kept"):
         run_study.keep_batch_metadata(work, results, [collect])
