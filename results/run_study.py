@@ -383,9 +383,9 @@ def ope_finished(run: Path) -> bool:
 
 
 def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: Path | None = None) -> JobState:
-    """``done``, ``running`` or ``left``, with the progress of its checkpoint (updates done / scheduled, and the time
-    the rest takes) or of its partial collection (steps collected) where there is one. A job whose summary is kept
-    in ``results`` is done."""
+    """``done``, ``running`` or ``left``, with the progress of its checkpoint (updates done / scheduled) or of its
+    partial collection (transitions kept / wanted), and the time the rest takes, where there is one. A job whose
+    summary is kept in ``results`` is done."""
     done = JobState("done")
     if landed(job, results):
         return done

@@ -168,12 +168,6 @@ class CollectionCheckpoint:
             return None
         return state
 
-    @property
-    def steps(self) -> int | None:
-        """The env steps the last complete checkpoint had made (``None``: no readable checkpoint)."""
-        state = self.load()
-        return None if state is None else int(state["loop"]["t"])
-
     def save(self, state: dict[str, Any], stores: Mapping[str, Any]) -> None:
         """Writes the rows the ``stores`` (name -> :class:`~torchrl_bail.behaviour.buffers.EpisodeStore`) gained
         since the last checkpoint, then ``state`` (atomically, last). Raises
