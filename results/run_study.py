@@ -612,6 +612,11 @@ class BatchMismatch(RuntimeError):
     """A batch made again (its data dir lost, say) holds other data than the one whose metadata and runs are kept."""
 
 
+def remakes_file(metadata: Path) -> Path:
+    """``<entry>.remakes.json`` beside a kept ``<entry>.metadata.json``: the batch's remakings with the same data."""
+    return metadata.with_name(metadata.name.replace(".metadata.json", ".remakes.json"))
+
+
 def _record_remake(path: Path, remade: dict, same: tuple[str, ...]) -> bool:
     """Adds ``remade`` (a remaking's metadata fields that differ from the kept batch's) to the ``remakes`` of the
     JSON file at ``path``, beside ``same`` (the statistics found equal), unless it is already there or empty;
@@ -654,7 +659,7 @@ def keep_batch_metadata(workdir: Path, results: Path, jobs: list[Job]) -> list[P
                     + "; ".join(f"{k} {made.get(k)!r} here, {before.get(k)!r} kept" for k in differ)
                     + ". Runs on it would not compare with the kept runs of its cells: put the original batch in the "
                     "data dir, or move that batch's kept runs and metadata aside to make its cells again")
-            remakes = target.with_name(f"{batch.name}.remakes.json")
+            remakes = remakes_file(target)
             if _record_remake(remakes, {k: v for k, v in made.items() if v != before.get(k)}, STATISTICS_KEYS):
                 kept.append(remakes)
             continue
@@ -744,11 +749,12 @@ def curve_check(results: Path) -> list[dict]:
         n = min(len(c) for c in curves)
         if n - n // 2 < 3:  # a line through a second half of fewer than 3 evaluations says nothing
             continue
-        mean = np.mean([c[:n] for c in curves], axis=0)
-        x = np.arange(n // 2, n)
-        slope, intercept = np.polyfit(x, mean[n // 2:], 1)
-        spread = float(np.std(mean[n // 2:] - (slope * x + intercept), ddof=2))
-        change, level = float(slope * (x[-1] - x[0])), float(mean[n // 2:].mean())
+        y = np.mean([c[:n] for c in curves], axis=0)[n // 2:]
+        dx = np.arange(n // 2, n) - (n // 2 + n - 1) / 2  # evaluation index about the half's centre
+        # least squares in closed form, not np.polyfit: LAPACK's kernels differ by CPU, these sums do not
+        slope = float((dx * (y - y.mean())).sum() / (dx * dx).sum())
+        spread = float(np.std(y - (y.mean() + slope * dx), ddof=2))
+        change, level = slope * float(dx[-1] - dx[0]), float(y.mean())
         row = {"batch": key[0], "algo": key[1], "overrides": key[2], "seeds": len(curves), "evaluations": n,
                "second_half_mean": level, "second_half_change": change, "residual_spread": spread,
                "still_moving": bool(abs(change) > max(2 * spread, 0.05 * abs(level)))}
@@ -1351,10 +1357,13 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
         keys = ("episode_return_mean", "episode_return_min", "episode_return_max", "behaviour_final_return_mean10",
                 "collection_wall_time_s", "collection_timed_from_step", "num_transitions", "num_episodes", "env_id",
                 "recipe_hash")
+        remakes = [] if meta_path is None or not remakes_file(meta_path).is_file() else [
+            {k: r.get(k) for k in ("created_at", "collection_wall_time_s", "collection_timed_from_step")}
+            for r in json.loads(remakes_file(meta_path).read_text())["remakes"]]
         batches.append({
             "batch": label, "results": _shown(root), "published_bail": published, "complete": complete,
             "metadata_file": None if meta_path is None else _shown(meta_path),
-            "metadata": None if metadata is None else {k: metadata.get(k) for k in keys},
+            "metadata": None if metadata is None else {k: metadata.get(k) for k in keys}, "remakes": remakes,
             "cells": rows, "claims": claims, "figure": None if figure is None else figure.name})
     aggregate = cross_batch_aggregate(batches)
     aggregate_figure = plot_cross_batch_aggregate(batches, aggregate, results / "cross_batch_aggregate.png")
@@ -1382,8 +1391,11 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
 
     def collection_time(b) -> str:  # a part of a resumed collection may not have been timed
         timed_from = (b["metadata"] or {}).get("collection_timed_from_step")
+        again = [f"{r['collection_wall_time_s'] / 3600:.1f} h" for r in b["remakes"]
+                 if r["collection_wall_time_s"] is not None and not r["collection_timed_from_step"]]
         return (meta(b, "collection_wall_time_s", lambda s: f"{s / 3600:.1f} h")
-                + (f" (env steps {timed_from:,} on)" if timed_from else ""))
+                + (f" (env steps {timed_from:,} on)" if timed_from else "")
+                + (f"; made again: {', '.join(again)}" if again else ""))
 
     lines = [status, "",
              "| batch | data: mean episode return | behaviour agent's final return | collection time | "
@@ -1397,7 +1409,9 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
               "batch's mean episode return; behaviour agent's final return: the mean of its last 10 evaluations as "
               "collection ended; collection time: wall time of the 10^6-step collection, summed over its parts "
               "when it was resumed from its checkpoint (\"env steps N on\": an older version's checkpoint, "
-              "which kept no time, held the steps before N) (all from the batch's kept metadata.json). "
+              "which kept no time, held the steps before N) (all from the batch's kept metadata.json); made again: the "
+              "time of each later collection of the same batch from scratch, its cache lost, that made the same data "
+              "to every digit (its remakes.json). "
               "Published BAIL: the authors' figures, mean ± std over seeds, on gym's -v2 "
               "envs — for the three added batches from their repository's README table, for hopper_ddpg05_b1 the "
               "paper's Table 1. These runs use Gymnasium's -v5 (simulator and rewards changed), so the levels "

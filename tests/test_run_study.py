@@ -377,6 +377,11 @@ def cross_batch(run_study, tmp_path_factory):
     headline, results = root / "paper_hopper", root / "paper_batches"
     _fake_batch(run_study, headline, "hopper_ddpg05_b1", "abcd1234", HEADLINE_RUNS, HEADLINE_META)
     _fake_batch(run_study, results, "walker_ddpg05_b1", "1234abcd", WALKER_RUNS, WALKER_META)
+    # the headline batch made twice again with the same data: once from scratch, once resumed from an older
+    # version's checkpoint (its first steps untimed: not a collection time)
+    (headline / "batches" / "hopper_ddpg05_b1-abcd1234.remakes.json").write_text(json.dumps({"same": [], "remakes": [
+        {"created_at": "later", "collection_wall_time_s": 5400.0, "collection_timed_from_step": 0},
+        {"created_at": "later still", "collection_wall_time_s": 60.0, "collection_timed_from_step": 990000}]}))
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(run_study, "CROSS_BATCH_REPS", 300)
         out = run_study.cross_batch_report(results, headline)
@@ -390,7 +395,7 @@ def test_the_cross_batch_table_has_a_row_per_batch_with_its_metadata_and_pending
                                                      "hopper_ddpg05_b2"]
     assert "| batch | data: mean episode return | behaviour agent's final return | collection time | bail | pbail | " \
            "bc | bcq | published BAIL (gym -v2) |" in text  # no run of BEAR, TD3+BC or IQL: no column
-    assert ("| hopper_ddpg05_b1 | 500.0 | 1234.5 | 2.5 h | 2200.0 ± 79.1 | 2200.0 ± 50.0 | 450.0 ± 41.2 | "
+    assert ("| hopper_ddpg05_b1 | 500.0 | 1234.5 | 2.5 h; made again: 1.5 h | 2200.0 ± 79.1 | 2200.0 ± 50.0 | 450.0 ± 41.2 | "
             "2650.0 ± 50.0 | 2054 ± 158 |") in text
     assert ("| walker_ddpg05_b1 | 400.0 | 1500.0 | 1.0 h | 1100.0 ± 79.1 | pending (0 of 3 seeds) | "
             "325.0 ± 35.4 (2 of 5 seeds) | pending (0 of 3 seeds) | 2522 ± 51 |") in text
@@ -399,6 +404,8 @@ def test_the_cross_batch_table_has_a_row_per_batch_with_its_metadata_and_pending
     assert "| walker_ddpg05_b1 | " in text.split("Interquartile mean")[0].split("| batch | bail |")[1]
     assert "pending (2 of 5 seeds)" in text  # BC's IQM on walker: below 3 seeds
     assert "gym's -v2" in text and "Gymnasium's -v5" in text and "README table" in text
+    assert [r["created_at"] for r in out["batches"][0]["remakes"]] == ["later", "later still"]
+    assert out["batches"][1]["remakes"] == []
     assert out["complete_batches"] == ["hopper_ddpg05_b1"] and "1 of 4 (hopper_ddpg05_b1)" in out["status"]
     assert sorted(p.name for p in results.glob("curves_*.png")) == ["curves_hopper_ddpg05_b1.png",
                                                                      "curves_walker_ddpg05_b1.png"]
