@@ -513,6 +513,21 @@ def test_readme_quotes_the_complete_walker_batch_as_the_cross_batch_report_has_i
         assert f"{claim['claim']}: {claim['verdict'].split(' (')[0]}" in sentence, claim["claim"]
 
 
+def test_readme_reads_bail_over_bc_across_batches_as_the_cross_batch_report_does():
+    """The README's sentence on BAIL ≫ BC across the four batches is ``cross_batch.json``'s: the count of batches
+    where it holds and the aggregate probability of improvement of BAIL over BC with its interval and reading."""
+    report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
+    claim = next(c for c in report["claims_across_batches"] if c["claim"] == "BAIL ≫ BC")
+    improvement = next(p for p in report["aggregate"]["probability_of_improvement"]
+                       if (p["a"], p["b"]) == ("bail", "bc"))
+    assert improvement["reading"].startswith("bail above bc across batches"), improvement["reading"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert (f"BAIL ≫ BC holds on {claim['holds']} of {len(report['batches'])} batches (disjoint IQM intervals on each)"
+            in readme) and claim["holds"] == len(report["batches"])
+    assert (f"the probability that a BAIL run ends above a BC run on the same batch is {improvement['p']:.2f} "
+            f"[{improvement['ci_low']:.2f}, {improvement['ci_high']:.2f}] over the four") in readme
+
+
 def test_the_results_pages_cross_batch_state_is_the_reports():
     """"Across batches" includes the cross-batch report, whose first line (``cross_batch.json``'s ``status``) says
     where the study stands, so that the page never restates a state that the next job changes. Once all four batches
