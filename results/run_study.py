@@ -3,7 +3,7 @@
     python results/run_study.py                              # everything: 11 batches, every algorithm, reports (hours)
     python results/run_study.py --only hopper_ddpg05/bail/seed  # one row: its batch and 3 seeds, then the reports
     python results/run_study.py --list                       # the jobs, in the order they run
-    python results/run_study.py --study paper_hopper --jobs 2   # the paper-scale Hopper study (days of CPU)
+    python results/run_study.py --study paper_hopper --jobs 2 --pin  # paper scale (days of CPU), a core per job
     python results/run_study.py --study paper_hopper --status   # where its jobs stand: done, running, left
 
 Every job is one ``python -m torchrl_bail.train ... preset=study`` command (or ``torchrl_bail.collect`` for a
@@ -53,6 +53,7 @@ import argparse
 import functools
 import json
 import os
+import queue
 import re
 import shutil
 import subprocess
@@ -508,11 +509,15 @@ def conditions() -> dict:
 
 
 def run_job(job: Job, workdir: Path, data_dir: Path | None, results: Path | None = None,
-            stop: threading.Event | None = None) -> tuple[Job, int | None, float, dict]:
+            stop: threading.Event | None = None, cpus: queue.SimpleQueue | None = None
+            ) -> tuple[Job, int | None, float, dict]:
     """Runs ``job`` (its output appended to ``workdir/logs/<job>.log``); returns its exit code (``None``: it had
     finished in an earlier call, its log or its kept summary in ``results`` says so, or ``stop`` is set, and nothing
     ran), wall seconds and the job's record for ``timings.json``: wall seconds, torch threads, the CPUs the job may run
     on, the load averages at its start and end (a load near the job's own threads is a quiet machine), the CPU.
+
+    ``cpus`` (``--pin``): the free CPUs of the queue; the job takes one for its whole run (``taskset -c``), alone on
+    it, and gives it back when it ends; without, it may run on any CPU of the runner's.
 
     A collect job's batch metadata goes to ``results`` as soon as it ends (:func:`keep_batch_metadata`), before the
     next job can start: a batch unlike the kept one sets ``stop`` (no job of the queue starts after it; running ones
@@ -541,19 +546,26 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None, results: Path | None
         args, extra = [str(run.relative_to(workdir))], OPE_FLAGS
     else:
         extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
-    record = {"threads": None if job.module == "torchrl_bail.collect" else 1, "cpus": sorted(os.sched_getaffinity(0)),
-              "cpu": cpu_model(), "start": conditions()}
-    start = time.perf_counter()
-    pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
-    with open(log, "a") as out:
-        proc = subprocess.Popen([sys.executable, "-m", job.module, *args, *extra], cwd=workdir, env=env,
-                                stdout=out, stderr=subprocess.STDOUT)
-        pid_file.write_text(f"{proc.pid}\n")
-        try:
-            rc = proc.wait()
-        finally:
-            pid_file.unlink(missing_ok=True)
-    seconds = time.perf_counter() - start
+    cpu = None if cpus is None else cpus.get()
+    try:
+        pinned = [] if cpu is None else ["taskset", "-c", str(cpu)]
+        record = {"threads": None if job.module == "torchrl_bail.collect" else 1,
+                  "cpus": sorted(os.sched_getaffinity(0)) if cpu is None else [cpu], "cpu": cpu_model(),
+                  "start": conditions()}
+        start = time.perf_counter()
+        pid_file = log.with_suffix(".pid")  # while it exists and names a live process, --status says "running"
+        with open(log, "a") as out:
+            proc = subprocess.Popen([*pinned, sys.executable, "-m", job.module, *args, *extra], cwd=workdir, env=env,
+                                    stdout=out, stderr=subprocess.STDOUT)
+            pid_file.write_text(f"{proc.pid}\n")
+            try:
+                rc = proc.wait()
+            finally:
+                pid_file.unlink(missing_ok=True)
+        seconds = time.perf_counter() - start
+    finally:
+        if cpu is not None:
+            cpus.put(cpu)
     if rc == 0 and results is not None and job.module == "torchrl_bail.collect":
         try:
             keep_batch_metadata(workdir, results, [job])
@@ -1740,16 +1752,34 @@ def write_reports(study: str, results: Path, headline: Path) -> str:
             "paper_batches": "study.md, cross_batch.md", "ope_headline": "study.md, ope.md"}[study]
 
 
-def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Path, parallel: int) -> list[str]:
+def pin_cpus(parallel: int) -> queue.SimpleQueue:
+    """The CPUs ``--pin`` gives the queue's jobs: the first ``parallel`` of the runner's own (``os.sched_getaffinity``,
+    so ``taskset -c 2,3 python results/run_study.py --jobs 2 --pin`` uses CPUs 2 and 3). A clear error where there are
+    fewer CPUs than jobs or no ``taskset`` (util-linux) to pin with."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if parallel > len(allowed):
+        raise ValueError(f"--pin runs each job alone on a CPU: --jobs {parallel} needs {parallel} CPUs, this process "
+                         f"may use {len(allowed)} ({allowed})")
+    if shutil.which("taskset") is None:
+        raise ValueError("--pin starts each job under taskset (util-linux), which is not on PATH")
+    cpus = queue.SimpleQueue()
+    for cpu in allowed[:max(1, parallel)]:
+        cpus.put(cpu)
+    return cpus
+
+
+def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Path, parallel: int,
+              cpus: queue.SimpleQueue | None = None) -> list[str]:
     """Runs ``jobs`` in order, ``parallel`` at a time (:func:`run_job`), printing ``[k/N] <job>: ok in S s`` as each
     ends and recording its cost in ``results/timings.json``; returns the names of the jobs that failed. One queue,
     batches first: training starts while the last batches are still being collected (a job whose batch another job
-    is collecting waits on the batch's lock, then reuses it)."""
+    is collecting waits on the batch's lock, then reuses it). ``cpus`` (``--pin``, :func:`pin_cpus`): each job runs
+    alone on one of them, so that its recorded cost is one core's whatever runs beside it."""
     timings_path = results / "timings.json"
     failed = []
     with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
         stop = threading.Event()
-        futures = {pool.submit(run_job, j, workdir.resolve(), data_dir, results, stop): j for j in jobs}
+        futures = {pool.submit(run_job, j, workdir.resolve(), data_dir, results, stop, cpus): j for j in jobs}
         for done, future in enumerate(as_completed(futures), 1):
             try:
                 job, rc, seconds, record = future.result()
@@ -1780,6 +1810,8 @@ def main(argv: list[str] | None = None) -> int:
                              "paper_batches: three more 10^6 batches, reported beside paper_hopper's (cross_batch.md)")
     parser.add_argument("--only", help="run only the jobs whose name matches this regex (e.g. hopper_ddpg05/bail)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="jobs at a time (default: cores)")
+    parser.add_argument("--pin", action="store_true",
+                        help="run each job alone on one CPU of this process's (taskset -c): --jobs N uses the first N")
     parser.add_argument("--workdir", type=Path, help="where outputs/ and logs/ go (default: <study>_work)")
     parser.add_argument("--data-dir", type=Path, help="batch cache (default: TORCHRL_BAIL_DATA_DIR or ~/.cache)")
     parser.add_argument("--results", type=Path, help="where the kept files and reports go (default: results/<study>)")
@@ -1790,6 +1822,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="paper_batches, ope_headline: the headline batch's kept results (default: "
                              "results/paper_hopper)")
     args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be at least 1, got {args.jobs}")
     args.workdir = args.workdir or Path(f"{args.study}_work")
     args.results = args.results or HERE / args.study
 
@@ -1813,9 +1847,15 @@ def main(argv: list[str] | None = None) -> int:
             elsewhere.update(json.loads(path.read_text()) if path.exists() else {})
         print(work_left(states, json.loads(own.read_text()) if own.exists() else {}, elsewhere))
         return 0
+    cpus = None
+    if args.pin and not args.report_only:
+        try:
+            cpus = pin_cpus(args.jobs)
+        except ValueError as err:
+            parser.error(str(err))
     args.workdir.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)
-    failed = [] if args.report_only else run_queue(jobs, args.workdir, args.data_dir, args.results, args.jobs)
+    failed = [] if args.report_only else run_queue(jobs, args.workdir, args.data_dir, args.results, args.jobs, cpus)
     try:
         copied = gather(args.workdir, args.results, STUDIES[args.study](), policies=args.study != "study")
     except BatchMismatch as err:

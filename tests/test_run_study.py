@@ -816,3 +816,52 @@ def test_the_aggregate_figure_puts_each_batch_beside_the_interval(run_study, cro
     assert iqm[0] != round(float(np.mean(batches[0]["cells"]["bail"]["per_seed_normalised"])), 9)
     poi = next(p for p in aggregate["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
     assert markers(right) == sorted((round(v, 9), 0) for v in poi["per_batch"].values()) and len(poi["per_batch"]) == 2
+
+
+PROBE = '''
+import json, os, sys, time
+from pathlib import Path
+here = Path(sys.argv[1])
+(here / (sys.argv[2] + ".json")).write_text(json.dumps(sorted(os.sched_getaffinity(0))))
+deadline = time.monotonic() + 30
+while len(list(here.glob("*.json"))) < int(sys.argv[3]) and time.monotonic() < deadline:
+    time.sleep(0.05)  # every job of the round starts before any ends: each must hold its own CPU
+'''
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning two jobs at once needs two CPUs")
+def test_pin_runs_each_of_the_parallel_jobs_alone_on_its_own_cpu_and_records_it(run_study, tmp_path, capsys):
+    """``--jobs 2 --pin``: two jobs running at once each see one CPU, not the same one, and ``timings.json`` records
+    that CPU; a third job, started when one ends, reuses a freed CPU. Without ``--pin`` a job sees all of them."""
+    work, results, seen = tmp_path / "work", tmp_path / "results", tmp_path / "seen"
+    for d in (work, results, seen):
+        d.mkdir()
+    (work / "affinity_probe.py").write_text(PROBE)  # `python -m affinity_probe` from the job's cwd
+    jobs = [run_study.Job(f"probe/seed{k}", [str(seen), f"seed{k}", "2" if k < 3 else "3"], "affinity_probe")
+            for k in (1, 2, 3)]
+    cpus = run_study.pin_cpus(2)
+    assert run_study.run_queue(jobs, work, None, results, 2, cpus) == []
+    affinity = {p.stem: json.loads(p.read_text()) for p in seen.glob("*.json")}
+    mine = sorted(os.sched_getaffinity(0))
+    assert all(len(a) == 1 and a[0] in mine[:2] for a in affinity.values()), affinity
+    assert affinity["seed1"] != affinity["seed2"], "two jobs running at once shared one CPU"
+    timings = json.loads((results / "timings.json").read_text())
+    assert {k: timings[f"probe/{k}"]["cpus"] for k in affinity} == affinity
+    assert "ok in" in capsys.readouterr().out
+
+    unpinned = run_study.Job("probe/seed4", [str(seen), "seed4", "4"], "affinity_probe")
+    assert run_study.run_queue([unpinned], work, None, results, 1) == []
+    assert json.loads((seen / "seed4.json").read_text()) == mine
+
+
+def test_pin_refuses_more_jobs_than_cpus_and_a_queue_of_no_jobs(run_study, tmp_path, capsys):
+    """``--pin`` with more jobs than the runner's CPUs, and ``--jobs 0``, are refused before any job starts."""
+    many = len(os.sched_getaffinity(0)) + 1
+    common = ["--only", "^$", "--workdir", str(tmp_path / "w"), "--results", str(tmp_path / "r")]
+    with pytest.raises(SystemExit):
+        run_study.main(["--jobs", str(many), "--pin", *common])
+    assert f"--jobs {many} needs {many} CPUs" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run_study.main(["--jobs", "0", *common])
+    assert "--jobs must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
