@@ -60,7 +60,7 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -1768,39 +1768,62 @@ def pin_cpus(parallel: int) -> queue.SimpleQueue:
     return cpus
 
 
+def batch_key(job: Job) -> tuple[str, ...]:
+    """What names a job's batch among its arguments (experiment, ``batch.*`` overrides, preset): a collect job and the
+    jobs that train on its batch share it."""
+    return tuple(sorted(a for a in job.args if a.startswith(("+exp=", "batch.", "preset="))))
+
+
+def next_ready(pending: list[Job], running: list[Job]) -> Job | None:
+    """The first of ``pending`` whose batch no running collect job is making (it would only wait on the batch's lock,
+    holding a worker and its CPU), or ``None`` if every one would wait."""
+    collecting = {batch_key(j) for j in running if j.module == "torchrl_bail.collect"}
+    return next((j for j in pending if batch_key(j) not in collecting), None)
+
+
 def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Path, parallel: int,
               cpus: queue.SimpleQueue | None = None) -> list[str]:
     """Runs ``jobs`` in order, ``parallel`` at a time (:func:`run_job`), printing ``[k/N] <job>: ok in S s`` as each
     ends and recording its cost in ``results/timings.json``; returns the names of the jobs that failed. One queue,
-    batches first: training starts while the last batches are still being collected (a job whose batch another job
-    is collecting waits on the batch's lock, then reuses it). ``cpus`` (``--pin``, :func:`pin_cpus`): each job runs
-    alone on one of them, so that its recorded cost is one core's whatever runs beside it."""
-    timings_path = results / "timings.json"
-    failed = []
+    batches first: training starts while the last batches are still being collected. A free worker takes the first
+    job whose batch is not being collected by a running job (:func:`next_ready`), so while one core makes a batch the
+    other goes on with jobs on other batches instead of waiting on its lock. ``cpus`` (``--pin``, :func:`pin_cpus`):
+    each job runs alone on one of them, so that its recorded cost is one core's whatever runs beside it."""
+    failed, pending, running, done = [], list(jobs), {}, 0
+    stop = threading.Event()
     with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
-        stop = threading.Event()
-        futures = {pool.submit(run_job, j, workdir.resolve(), data_dir, results, stop, cpus): j for j in jobs}
-        for done, future in enumerate(as_completed(futures), 1):
-            try:
-                job, rc, seconds, record = future.result()
-            except BatchMismatch as err:
-                print(f"[{done}/{len(jobs)}] {futures[future].name}: FAILED ({err}); no other job starts", flush=True)
-                failed.append(futures[future].name)
-                continue
-            if rc is None:
-                continue  # finished in an earlier call
-            # read again before each write: another runner (another CPU's job) may have recorded since
-            timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-            if rc == 0:
-                timings.setdefault(job.name, whole_job_record(job, record, workdir))
-            print(f"[{done}/{len(jobs)}] {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} "
-                  f"in {seconds:.0f} s", flush=True)
-            if rc != 0:
-                failed.append(job.name)
-            tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
-            tmp.replace(timings_path)
+        while pending or running:
+            while len(running) < max(1, parallel) and (job := next_ready(pending, list(running.values()))):
+                pending.remove(job)
+                running[pool.submit(run_job, job, workdir.resolve(), data_dir, results, stop, cpus)] = job
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                job, done = running.pop(future), done + 1
+                if not record_job_end(future, job, f"[{done}/{len(jobs)}]", workdir, results):
+                    failed.append(job.name)
     return failed
+
+
+def record_job_end(future, job: Job, counter: str, workdir: Path, results: Path) -> bool:
+    """Prints how ``job`` (``future``'s) ended and records its cost in ``results/timings.json``; whether it did not
+    fail."""
+    try:
+        job, rc, seconds, record = future.result()
+    except BatchMismatch as err:
+        print(f"{counter} {job.name}: FAILED ({err}); no other job starts", flush=True)
+        return False
+    if rc is None:
+        return True  # finished in an earlier call
+    # read again before each write: another runner (another CPU's job) may have recorded since
+    timings_path = results / "timings.json"
+    timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
+    if rc == 0:
+        timings.setdefault(job.name, whole_job_record(job, record, workdir))
+    print(f"{counter} {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {seconds:.0f} s", flush=True)
+    tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
+    tmp.replace(timings_path)
+    return rc == 0
 
 
 def main(argv: list[str] | None = None) -> int:

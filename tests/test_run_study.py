@@ -6,6 +6,7 @@ import importlib.util
 import json
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -865,3 +866,34 @@ def test_pin_refuses_more_jobs_than_cpus_and_a_queue_of_no_jobs(run_study, tmp_p
         run_study.main(["--jobs", "0", *common])
     assert "--jobs must be at least 1, got 0" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
+
+
+def test_a_free_worker_passes_over_jobs_on_a_batch_being_collected(run_study, tmp_path, monkeypatch):
+    """``--jobs 2``, queue [collect A, train on A, train on B]: while A is being collected the second worker starts
+    the job on B, not the one on A (which would only wait on A's lock); the job on A starts once A is made."""
+    started, b_started = [], threading.Event()
+
+    class Process:  # what run_job starts: the collect job ends only once the job on B has started (or after 10 s)
+        pid = 1
+
+        def __init__(self, argv, **kwargs):
+            self.job = " ".join(a for a in argv if a.startswith(("-m", "torchrl_bail", "+exp=", "algo=")))
+            started.append(self.job)
+            if "+exp=walker_ddpg05" in self.job:
+                b_started.set()
+
+        def wait(self):
+            if "collect" in self.job:
+                b_started.wait(10)
+            return 0
+
+    monkeypatch.setattr(run_study.subprocess, "Popen", Process)
+    jobs = [run_study.Job("collect/hopper_ddpg05_b1", ["+exp=hopper_ddpg05", "preset=paper"], "torchrl_bail.collect"),
+            run_study.Job("hopper_ddpg05_b1/bc/seed1", ["+exp=hopper_ddpg05", "algo=bc", "seed=1", "preset=paper"]),
+            run_study.Job("walker_ddpg05_b1/bc/seed1", ["+exp=walker_ddpg05", "algo=bc", "seed=1", "preset=paper"])]
+    (tmp_path / "results").mkdir()
+    assert run_study.run_queue(jobs, tmp_path / "work", None, tmp_path / "results", 2) == []
+    assert sorted(started[:2]) == ["-m torchrl_bail.collect +exp=hopper_ddpg05",  # the two workers, in either order
+                                   "-m torchrl_bail.train +exp=walker_ddpg05 algo=bc"]
+    assert started[2] == "-m torchrl_bail.train +exp=hopper_ddpg05 algo=bc"
+    assert run_study.batch_key(jobs[0]) == run_study.batch_key(jobs[1]) != run_study.batch_key(jobs[2])
