@@ -60,7 +60,7 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -1790,10 +1790,10 @@ def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Pa
     other goes on with jobs on other batches instead of waiting on its lock. ``cpus`` (``--pin``, :func:`pin_cpus`):
     each job runs alone on one of them, so that its recorded cost is one core's whatever runs beside it."""
     failed, pending, running, done = [], list(jobs), {}, 0
-    stop = threading.Event()
-    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+    stop, workers = threading.Event(), max(1, parallel)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         while pending or running:
-            while len(running) < max(1, parallel) and (job := next_ready(pending, list(running.values()))):
+            while len(running) < workers and (job := next_ready(pending, list(running.values()))):
                 pending.remove(job)
                 running[pool.submit(run_job, job, workdir.resolve(), data_dir, results, stop, cpus)] = job
             finished, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -1804,11 +1804,11 @@ def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Pa
     return failed
 
 
-def record_job_end(future, job: Job, counter: str, workdir: Path, results: Path) -> bool:
-    """Prints how ``job`` (``future``'s) ended and records its cost in ``results/timings.json``; whether it did not
-    fail."""
+def record_job_end(future: Future, job: Job, counter: str, workdir: Path, results: Path) -> bool:
+    """Prints how ``job`` (``future``'s :func:`run_job`) ended and records its cost in ``results/timings.json``;
+    whether it did not fail."""
     try:
-        job, rc, seconds, record = future.result()
+        _, rc, seconds, record = future.result()
     except BatchMismatch as err:
         print(f"{counter} {job.name}: FAILED ({err}); no other job starts", flush=True)
         return False
