@@ -283,13 +283,20 @@ STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs, "paper_batche
            "ope_headline": ope_headline_jobs}
 
 
+def batch_label(job: Job) -> str:
+    """The label of a job's batch, ``<experiment>_b<batch.index>`` (e.g. ``hopper_ddpg05_b2``): the first part of its
+    run directories and of its partial collection's name in the data dir. Coarser than :func:`batch_key`: a preset
+    or another ``batch.*`` override makes another batch under the same label."""
+    named = dict(arg.split("=", 1) for arg in job.args)
+    return f"{named['+exp']}_b{named.get('batch.index', 1)}"
+
+
 def run_dir_of(job: Job, runs: Path) -> Path | None:
     """The run directory of a training job under ``runs`` (the workdir's ``outputs``, or the results' ``runs``, which
     keeps the same layout: ``<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
     named = dict(arg.split("=", 1) for arg in job.args)
     extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=", "batch.index=")))
-    label = f"{named['+exp']}_b{named.get('batch.index', 1)}"  # batch.index is in the path, not the suffix
-    for run in sorted((runs / label / named["algo"]).glob(f"seed{named['seed']}*")):
+    for run in sorted((runs / batch_label(job) / named["algo"]).glob(f"seed{named['seed']}*")):
         if run.name.split(",")[0] == f"seed{named['seed']}" and sorted(run.name.split(",")[1:]) == extra:
             return run
     return None
@@ -341,9 +348,7 @@ def _collection_state(job: Job, data_dir: Path | None, unfinished: str) -> JobSt
     from torchrl_bail.data.cache import default_data_dir
     from torchrl_bail.data.locks import PARTIAL
 
-    named = dict(arg.split("=", 1) for arg in job.args)
-    batch = f"{named['+exp']}_b{named.get('batch.index', 1)}"
-    partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch}-*")
+    partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch_label(job)}-*")
     found = [(state, p) for p in partials if (state := CollectionCheckpoint(p, every_s=None).load()) is not None]
     if not found:
         return JobState(unfinished)
@@ -1021,7 +1026,7 @@ def _train_cell(job: Job) -> tuple[str, str, int] | None:
     if job.module != "torchrl_bail.train" or len(job.name.split("/")) != 3:
         return None
     named = dict(arg.split("=", 1) for arg in job.args)
-    return f"{named['+exp']}_b{named.get('batch.index', 1)}", named["algo"], int(named["seed"])
+    return batch_label(job), named["algo"], int(named["seed"])
 
 
 def batch_cells(results: Path, jobs: list[Job], label: str) -> dict[str, dict]:
