@@ -550,11 +550,11 @@ def run_job(job: Job, workdir: Path, data_dir: Path | None, results: Path | None
             return job, 1, 0.0, {}
         args, extra = [str(run.relative_to(workdir))], OPE_FLAGS
     else:
-        extra = ["progress=false"] + (["threads=1"] if job.module == "torchrl_bail.train" else [])
+        extra = ["progress=false", "threads=1"]
     cpu = None if cpus is None else cpus.get()
     try:
         pinned = [] if cpu is None else ["taskset", "-c", str(cpu)]
-        record = {"threads": None if job.module == "torchrl_bail.collect" else 1,
+        record = {"threads": 1,
                   "cpus": sorted(os.sched_getaffinity(0)) if cpu is None else [cpu], "cpu": cpu_model(),
                   "start": conditions()}
         start = time.perf_counter()

@@ -212,10 +212,12 @@ def test_bad_recipes_are_named(override, key):
 
 
 def test_cli_collects_then_reports_cached_then_lists(tmp_path):
+    """... with the ``threads`` config key applied (torch's own default would be the machine's cores) and recorded in
+    the batch's metadata."""
     env = {**os.environ, "RL_WARNINGS": "0", "HYDRA_FULL_ERROR": "1", "PYTHONPATH": os.pathsep.join(
         [os.path.join(os.path.dirname(__file__), "..", "src"), os.environ.get("PYTHONPATH", "")])}
     base = [sys.executable, "-m", "torchrl_bail.collect", "+exp=hopper_ddpg01", *TINY_DDPG, "batch.steps=120",
-            f"data_dir={tmp_path / 'data'}", "progress=false", f"hydra.run.dir={tmp_path / 'run'}"]
+            f"data_dir={tmp_path / 'data'}", "progress=false", f"hydra.run.dir={tmp_path / 'run'}", "threads=3"]
     first = subprocess.run(base, capture_output=True, text=True, env=env, timeout=300)
     assert first.returncode == 0, first.stderr[-3000:]
     assert "hopper_ddpg01_b1: collected" in first.stdout and "120 transitions" in first.stdout
@@ -225,6 +227,7 @@ def test_cli_collects_then_reports_cached_then_lists(tmp_path):
     assert "hopper_ddpg01_b1-" in listing.stdout and "ddpg steps=120" in listing.stdout
     meta = json.loads(next((tmp_path / "data").glob("hopper_ddpg01_b1-*/metadata.json")).read_text())
     assert meta["recipe"]["sigma"] == 0.1
+    assert meta["collection_threads"] == 3
 
 
 def test_collection_env_ends_an_episode_on_a_simulator_instability():

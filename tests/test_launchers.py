@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from torchrl_bail import config_dir
-from torchrl_bail.train import job_threads
+from torchrl_bail.cli import job_threads
 
 
 def _compose(*overrides):

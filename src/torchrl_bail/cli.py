@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import importlib
+import logging
 import os
 import shlex
 import signal
@@ -33,7 +34,36 @@ from torchrl_bail.interrupts import Interrupted, handled, signal_name
 from torchrl_bail.io import describe_file_error
 
 __all__ = ["checkpoint_before_requeue", "continue_command", "describe_error", "describe_interrupt",
-           "exit_on_config_error", "run_cli"]
+           "exit_on_config_error", "job_threads", "run_cli", "use_job_threads"]
+
+log = logging.getLogger("torchrl_bail")
+
+
+def job_threads(cfg, launcher=None) -> int | None:
+    """Torch threads for this job: the ``threads`` config key when set, else ``cores // n_jobs`` under the joblib
+    launcher (so that side-by-side jobs do not oversubscribe the cores), else ``None`` (torch's default)."""
+    threads = cfg.get("threads")
+    if threads:
+        return int(threads)
+    if launcher is None or "joblib" not in str(launcher.get("_target_", "")):
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n_jobs = int(launcher.get("n_jobs") or 1)
+    return max(1, cores // (cores if n_jobs < 0 else n_jobs))
+
+
+def use_job_threads(cfg) -> None:
+    """Sets torch's thread count to the job's (:func:`job_threads`, under the running Hydra launcher) when it has
+    one: every ``train`` and ``collect`` job, so that side-by-side jobs share the cores and ``threads=N`` means the
+    same to both commands."""
+    from hydra.core.hydra_config import HydraConfig
+
+    threads = job_threads(cfg, HydraConfig.get().get("launcher"))
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+        log.info("torch threads: %d", threads)
 
 
 def describe_error(err: BaseException) -> str:

@@ -39,7 +39,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
-from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
+from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli, use_job_threads
 from torchrl_bail.config import validate_config
 from torchrl_bail.config_builders import collection_config
 from torchrl_bail.errors import CommandLineError
@@ -105,6 +105,7 @@ def _print_summary(s: dict) -> None:
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
+    use_job_threads(cfg)
     with checkpoint_before_requeue(), exit_on_config_error():  # Slurm: checkpoint, then submitit requeues
         validate_config(cfg)
         summary = collect(cfg)

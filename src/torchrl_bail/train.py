@@ -13,7 +13,6 @@ best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either), with ``ev
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,7 +21,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli
+from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli, use_job_threads
 from torchrl_bail.config import ConfigError, validate_config
 
 if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported where a run starts
@@ -429,19 +428,6 @@ def _best_policy(history) -> dict[str, Any] | None:
             "mean_return": point.mean_return}
 
 
-def job_threads(cfg: DictConfig, launcher=None) -> int | None:
-    """Torch threads for this job: the ``threads`` config key when set, else ``cores // n_jobs`` under the joblib
-    launcher (so that side-by-side jobs do not oversubscribe the cores), else ``None`` (torch's default)."""
-    threads = cfg.get("threads")
-    if threads:
-        return int(threads)
-    if launcher is None or "joblib" not in str(launcher.get("_target_", "")):
-        return None
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    n_jobs = int(launcher.get("n_jobs") or 1)
-    return max(1, cores // (cores if n_jobs < 0 else n_jobs))
-
-
 def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = None) -> None:
     """``<key>_normalized`` (D4RL normalised score, or the dataset's own Minari reference) where one exists."""
     from torchrl_bail.data.scores import normalized_score, score_reference
@@ -458,12 +444,7 @@ def _add_normalized_scores(summary: dict, env_id: str, metadata: dict | None = N
 def _hydra_main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
-    threads = job_threads(cfg, HydraConfig.get().get("launcher"))
-    if threads is not None:
-        import torch
-
-        torch.set_num_threads(threads)
-        log.info("torch threads: %d", threads)
+    use_job_threads(cfg)
     with checkpoint_before_requeue(), exit_on_config_error():  # Slurm: checkpoint, then submitit requeues
         summaries = run(cfg, Path(HydraConfig.get().runtime.output_dir))
     return sum(s["final_return"] for s in summaries) / len(summaries)  # the sweeper's objective: the seeds' mean

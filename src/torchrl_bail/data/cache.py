@@ -202,7 +202,10 @@ def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float, timed_f
 
     ``wall_time_s`` is the collection's, summed over the processes of a collection resumed from its checkpoint;
     ``timed_from_step`` the env step it counts from (``0``; a resume from an older version's checkpoint, which kept no
-    time, counts from that checkpoint's step)."""
+    time, counts from that checkpoint's step); ``collection_threads`` is torch's thread count while it ran (the
+    ``threads`` config key, :func:`~torchrl_bail.cli.use_job_threads`), which its time depends on."""
+    import torch
+
     identity = recipe_identity(cfg)
     low, high = extra.pop("action_low"), extra.pop("action_high")
     return {
@@ -221,6 +224,7 @@ def batch_metadata(cfg, extra: Mapping[str, Any], *, wall_time_s: float, timed_f
         "oracle": oracle_settings(cfg) is not None,
         "collection_wall_time_s": float(wall_time_s),
         "collection_timed_from_step": int(timed_from_step),
+        "collection_threads": torch.get_num_threads(),
         **extra,
     }
 
