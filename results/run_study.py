@@ -43,8 +43,8 @@ probabilities of improvement over all of them, each batch's final returns min-ma
 (:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept, with zero, some or all runs.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
 with the checkpoint's progress (updates done / scheduled, or a collection's transitions kept / wanted) where one
-exists and the time the rest takes at the job's pace so far; its last line prices what is left in hours of one core
-(:func:`work_left`).
+exists and the time the rest takes at the job's pace so far; its last lines price what is left in hours of one core
+(:func:`work_left`) and in wall hours with ``--jobs`` workers (:func:`queue_wall_seconds`).
 """
 
 from __future__ import annotations
@@ -481,24 +481,31 @@ def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
     return None
 
 
+def job_seconds_left(name: str, state: JobState, timings: dict, elsewhere: dict) -> float | None:
+    """What the unfinished job ``name`` should still take: the time left its ``state`` gives, else its kind's
+    recorded cost (:func:`_recorded_cost`) scaled by the share of updates or transitions its checkpoint has left (a
+    partial collection whose older checkpoint names no batch size, at its whole cost); ``None`` where nothing of its
+    kind is recorded."""
+    if state.seconds_left is not None:
+        return state.seconds_left
+    cost = _recorded_cost(name, timings, elsewhere)
+    if cost is None:
+        return None
+    progress = state.updates or state.transitions
+    return cost * (1 - progress[0] / progress[1] if progress else 1)
+
+
 def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict | None = None) -> str:
-    """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core:
-    a job whose status gives its time left counts that; any other, its kind's recorded cost
-    (:func:`_recorded_cost`), scaled by the share of updates or transitions its checkpoint has left (a partial
-    collection whose older checkpoint names no batch size, at its whole cost). Jobs of a kind nothing has recorded
-    yet are counted apart."""
+    """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core
+    (:func:`job_seconds_left`). Jobs of a kind nothing has recorded yet are counted apart."""
     total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if s.state != "done"]
     collecting = sum(state.steps_collected is not None for _, state in unfinished)
     for name, state in unfinished:
-        if state.seconds_left is not None:
-            total += state.seconds_left
-            continue
-        cost = _recorded_cost(name, timings, elsewhere or {})
-        if cost is None:
+        seconds = job_seconds_left(name, state, timings, elsewhere or {})
+        if seconds is None:
             unknown += 1
-            continue
-        progress = state.updates or state.transitions
-        total += cost * (1 - progress[0] / progress[1] if progress else 1)
+        else:
+            total += seconds
     if not unfinished:
         return "nothing left to run"
     return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "
@@ -506,6 +513,24 @@ def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict
             "cost of its algorithm: on its batch, else on the study's others, else in its peer study's records)"
             + (f"; {unknown} of a kind with no recorded cost" if unknown else "")
             + (f"; {collecting} partial collection{'s' if collecting > 1 else ''} priced whole" if collecting else ""))
+
+
+def queue_wall_seconds(jobs: list[Job], states: dict[str, JobState], seconds: dict[str, float], workers: int) -> float:
+    """How long the unfinished jobs of the queue ``jobs`` take on ``workers`` workers when :func:`run_queue`
+    dispatches them: a running job holds a worker for its time left, and each free worker takes the first pending job
+    that :func:`next_ready` allows (so a batch's jobs wait for its collection). Each job takes its ``seconds``
+    (:func:`job_seconds_left`); a job without an estimate is left out."""
+    by_name = {job.name: job for job in jobs}
+    ends = {name: seconds[name] for name, state in states.items() if state.state == "running" and name in seconds}
+    pending = [job for job in jobs if states[job.name].state == "left" and job.name in seconds]
+    now = 0.0
+    while ends or pending:
+        while len(ends) < workers and (job := next_ready(pending, [by_name[name] for name in ends])):
+            pending.remove(job)
+            ends[job.name] = now + seconds[job.name]
+        name = min(ends, key=ends.__getitem__)  # never empty here: with nothing running, next_ready takes a job
+        now = ends.pop(name)
+    return now
 
 
 def conditions() -> dict:
@@ -1873,7 +1898,14 @@ def main(argv: list[str] | None = None) -> int:
         for peer in COST_PEERS.get(args.study, ()):
             path = args.results.parent / peer / "timings.json"
             elsewhere.update(json.loads(path.read_text()) if path.exists() else {})
-        print(work_left(states, json.loads(own.read_text()) if own.exists() else {}, elsewhere))
+        timings = json.loads(own.read_text()) if own.exists() else {}
+        print(work_left(states, timings, elsewhere))
+        seconds = {name: left for name, state in states if state.state != "done"
+                   and (left := job_seconds_left(name, state, timings, elsewhere)) is not None}
+        if seconds:
+            wall = queue_wall_seconds(jobs, dict(states), seconds, args.jobs)
+            print(f"with --jobs {args.jobs}, as the queue dispatches them (a batch's jobs after its collection): "
+                  f"about {wall / 3600:.1f} h of wall time for those jobs")
         return 0
     cpus = None
     if args.pin and not args.report_only:

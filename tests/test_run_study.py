@@ -211,8 +211,10 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     assert str(run_study.job_status(jobs["collect/hopper_ddpg05"], tmp_path)) == "done"
     results = tmp_path / "results"
     assert run_study.main(["--study", "paper_hopper", "--status", "--workdir", str(tmp_path),
-                           "--results", str(results)]) == 0
-    assert "2 done, 1 running, 120 left of 123 jobs" in capsys.readouterr().out
+                           "--results", str(results), "--jobs", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "2 done, 1 running, 120 left of 123 jobs" in out
+    assert "with --jobs 3, as the queue dispatches them" in out
     # a run gathered into the results by an earlier call (its workdir gone) is done, and does not run again
     kept = results / "runs" / "hopper_ddpg05_b1" / "bail" / "seed2"
     kept.mkdir(parents=True)
@@ -782,6 +784,29 @@ def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
     line = run_study.work_left([("collect/b2", state("left", steps_collected=500))], timings)
     assert line.startswith("left to run: about 2.0 h") and line.endswith("; 1 partial collection priced whole")
     assert run_study.work_left([("b1/bail/seed1", state("done"))], timings) == "nothing left to run"
+
+
+def test_status_prices_the_queue_in_wall_time_as_its_workers_would_run_it(run_study):
+    """``--status``'s wall-time line: a running job holds its worker for its time left, a free worker takes the
+    first job :func:`next_ready` allows, so a batch's jobs wait for its collection while the other worker goes on."""
+    state, Job = run_study.JobState, run_study.Job
+
+    def train(batch: str, algo: str, seed: int) -> Job:
+        return Job(f"{batch}_b1/{algo}/seed{seed}", [f"+exp={batch}", f"algo={algo}", f"seed={seed}"])
+
+    jobs = [Job("collect/a_b1", ["+exp=a"], "torchrl_bail.collect"), Job("collect/b_b1", ["+exp=b"],
+                                                                         "torchrl_bail.collect"),
+            train("a", "bail", 1), train("a", "bail", 2), train("b", "bc", 1), train("a", "iql", 1)]
+    states = {"collect/a_b1": state("running", transitions=(10, 20), seconds_left=100.0),
+              **{job.name: state("left") for job in jobs[1:]}, "a_b1/iql/seed1": state("left")}
+    seconds = {"collect/a_b1": 100.0, "collect/b_b1": 300.0, "a_b1/bail/seed1": 50.0, "a_b1/bail/seed2": 50.0,
+               "b_b1/bc/seed1": 10.0}  # iql: no recorded cost, left out
+    # two workers: collect a (to 100) | collect b (0-300); bail 1 (100-150), bail 2 (150-200); bc waits for b: 300-310
+    assert run_study.queue_wall_seconds(jobs, states, seconds, 2) == 310.0
+    assert run_study.queue_wall_seconds(jobs, states, seconds, 1) == 510.0  # one after another
+    assert run_study.queue_wall_seconds(jobs, states, seconds, 8) == 310.0  # more workers than jobs: b's collection
+    done = {name: state("done") for name in states}
+    assert run_study.queue_wall_seconds(jobs, done, seconds, 2) == 0.0
 
 
 def test_the_aggregate_figure_puts_each_batch_beside_the_interval(run_study, cross_batch):
