@@ -1844,15 +1844,15 @@ def record_job_end(future: Future, job: Job, counter: str, workdir: Path, result
         return False
     if rc is None:
         return True  # finished in an earlier call
+    print(f"{counter} {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {seconds:.0f} s", flush=True)
     # read again before each write: another runner (another CPU's job) may have recorded since
     timings_path = results / "timings.json"
     timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-    if rc == 0:
-        timings.setdefault(job.name, whole_job_record(job, record, workdir))
-    print(f"{counter} {job.name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {seconds:.0f} s", flush=True)
-    tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
-    tmp.replace(timings_path)
+    if rc == 0 and job.name not in timings:  # the first record stays (a batch made again keeps its remakes.json)
+        timings[job.name] = whole_job_record(job, record, workdir)
+        tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
+        tmp.replace(timings_path)
     return rc == 0
 
 

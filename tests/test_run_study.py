@@ -794,11 +794,11 @@ def test_status_prices_the_queue_in_wall_time_as_its_workers_would_run_it(run_st
     def train(batch: str, algo: str, seed: int) -> Job:
         return Job(f"{batch}_b1/{algo}/seed{seed}", [f"+exp={batch}", f"algo={algo}", f"seed={seed}"])
 
-    jobs = [Job("collect/a_b1", ["+exp=a"], "torchrl_bail.collect"), Job("collect/b_b1", ["+exp=b"],
-                                                                         "torchrl_bail.collect"),
+    jobs = [Job("collect/a_b1", ["+exp=a"], "torchrl_bail.collect"),
+            Job("collect/b_b1", ["+exp=b"], "torchrl_bail.collect"),
             train("a", "bail", 1), train("a", "bail", 2), train("b", "bc", 1), train("a", "iql", 1)]
     states = {"collect/a_b1": state("running", transitions=(10, 20), seconds_left=100.0),
-              **{job.name: state("left") for job in jobs[1:]}, "a_b1/iql/seed1": state("left")}
+              **{job.name: state("left") for job in jobs[1:]}}
     seconds = {"collect/a_b1": 100.0, "collect/b_b1": 300.0, "a_b1/bail/seed1": 50.0, "a_b1/bail/seed2": 50.0,
                "b_b1/bc/seed1": 10.0}  # iql: no recorded cost, left out
     # two workers: collect a (to 100) | collect b (0-300); bail 1 (100-150), bail 2 (150-200); bc waits for b: 300-310
