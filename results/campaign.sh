@@ -2,6 +2,7 @@
 # A study's long queue in the background, beside work on this checkout, with each finished job's results committed.
 #
 #   bash results/campaign.sh start STUDY DIR [REGEX ...]   # the queue: each REGEX's jobs in turn (none: the study's)
+#   bash results/campaign.sh status DIR                    # runner and watcher alive or not; each job's state, time left
 #   bash results/campaign.sh stop DIR                      # SIGTERM: the running jobs checkpoint, a later start resumes
 #
 # DIR (outside the checkout, e.g. /work/campaign) holds a git worktree of this checkout's HEAD (tree/), the batches
@@ -16,7 +17,7 @@
 # from its checkpoint, and a batch whose data dir was lost is made again and checked against its kept metadata.
 set -euo pipefail
 
-usage() { sed -n '4,5p' "$0" | sed 's/^# *//' >&2; exit 2; }
+usage() { sed -n '4,6p' "$0" | sed 's/^# *//' >&2; exit 2; }
 alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
 
 root=$(git -C "$(dirname "$0")" rev-parse --show-toplevel)
@@ -45,6 +46,7 @@ start)
   phases="echo \$\$ > ${dir@Q}/runner.pid; cd ${dir@Q}/tree && export PYTHONPATH=${dir@Q}/tree/src || exit 1; "
   for regex in "${@:-.}"; do phases+="${run[*]@Q} --only ${regex@Q} >> ${log@Q} 2>&1 || exit 1; "; done
   rm -f "$dir/runner.pid" "$dir/watcher.pid"
+  echo "$study" > "$dir/study"
   setsid nohup bash -c "$phases" > /dev/null 2>&1 < /dev/null &
   setsid nohup bash "$root/results/campaign.sh" watch "$study" "$dir" >> "$dir/watch.log" 2>&1 < /dev/null &
   for _ in $(seq 50); do [ -s "$dir/runner.pid" ] && [ -s "$dir/watcher.pid" ] && break; sleep 0.1; done
@@ -91,6 +93,16 @@ PY
     if [ "$done_before" = 1 ] && [ "$seen" -ge "$count" ]; then exit 0; fi
     sleep 60
   done
+  ;;
+status)
+  [ $# -ge 1 ] || usage
+  dir=$(cd "$1" && pwd) study=$(cat "$1/study")
+  for part in runner watcher; do
+    if alive "$dir/$part.pid"; then echo "$part: alive (pid $(cat "$dir/$part.pid"))"; else echo "$part: not running"; fi
+  done
+  grep -E '^\[[0-9]+/[0-9]+\]' "$dir/queue.log" 2>/dev/null | tail -3 || true
+  python "$root/results/run_study.py" --study "$study" --workdir "$dir/work" --data-dir "$dir/data" \
+    --jobs "${CAMPAIGN_JOBS:-$(nproc)}" --status | grep -v '^done ' || true
   ;;
 stop)
   [ $# -ge 1 ] || usage
