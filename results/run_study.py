@@ -39,8 +39,10 @@ verdict per claim of the paper and the measured cost of every run. A job whose s
 and ``curves_<batch>.png`` (:func:`cross_batch_report`): these batches and the headline one (read from
 ``--headline``, default ``results/paper_hopper``) side by side, a verdict per claim per batch, and rliable's IQM and
 probabilities of improvement over all of them, each batch's final returns min-max normalised by its own episodes
-(:func:`normalised_return`). Every collect job's batch metadata is kept in ``<results>/batches``
-(:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept, with zero, some or all runs.
+(:func:`normalised_return`), and each batch made by another batch's recipe with another behaviour seed set beside it
+(:func:`same_recipe_comparisons`: how much of a verdict is the batch drawn). Every collect job's batch metadata is
+kept in ``<results>/batches`` (:func:`keep_batch_metadata`); ``--report-only`` rebuilds everything from what is kept,
+with zero, some or all runs.
 ``--status`` lists every job of a study as done, running (its log was written in the last 10 minutes) or left,
 with the checkpoint's progress (updates done / scheduled, or a collection's transitions kept / wanted) where one
 exists and the time the rest takes at the job's pace so far; its last lines price what is left in hours of one core
@@ -868,21 +870,79 @@ def cell_label(row: dict) -> str:
     return f"{row['algo']} ({extra})" if extra else row["algo"]
 
 
-def claim_verdict(a: dict | None, b: dict | None, kind: str) -> str:
-    """The verdict on one claim from the two groups' report rows (IQM and its 95 % bootstrap interval)."""
+def interval_order(a: dict | None, b: dict | None) -> str:
+    """Where group ``a`` lies against group ``b`` from their report rows (IQM and its 95 % bootstrap interval):
+    "above" or "below" where the intervals are disjoint, "no difference shown" where they overlap, "pending" while
+    either side has fewer than :data:`MIN_SEEDS_FOR_VERDICT` seeds."""
     seeds = [0 if row is None else row["seeds"] for row in (a, b)]
     if min(seeds) < MIN_SEEDS_FOR_VERDICT:
         return f"pending (seeds so far: {seeds[0]} and {seeds[1]}; {MIN_SEEDS_FOR_VERDICT} each needed)"
     lo_a, hi_a = a["final_return_iqm_ci_low"], a["final_return_iqm_ci_high"]
     lo_b, hi_b = b["final_return_iqm_ci_low"], b["final_return_iqm_ci_high"]
     if lo_a > hi_b:
-        order = "above: the IQM intervals are disjoint"
-    elif lo_b > hi_a:
-        order = "below: the IQM intervals are disjoint"
-    else:
-        order = "no difference shown: the IQM intervals overlap"
+        return "above: the IQM intervals are disjoint"
+    if lo_b > hi_a:
+        return "below: the IQM intervals are disjoint"
+    return "no difference shown: the IQM intervals overlap"
+
+
+def claim_verdict(a: dict | None, b: dict | None, kind: str) -> str:
+    """The verdict on one claim from the two groups' report rows (:func:`interval_order`): an "above" claim holds
+    where ``a``'s interval lies wholly above ``b``'s, an "≈" claim where the intervals overlap."""
+    order = interval_order(a, b)
+    if order.startswith("pending"):
+        return order
     holds = order.startswith("above") if kind == "above" else order.startswith("no difference")
     return f"{'holds' if holds else 'does not hold'} ({order})"
+
+
+def same_recipe_comparisons(batches: list[dict], algos: list[str]) -> list[dict]:
+    """Batches made by one recipe with another behaviour seed (``<exp>_b1``, ``<exp>_b2``, ...: the same env, agent
+    and noise, ``batch.index`` apart), each set beside the recipe's first batch: how much of a score, and of a
+    verdict, is the batch drawn rather than the algorithm. Per algorithm, where the later batch's IQM interval lies
+    against the first's (:func:`interval_order`); per claim, the verdict on each batch and whether they agree."""
+    by_recipe: dict[str, list[dict]] = {}
+    for b in batches:
+        by_recipe.setdefault(b["batch"].rsplit("_b", 1)[0], []).append(b)
+    out = []
+    for recipe, group in by_recipe.items():
+        first = group[0]
+        for other in group[1:]:
+            claims = []
+            for i, claim in enumerate(first["claims"]):
+                verdicts = [claim["verdict"], other["claims"][i]["verdict"]]
+                heads = [v.split(" (")[0] for v in verdicts]
+                reading = ("pending" if "pending" in heads else "the same verdict" if heads[0] == heads[1]
+                           else "the verdicts differ")
+                claims.append({"claim": claim["claim"], "verdicts": verdicts, "reading": reading})
+            out.append({"recipe": recipe, "batches": [first["batch"], other["batch"]],
+                        "algorithms": {a: interval_order(other["cells"].get(a), first["cells"].get(a))
+                                       for a in algos},
+                        "claims": claims})
+    return out
+
+
+def _same_recipe_lines(comparisons: list[dict], batches: list[dict]) -> list[str]:
+    """The cross-batch report's "Same recipe, another behaviour seed" section, as Markdown lines."""
+    meta = {b["batch"]: b["metadata"] or {} for b in batches}
+    lines = []
+    for c in comparisons:
+        first, other = c["batches"]
+        data = "; ".join(f"{label}: data {_fmt(meta[label].get('episode_return_mean')) or 'pending'}, behaviour "
+                         f"agent {_fmt(meta[label].get('behaviour_final_return_mean10')) or 'pending'}"
+                         for label in c["batches"])
+        cells = {b["batch"]: b["cells"] for b in batches}
+        lines += ["", f"**Same recipe, another behaviour seed: {first} and {other}.** One recipe ({c['recipe']}: env, "
+                  f"behaviour agent, its noise and the batch's size), a behaviour seed apart (`batch.index`), so what "
+                  f"differs between the two rows is the batch drawn, not the algorithm ({data}). Each algorithm's "
+                  f"IQM [95 % CI] on both, and where {other}'s interval lies against {first}'s:", "",
+                  f"| algorithm | {first} | {other} | {other} against {first} |", "|---|---|---|---|"]
+        lines += [f"| {a} | {_iqm_cell(cells[first].get(a))} | {_iqm_cell(cells[other].get(a))} | "
+                  f"{'pending' if order.startswith('pending') else order} |" for a, order in c["algorithms"].items()]
+        lines += ["", f"| claim | {first} | {other} | reading |", "|---|---|---|---|"]
+        lines += [f"| {k['claim']} | {k['verdicts'][0]} | {k['verdicts'][1]} | {k['reading']} |"
+                  for k in c["claims"]]
+    return lines
 
 
 def cost_rows(results: Path, jobs: list[Job]) -> list[dict]:
@@ -1423,8 +1483,9 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
                  if len(done) < len(batches) else "Every batch is complete."))
     shown_extra = [a for a in CROSS_BATCH_EXTRA if any(b["cells"].get(a, {}).get("seeds") for b in batches)]
     algos = [*CROSS_BATCH_CENTRAL, *shown_extra]
+    same_recipe = same_recipe_comparisons(batches, algos)
     out = {"status": status, "complete_batches": done, "min_seeds_for_verdict": MIN_SEEDS_FOR_VERDICT,
-           "batches": batches, "claims_across_batches": across, "aggregate": aggregate,
+           "batches": batches, "claims_across_batches": across, "same_recipe": same_recipe, "aggregate": aggregate,
            "aggregate_figure": None if aggregate_figure is None else aggregate_figure.name,
            "bootstrap": {"reps": CROSS_BATCH_REPS, "seed": CROSS_BATCH_SEED}}
 
@@ -1470,7 +1531,8 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
         for c in across) + " |")
     lines += ["", f"A verdict needs {MIN_SEEDS_FOR_VERDICT} seeds on both sides (the paper cell's rule: 'holds' for "
               "an 'above' claim means the first group's IQM interval lies wholly above the second's; for ≈ that the "
-              "intervals overlap, no difference shown, which is not proof of equality).", "",
+              "intervals overlap, no difference shown, which is not proof of equality).",
+              *_same_recipe_lines(same_recipe, batches), "",
               *_aggregate_lines(aggregate, algos, len(batches), aggregate_figure)]
     figures = ", ".join(f"`{_shown(results / b['figure'])}`" for b in batches if b["figure"]) or "none yet"
     lines += ["", f"Learning curves, one figure per batch (updates on a linear axis, each seed's "

@@ -456,6 +456,47 @@ def test_the_aggregate_normalises_by_each_batchs_own_episodes(run_study, cross_b
     assert f"| hopper_ddpg05_b1 {over_bcq['p']:.2f} | pending (1 of 4" in text
 
 
+def test_a_batch_made_by_the_same_recipe_is_set_beside_the_first(run_study, tmp_path, monkeypatch):
+    """hopper_ddpg05_b2 (the headline recipe with another behaviour seed) beside hopper_ddpg05_b1: per algorithm,
+    where its IQM interval lies against B1's; per claim, whether the two batches' verdicts agree. Here BCQ's place
+    against BAIL turns over with the batch drawn while BAIL ≫ BC holds on both."""
+    monkeypatch.setattr(run_study, "CROSS_BATCH_REPS", 300)
+    headline, results = tmp_path / "paper_hopper", tmp_path / "paper_batches"
+    _fake_batch(run_study, headline, "hopper_ddpg05_b1", "abcd1234", HEADLINE_RUNS, HEADLINE_META)
+    b2 = {"bail": [1300.0, 1350.0, 1250.0, 1320.0, 1280.0], "bc": [420.0, 470.0, 440.0, 460.0, 430.0],
+          "bcq": [900.0, 950.0, 1000.0], "pbail": [1290.0, 1310.0, 1330.0]}
+    _fake_batch(run_study, results, "hopper_ddpg05_b2", "ef567890", b2,
+                {**HEADLINE_META, "episode_return_mean": 700.0, "behaviour_final_return_mean10": 900.0})
+    out = run_study.cross_batch_report(results, headline)
+    [same] = out["same_recipe"]  # walker and hopper_ddpg01 have one batch of their recipe each: nothing beside
+    assert same["recipe"] == "hopper_ddpg05" and same["batches"] == ["hopper_ddpg05_b1", "hopper_ddpg05_b2"]
+    assert list(same["algorithms"]) == ["bail", "pbail", "bc", "bcq"]
+    assert same["algorithms"]["bail"] == "below: the IQM intervals are disjoint"  # 1250-1350 against 2100-2300
+    assert same["algorithms"]["bc"] == "no difference shown: the IQM intervals overlap"  # 420-470 against 400-500
+    readings = {c["claim"]: c for c in same["claims"]}
+    assert readings["BAIL ≫ BC"]["reading"] == "the same verdict"
+    bcq = readings["BAIL above BCQ (BCQ at 10^5 of the paper's 10^6 updates)"]
+    assert bcq["verdicts"][0].startswith("does not hold (below") and bcq["verdicts"][1].startswith("holds (above")
+    assert bcq["reading"] == "the verdicts differ"
+    text = (results / "cross_batch.md").read_text()
+    assert "**Same recipe, another behaviour seed: hopper_ddpg05_b1 and hopper_ddpg05_b2.**" in text
+    assert "(hopper_ddpg05_b1: data 500.0, behaviour agent 1234.5; hopper_ddpg05_b2: data 700.0, behaviour agent " \
+           "900.0)" in text
+    assert "| bc | 450.0 [" in text and "| no difference shown: the IQM intervals overlap |" in text
+    assert ("| BAIL above BCQ (BCQ at 10^5 of the paper's 10^6 updates) | does not hold (below: the IQM intervals "
+            "are disjoint) | holds (above: the IQM intervals are disjoint) | the verdicts differ |") in text
+    assert text.index("**Same recipe") < text.index("**Over all batches.**")
+
+
+def test_a_same_recipe_batch_without_its_seeds_reads_pending(cross_batch):
+    out, results = cross_batch  # hopper_ddpg05_b2 not begun
+    [same] = out["same_recipe"]
+    assert all(c["reading"] == "pending" for c in same["claims"])
+    assert all(order.startswith("pending (seeds so far: 0 and") for order in same["algorithms"].values())
+    assert "| bail | 2200.0 [" in (results / "cross_batch.md").read_text().split("**Same recipe")[1]
+    assert "| pending (0 of 5 seeds) | pending |" in (results / "cross_batch.md").read_text()
+
+
 def test_the_cross_batch_report_with_no_runs_is_all_pending(run_study, tmp_path):
     out = run_study.cross_batch_report(tmp_path / "paper_batches", tmp_path / "paper_hopper")
     assert out["complete_batches"] == [] and "0 of 4" in out["status"]
