@@ -2,7 +2,7 @@
 # A study's long queue in the background, beside work on this checkout, with each finished job's results committed.
 #
 #   bash results/campaign.sh start STUDY DIR [REGEX ...]   # the queue: each REGEX's jobs in turn (none: the study's)
-#   bash results/campaign.sh status DIR                    # runner and watcher alive or not; each job's state, time left
+#   bash results/campaign.sh status DIR                    # runner, watcher, last commit; each job's state, time left
 #   bash results/campaign.sh stop DIR                      # SIGTERM: the running jobs checkpoint, a later start resumes
 #
 # DIR (outside the checkout, e.g. /work/campaign) holds a git worktree of this checkout's HEAD (tree/), the batches
@@ -98,9 +98,12 @@ status)
   [ $# -ge 1 ] || usage
   dir=$(cd "$1" && pwd) study=$(cat "$1/study")
   for part in runner watcher; do
-    if alive "$dir/$part.pid"; then echo "$part: alive (pid $(cat "$dir/$part.pid"))"; else echo "$part: not running"; fi
+    if alive "$dir/$part.pid"; then echo "$part: alive (pid $(cat "$dir/$part.pid"))"
+    else echo "$part: not running"; fi
   done
   grep -E '^\[[0-9]+/[0-9]+\]' "$dir/queue.log" 2>/dev/null | tail -3 || true
+  grep -E ' (committed|commit failed|report failed): ' "$dir/watch.log" 2>/dev/null | tail -1 |
+    sed 's/^/watcher, last: /' || true
   python "$root/results/run_study.py" --study "$study" --workdir "$dir/work" --data-dir "$dir/data" \
     --jobs "${CAMPAIGN_JOBS:-$(nproc)}" --status | grep -v '^done ' || true
   ;;
