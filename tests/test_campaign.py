@@ -79,3 +79,41 @@ def test_stop_ends_the_runners_whole_session_and_the_watcher(tmp_path):
         for proc in (runner, watcher):
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.slow
+def test_the_watcher_commits_the_studys_results_alone_after_a_job_ends(tmp_path):
+    """In a clone of this checkout: a job's line in the queue log and its cost in the worktree's ``timings.json``
+    (the runner ended) make the watcher merge the cost into the clone's record, rebuild the reports there with the
+    clone's code and commit ``results/<study>`` alone, named by that line; a file staged elsewhere stays uncommitted.
+    (About a minute: one ``--report-only`` of the paper cell.)"""
+    import json
+    import shutil
+
+    root = Path(__file__).resolve().parents[1]
+    clone, campaign = tmp_path / "clone", tmp_path / "campaign"
+    subprocess.run(["git", "clone", "-q", "--shared", str(root), str(clone)], check=True)
+    for key, value in (("user.name", "test"), ("user.email", "test@example.com")):
+        subprocess.run(["git", "-C", str(clone), "config", key, value], check=True)
+    shutil.copy2(SCRIPT, clone / "results" / "campaign.sh")  # the script under test, as this checkout has it
+    subprocess.run(["git", "-C", str(clone), "commit", "-q", "--allow-empty", "-m", "the script under test", "--",
+                    "results/campaign.sh"], check=True)
+    ran = campaign / "tree" / "results" / "paper_hopper" / "timings.json"
+    ran.parent.mkdir(parents=True)
+    kept = json.loads((clone / "results" / "paper_hopper" / "timings.json").read_text())
+    ran.write_text(json.dumps({**kept, "planted/job": {"wall_s": 1.0}}))
+    (campaign / "queue.log").write_text("[1/1] planted/job: ok in 1 s\n")
+    (clone / "README.md").write_text("changed and staged, not the study's\n")
+    subprocess.run(["git", "-C", str(clone), "add", "README.md"], check=True)
+    done = subprocess.run(["bash", str(clone / "results" / "campaign.sh"), "watch", "paper_hopper", str(campaign)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "committed: [1/1] planted/job: ok in 1 s" in done.stdout
+    log = subprocess.run(["git", "-C", str(clone), "show", "--name-only", "--format=%s", "HEAD"], capture_output=True,
+                         text=True, check=True).stdout.split("\n")
+    assert log[0].startswith("Campaign (paper_hopper): [1/1] planted/job: ok in 1 s")
+    assert [f for f in log[1:] if f] == ["results/paper_hopper/timings.json"]  # the reports rebuilt the same
+    merged = json.loads((clone / "results" / "paper_hopper" / "timings.json").read_text())
+    assert merged == {**kept, "planted/job": {"wall_s": 1.0}}
+    status = subprocess.run(["git", "-C", str(clone), "status", "--short"], capture_output=True, text=True).stdout
+    assert status.split() == ["M", "README.md"]
