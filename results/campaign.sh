@@ -13,12 +13,30 @@
 # own; it records each job's cost straight into this checkout's results/STUDY/timings.json. The watcher, on every
 # job that ends and once more when the runner ends, gathers the kept runs and rebuilds the reports with this
 # checkout's own code (`run_study.py --report-only`), then commits results/STUDY alone (never batches or
-# checkpoints). A stopped or killed queue resumes on the next start: finished runs are kept, a killed job continues
-# from its checkpoint, and a batch whose data dir was lost is made again and checked against its kept metadata.
+# checkpoints). A stopped or killed queue resumes on the next start: finished runs are kept (and the costs of jobs
+# that ended after the watcher's last pass are merged first), a killed job continues from its checkpoint, and a
+# batch whose data dir was lost is made again and checked against its kept metadata.
 set -euo pipefail
 
 usage() { sed -n '4,6p' "$0" | sed 's/^# *//' >&2; exit 2; }
 alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
+
+# The costs the runner recorded in tree/results/STUDY/timings.json that this checkout's record lacks, merged into it
+# (written whole or not at all): by the watcher after each job, and by `start` before it moves tree/ to HEAD.
+keep_costs() {
+  python - "$2/tree/results/$1/timings.json" "$root/results/$1/timings.json" <<'PY'
+import json, os, sys, tempfile
+from pathlib import Path
+ran, kept = map(Path, sys.argv[1:])
+old = json.loads(kept.read_text()) if kept.is_file() else {}
+new = {k: v for k, v in (json.loads(ran.read_text()) if ran.is_file() else {}).items() if k not in old}
+if new:
+    fd, tmp = tempfile.mkstemp(dir=kept.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps({**old, **new}, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, kept)
+PY
+}
 
 root=$(git -C "$(dirname "$0")" rev-parse --show-toplevel)
 command=${1:-}; shift || true
@@ -33,6 +51,7 @@ start)
   fi
   python "$root/results/run_study.py" --study "$study" --list > /dev/null   # an unknown study fails here, now
   if git -C "$dir/tree" rev-parse --is-inside-work-tree > /dev/null 2>&1; then
+    if [ -f "$dir/study" ]; then keep_costs "$(cat "$dir/study")" "$dir"; fi   # the last jobs' costs, not lost
     git -C "$dir/tree" checkout -q -- . && git -C "$dir/tree" clean -fdq results
     git -C "$dir/tree" checkout -q --detach "$(git -C "$root" rev-parse HEAD)"
   else
@@ -67,19 +86,8 @@ watch)   # started by `start`: one commit of results/STUDY per job that ends, wh
       cd "$root"
       last=$(printf '%s' "$lines" | tail -1)
       # a failed report or commit (say, git busy with a commit of the checkout's own) is logged and retried at the
-      # next job's end, or at once when the runner has ended
-      if python - "$dir/tree/results/$study/timings.json" "results/$study/timings.json" <<'PY' &&
-import json, os, sys, tempfile
-from pathlib import Path
-ran, kept = map(Path, sys.argv[1:])
-old = json.loads(kept.read_text()) if kept.is_file() else {}
-new = {k: v for k, v in (json.loads(ran.read_text()) if ran.is_file() else {}).items() if k not in old}
-if new:  # the jobs' costs, as the runner recorded them, merged into the kept record (written whole or not at all)
-    fd, tmp = tempfile.mkstemp(dir=kept.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(json.dumps({**old, **new}, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, kept)
-PY
+      # next pass, a minute later
+      if keep_costs "$study" "$dir" &&
          PYTHONPATH="$root/src" python results/run_study.py --study "$study" --workdir "$dir/work" \
            --data-dir "$dir/data" --report-only && git add -- "results/$study"; then
         if git diff --cached --quiet -- "results/$study"; then :
