@@ -38,7 +38,7 @@ if new:
 PY
 }
 
-root=$(git -C "$(dirname "$0")" rev-parse --show-toplevel)
+root=$(cd "$(dirname "$0")/.." && pwd)   # the checkout: this script is its results/campaign.sh
 command=${1:-}; shift || true
 
 case "$command" in
