@@ -24,17 +24,15 @@ alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
 # The costs the runner recorded in tree/results/STUDY/timings.json that this checkout's record lacks, merged into it
 # (written whole or not at all): by the watcher after each job, and by `start` before it moves tree/ to HEAD.
 keep_costs() {
-  python - "$2/tree/results/$1/timings.json" "$root/results/$1/timings.json" <<'PY'
-import json, os, sys, tempfile
+  PYTHONPATH="$root/src" python - "$2/tree/results/$1/timings.json" "$root/results/$1/timings.json" <<'PY'
+import json, sys
 from pathlib import Path
+from torchrl_bail.io import write_text_atomic
 ran, kept = map(Path, sys.argv[1:])
 old = json.loads(kept.read_text()) if kept.is_file() else {}
 new = {k: v for k, v in (json.loads(ran.read_text()) if ran.is_file() else {}).items() if k not in old}
-if new:
-    fd, tmp = tempfile.mkstemp(dir=kept.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(json.dumps({**old, **new}, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, kept)
+if new:  # in run_study.py's record_job_end format
+    write_text_atomic(kept, json.dumps({**old, **new}, indent=1, sort_keys=True) + "\n")
 PY
 }
 

@@ -1899,6 +1899,8 @@ def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Pa
 def record_job_end(future: Future, job: Job, counter: str, workdir: Path, results: Path) -> bool:
     """Prints how ``job`` (``future``'s :func:`run_job`) ended and records its cost in ``results/timings.json``;
     whether it did not fail."""
+    from torchrl_bail.io import write_text_atomic
+
     try:
         _, rc, seconds, record = future.result()
     except BatchMismatch as err:
@@ -1912,9 +1914,7 @@ def record_job_end(future: Future, job: Job, counter: str, workdir: Path, result
     timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
     if rc == 0 and job.name not in timings:  # the first record stays (a batch made again keeps its remakes.json)
         timings[job.name] = whole_job_record(job, record, workdir)
-        tmp = timings_path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
-        tmp.replace(timings_path)
+        write_text_atomic(timings_path, json.dumps(timings, indent=1, sort_keys=True) + "\n")
     return rc == 0
 
 
