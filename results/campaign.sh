@@ -74,6 +74,7 @@ start)
 watch)   # started by `start`: one commit of results/STUDY per job that ends, while the runner lives
   study=$1 dir=$2
   echo $$ > "$dir/watcher.pid"
+  cd "$root"
   seen=0
   while true; do
     done_before=$(alive "$dir/runner.pid" && echo 0 || echo 1)
@@ -81,7 +82,6 @@ watch)   # started by `start`: one commit of results/STUDY per job that ends, wh
     count=$(printf '%s' "$lines" | grep -c . || true)
     if [ "$count" -ne "$seen" ] || [ "$done_before" = 1 ]; then   # and once more as the runner ends
       seen=$count
-      cd "$root"
       last=$(printf '%s' "$lines" | tail -1)
       # a failed report or commit (say, git busy with a commit of the checkout's own) is logged and retried at the
       # next pass, a minute later

@@ -925,13 +925,13 @@ def same_recipe_comparisons(batches: list[dict], algos: list[str]) -> list[dict]
 def _same_recipe_lines(comparisons: list[dict], batches: list[dict]) -> list[str]:
     """The cross-batch report's "Same recipe, another behaviour seed" section, as Markdown lines."""
     meta = {b["batch"]: b["metadata"] or {} for b in batches}
+    cells = {b["batch"]: b["cells"] for b in batches}
     lines = []
     for c in comparisons:
         first, other = c["batches"]
         data = "; ".join(f"{label}: data {_fmt(meta[label].get('episode_return_mean')) or 'pending'}, behaviour "
                          f"agent {_fmt(meta[label].get('behaviour_final_return_mean10')) or 'pending'}"
                          for label in c["batches"])
-        cells = {b["batch"]: b["cells"] for b in batches}
         lines += ["", f"**Same recipe, another behaviour seed: {first} and {other}.** One recipe ({c['recipe']}: env, "
                   f"behaviour agent, its noise and the batch's size), a behaviour seed apart (`batch.index`), so what "
                   f"differs between the two rows is the batch drawn, not the algorithm ({data}). Each algorithm's "
