@@ -116,6 +116,11 @@ class Job:
     def row(self) -> str:
         return self.name.rsplit("/seed", 1)[0]
 
+    @property
+    def overrides(self) -> dict[str, str]:
+        """The job's ``key=value`` arguments as a mapping (``{"+exp": "hopper_ddpg05", "algo": "bail", ...}``)."""
+        return dict(arg.split("=", 1) for arg in self.args)
+
 
 def study_jobs() -> list[Job]:
     """Every job in the order it runs: batches first, then Hopper, the ablations, BCQ/BEAR, Walker2d and its
@@ -289,14 +294,14 @@ def batch_label(job: Job) -> str:
     """The label of a job's batch, ``<experiment>_b<batch.index>`` (e.g. ``hopper_ddpg05_b2``): the first part of its
     run directories and of its partial collection's name in the data dir. Coarser than :func:`batch_key`: a preset
     or another ``batch.*`` override makes another batch under the same label."""
-    named = dict(arg.split("=", 1) for arg in job.args)
+    named = job.overrides
     return f"{named['+exp']}_b{named.get('batch.index', 1)}"
 
 
 def run_dir_of(job: Job, runs: Path) -> Path | None:
     """The run directory of a training job under ``runs`` (the workdir's ``outputs``, or the results' ``runs``, which
     keeps the same layout: ``<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
-    named = dict(arg.split("=", 1) for arg in job.args)
+    named = job.overrides
     extra = sorted(arg for arg in job.args if not arg.startswith(("+exp=", "algo=", "seed=", "batch.index=")))
     for run in sorted((runs / batch_label(job) / named["algo"]).glob(f"seed{named['seed']}*")):
         if run.name.split(",")[0] == f"seed{named['seed']}" and sorted(run.name.split(",")[1:]) == extra:
@@ -497,20 +502,24 @@ def job_seconds_left(name: str, state: JobState, timings: dict, elsewhere: dict)
     return cost * (1 - progress[0] / progress[1] if progress else 1)
 
 
-def work_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict | None = None) -> str:
-    """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core
-    (:func:`job_seconds_left`). Jobs of a kind nothing has recorded yet are counted apart."""
-    total, unknown, unfinished = 0.0, 0, [(n, s) for n, s in states if s.state != "done"]
-    collecting = sum(state.steps_collected is not None for _, state in unfinished)
-    for name, state in unfinished:
-        seconds = job_seconds_left(name, state, timings, elsewhere or {})
-        if seconds is None:
-            unknown += 1
-        else:
-            total += seconds
+def seconds_left(states: list[tuple[str, JobState]], timings: dict, elsewhere: dict | None = None
+                 ) -> dict[str, float | None]:
+    """Each unfinished job of ``states`` (``(name, job_status)``) with what it should still take
+    (:func:`job_seconds_left`; ``None``: a kind nothing has recorded yet)."""
+    return {name: job_seconds_left(name, state, timings, elsewhere or {})
+            for name, state in states if state.state != "done"}
+
+
+def work_left(states: list[tuple[str, JobState]], seconds: dict[str, float | None]) -> str:
+    """One line on what the unfinished jobs of ``states`` (``(name, job_status)``) still cost, in hours of one core,
+    from their ``seconds`` left (:func:`seconds_left`). Jobs of a kind nothing has recorded yet are counted apart."""
+    unfinished = [(n, s) for n, s in states if s.state != "done"]
     if not unfinished:
         return "nothing left to run"
-    return (f"left to run: about {total / 3600:.1f} h of one core for {len(unfinished) - unknown} of the "
+    known = [seconds[name] for name, _ in unfinished if seconds[name] is not None]
+    unknown = len(unfinished) - len(known)
+    collecting = sum(state.steps_collected is not None for _, state in unfinished)
+    return (f"left to run: about {sum(known) / 3600:.1f} h of one core for {len(known)} of the "
             f"{len(unfinished)} unfinished jobs (a running job at its own pace, any other at the median recorded "
             "cost of its algorithm: on its batch, else on the study's others, else in its peer study's records)"
             + (f"; {unknown} of a kind with no recorded cost" if unknown else "")
@@ -1110,7 +1119,7 @@ def _train_cell(job: Job) -> tuple[str, str, int] | None:
     """``(batch label, algorithm, seed)`` of a training job without a variant tag, else ``None``."""
     if job.module != "torchrl_bail.train" or len(job.name.split("/")) != 3:
         return None
-    named = dict(arg.split("=", 1) for arg in job.args)
+    named = job.overrides
     return batch_label(job), named["algo"], int(named["seed"])
 
 
@@ -1574,7 +1583,7 @@ def _read_json(path: Path) -> dict | None:
 def _ope_policy(job: Job, results: Path, headline: Path) -> dict:
     """One policy of the OPE study: its kept run, FQE estimate, true return and the paper_hopper study's summary of
     the same job (the reference its numbers must equal)."""
-    named = dict(arg.split("=", 1) for arg in job.args)
+    named = job.overrides
     entry = {"job": job.name, "algo": named["algo"], "seed": int(named["seed"]), "run": None, "estimate": None,
              "true_return": None, "final_return": None, "best_return": None, "reference_final_return": None,
              "reproduces": None, "action_gap": None}
@@ -1961,11 +1970,10 @@ def main(argv: list[str] | None = None) -> int:
             path = args.results.parent / peer / "timings.json"
             elsewhere.update(json.loads(path.read_text()) if path.exists() else {})
         timings = json.loads(own.read_text()) if own.exists() else {}
-        print(work_left(states, timings, elsewhere))
-        seconds = {name: left for name, state in states if state.state != "done"
-                   and (left := job_seconds_left(name, state, timings, elsewhere)) is not None}
-        if seconds:
-            wall = queue_wall_seconds(jobs, dict(states), seconds, args.jobs)
+        seconds = seconds_left(states, timings, elsewhere)
+        print(work_left(states, seconds))
+        if known := {name: left for name, left in seconds.items() if left is not None}:
+            wall = queue_wall_seconds(jobs, dict(states), known, args.jobs)
             print(f"with --jobs {args.jobs}, as the queue dispatches them (a batch's jobs after its collection): "
                   f"about {wall / 3600:.1f} h of wall time for those jobs")
         return 0

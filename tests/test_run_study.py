@@ -187,7 +187,7 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     checkpoint.save({"loop": {"t": 200000}, "buffers": {"kept": 200000, "steps": 10**6, "episode_id": 900}}, {})
     state = run_study.job_status(collect, tmp_path, data_dir)
     assert state.transitions == (200000, 10**6) and str(state) == "left (200000/1000000 transitions, about 40 min left)"
-    assert run_study.work_left([("collect/b", state)], {}).startswith(
+    assert run_study.work_left([("collect/b", state)], run_study.seconds_left([("collect/b", state)], {})).startswith(
         "left to run: about 0.7 h of one core for 1 of the 1")
     collect_log.with_suffix(".pid").unlink()
     collect_log.write_text("hopper_ddpg05_b1: collected at /d/hopper_ddpg05_b1-1234\n")
@@ -819,12 +819,13 @@ def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
               ("b3/iql/seed1", state("left")),                           # nothing recorded
               ("b1/bc/seed2", state("running", (10, 100), 1500.0)),      # its own pace: 1500 s (not 2000 x 0.9)
               ("b1/bail/seed1", state("done"))]
-    line = run_study.work_left(states, timings, elsewhere)
+    line = run_study.work_left(states, run_study.seconds_left(states, timings, elsewhere))
     assert line.startswith(f"left to run: about {(2000 + 6750 + 2000 + 3600 + 1500) / 3600:.1f} h of one core for 5 "
                            "of the 6 unfinished jobs") and line.endswith("; 1 of a kind with no recorded cost")
-    line = run_study.work_left([("collect/b2", state("left", steps_collected=500))], timings)
+    partial = [("collect/b2", state("left", steps_collected=500))]
+    line = run_study.work_left(partial, run_study.seconds_left(partial, timings))
     assert line.startswith("left to run: about 2.0 h") and line.endswith("; 1 partial collection priced whole")
-    assert run_study.work_left([("b1/bail/seed1", state("done"))], timings) == "nothing left to run"
+    assert run_study.work_left([("b1/bail/seed1", state("done"))], {}) == "nothing left to run"
 
 
 def test_status_prices_the_queue_in_wall_time_as_its_workers_would_run_it(run_study):
