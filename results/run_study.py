@@ -298,6 +298,12 @@ def batch_label(job: Job) -> str:
     return f"{named['+exp']}_b{named.get('batch.index', 1)}"
 
 
+def label_recipe(label: str) -> str:
+    """The experiment (recipe) of a :func:`batch_label`, ``hopper_ddpg05_b2`` -> ``hopper_ddpg05``: batches of one
+    recipe differ only in their behaviour seed (``batch.index``)."""
+    return label.rsplit("_b", 1)[0]
+
+
 def run_dir_of(job: Job, runs: Path) -> Path | None:
     """The run directory of a training job under ``runs`` (the workdir's ``outputs``, or the results' ``runs``, which
     keeps the same layout: ``<batch>_b1/<algo>/seed<s>[,<overrides>]``)."""
@@ -912,7 +918,7 @@ def same_recipe_comparisons(batches: list[dict], algos: list[str]) -> list[dict]
     against the first's (:func:`interval_order`); per claim, the verdict on each batch and whether they agree."""
     by_recipe: dict[str, list[dict]] = {}
     for b in batches:
-        by_recipe.setdefault(b["batch"].rsplit("_b", 1)[0], []).append(b)
+        by_recipe.setdefault(label_recipe(b["batch"]), []).append(b)
     out = []
     for recipe, group in by_recipe.items():
         first = group[0]
