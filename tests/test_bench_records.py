@@ -259,3 +259,41 @@ def test_the_ope_guide_quotes_the_fqe_record():
             f"{len(fit['rounds']['bare'])} fits a side)") in guide
     assert f"(load average {record['load_average']['start'][0]:.1f} at its start)" in guide
     assert "`results/benchmarks/bench_fqe.json`" in guide
+
+
+def test_the_many_seeds_guide_quotes_the_seed_stack_record():
+    """The stacked updates' range (lowest and highest ratio, with their algorithms) and the envelope fit's ratio the
+    guide states are ``bench_seed_stack.json``'s."""
+    record = json.loads((RECORDS_DIR / "bench_seed_stack.json").read_text())
+    names = {"bail": "BAIL", "pbail": "Progressive BAIL", "bc": "BC", "marwil": "MARWIL", "bcq": "BCQ", "bear": "BEAR"}
+    updates = sorted((row["ratio"], names[row["name"].split()[0]]) for row in record["rows"]
+                     if " update " in row["name"])
+    (envelope,) = [row for row in record["rows"] if row["name"].startswith("bail envelope fit")]
+    guide = " ".join((ROOT / "docs" / "guides" / "many-seeds.md").read_text().split())
+    (low, low_algo), (high, high_algo) = updates[0], updates[-1]
+    rounds = len(record["rows"][0]["rounds"]["stacked_per_s"])
+    assert (f"({low:.2f} for {low_algo} to {high:.2f} for {high_algo}, one run each, {rounds} rounds a side)"
+            in guide)
+    envelope_rounds = len(envelope["rounds"]["stacked_per_s"])
+    assert f"The stacked envelope fit is faster ({envelope['ratio']:.2f}, {envelope_rounds} rounds)" in guide
+
+
+def test_the_compile_guide_quotes_the_compile_record():
+    record = json.loads((RECORDS_DIR / "bench_compile.json").read_text())
+    rows = {row["algo"]: row for row in record["rows"]}
+    guide = " ".join((ROOT / "docs" / "guides" / "compiled-updates.md").read_text().split())
+    assert (f"×{rows['bc']['ratio']:.2f} for BC and ×{rows['marwil']['ratio']:.2f} for MARWIL (batch 1000) from "
+            f"{len(rows['bc']['rounds']['eager_updates_per_s'])} rounds a side") in guide
+    assert f"after {max(row['compile_s'] for row in rows.values()):.0f} s of compiling each" in guide
+    assert max(row["compile_s"] for row in rows.values()) - min(row["compile_s"] for row in rows.values()) < 1
+
+
+def test_the_page_names_every_ratio_below_the_issues_floor():
+    """"One ratio lies below the issues' 0.8 now, ...": of the rows that set the package against a reference (its
+    rate over the reference's), those under 0.8 are the ones the page names."""
+    below = [(row["name"], row["ratio"]) for record in render_records.load_records().values()
+             for row in record["rows"] if str((row.get("ratio_of") or [""])[0]).startswith("torchrl_bail")
+             and row["ratio"] < 0.8]
+    flat = " ".join(PAGE.read_text().split())
+    assert len(below) == 1 and below[0][0].startswith("FQE update")
+    assert f"One ratio lies below the issues' 0.8 now, FQE's update ({below[0][1]:.2f};" in flat
