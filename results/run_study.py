@@ -328,6 +328,18 @@ def _is_running(log: Path) -> bool:
     return log.is_file() and time.time() - log.stat().st_mtime < 600
 
 
+def _running_since(log: Path) -> float | None:
+    """When the job of ``log`` started, if it runs now (:func:`_is_running`): its ``.pid`` file's time (written as
+    its process started), or 0 for a runner that wrote none (its start unknown); ``None`` if it does not run."""
+    if not _is_running(log):
+        return None
+    pid_file = log.with_suffix(".pid")
+    try:
+        return pid_file.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
 @dataclass(frozen=True)
 class JobState:
     """Where one job stands (:func:`job_status`); ``str()`` gives it as ``--status`` prints it, e.g. ``running
@@ -353,14 +365,16 @@ class JobState:
         return self.state + (f" ({detail})" if detail else "")
 
 
-def _collection_state(job: Job, data_dir: Path | None, unfinished: str) -> JobState:
+def _collection_state(job: Job, data_dir: Path | None, running_since: float | None) -> JobState:
     """An unfinished collect job with the last checkpoint of its batch's partial collection, if any: the transitions
     kept out of the batch's size and the time the rest takes at the collection's pace so far (less what a running
-    job has done since), or, from an older checkpoint that names no size, its env steps."""
+    job has done since: ``running_since`` is :func:`_running_since`), or, from an older checkpoint that names no
+    size, its env steps."""
     from torchrl_bail.behaviour.checkpoint import STATE_FILE, CollectionCheckpoint
     from torchrl_bail.data.cache import default_data_dir
     from torchrl_bail.data.locks import PARTIAL
 
+    unfinished = "left" if running_since is None else "running"
     partials = (Path(data_dir or default_data_dir()) / PARTIAL).glob(f"{batch_label(job)}-*")
     found = [(state, p) for p in partials if (state := CollectionCheckpoint(p, every_s=None).load()) is not None]
     if not found:
@@ -371,7 +385,7 @@ def _collection_state(job: Job, data_dir: Path | None, unfinished: str) -> JobSt
         return JobState(unfinished, steps_collected=int(state["loop"]["t"]))
     wall = None if state.get("timed_from_step") else state.get("wall_time_s")  # else its first steps are untimed
     return JobState(unfinished, transitions=(int(kept), int(size)),
-                    seconds_left=_seconds_left(kept, size, wall, partial / STATE_FILE, unfinished == "running"))
+                    seconds_left=_seconds_left(kept, size, wall, partial / STATE_FILE, running_since))
 
 
 def landed(job: Job, results: Path | None) -> bool:
@@ -409,7 +423,8 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
     if landed(job, results):
         return done
     log = workdir / "logs" / (job.name.replace("/", "__") + ".log")
-    unfinished = "running" if _is_running(log) else "left"
+    running_since = _running_since(log)
+    unfinished = "left" if running_since is None else "running"
     if job.module == "torchrl_bail.ope":
         run = run_dir_of(job, workdir / "outputs")
         if run is not None and ope_finished(run):
@@ -419,7 +434,7 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
         text = log.read_text(errors="replace") if log.is_file() else ""
         if re.search(r": (collected|already cached) at ", text):
             return done
-        return _collection_state(job, data_dir, unfinished)
+        return _collection_state(job, data_dir, running_since)
     run = run_dir_of(job, workdir / "outputs")
     if run is not None and (run / "summary.json").is_file():
         return done
@@ -430,7 +445,7 @@ def job_status(job: Job, workdir: Path, data_dir: Path | None = None, results: P
     state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
     return JobState(unfinished, (state["iteration"], state["iterations"]),
                     _seconds_left(state["iteration"], state["iterations"], state.get("wall_time_s"),
-                                  run / "checkpoint.pt", unfinished == "running"))
+                                  run / "checkpoint.pt", running_since))
 
 
 def _ope_progress(run: Path) -> str:
@@ -454,15 +469,18 @@ def _ope_progress(run: Path) -> str:
     return progress
 
 
-def _seconds_left(done: int, total: int, wall: float | None, checkpoint: Path, running: bool) -> float | None:
+def _seconds_left(done: int, total: int, wall: float | None, checkpoint: Path,
+                  running_since: float | None) -> float | None:
     """The seconds the ``total - done`` units left (updates, transitions) take at the job's own pace so far (the
     ``wall`` seconds its ``checkpoint`` records for the ``done`` ones: a run's evaluations included), less what a
-    running job has done since that checkpoint; ``None`` before any, or where the checkpoint records no time."""
+    job running since ``running_since`` (:func:`_running_since`) has done since that checkpoint or since it
+    started, whichever is later: one resumed from an older checkpoint has not run in between; ``None`` before any,
+    or where the checkpoint records no time."""
     if not done or not wall:
         return None
     left = (total - done) * wall / done
-    if running:
-        left -= time.time() - checkpoint.stat().st_mtime
+    if running_since is not None:
+        left -= time.time() - max(checkpoint.stat().st_mtime, running_since)
     return max(left, 0.0)
 
 

@@ -203,6 +203,13 @@ def test_status_reports_done_running_and_left_with_checkpoint_progress(run_study
     os.utime(half / "checkpoint.pt", (time.time() - 600, time.time() - 600))  # saved 10 min ago, still running
     assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
         "running (2500/10000 updates, about 15 min left)")
+    # resumed 4 min ago from that checkpoint (its .pid file written as it started): 4 min done since, not 10
+    bc_pid = tmp_path / "logs" / "hopper_ddpg05__bc__seed1.pid"
+    bc_pid.write_text(f"{os.getpid()}\n")
+    os.utime(bc_pid, (time.time() - 240, time.time() - 240))
+    assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
+        "running (2500/10000 updates, about 21 min left)")
+    bc_pid.unlink()
     (tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log").write_text("training\n")
     os.utime(tmp_path / "logs" / "hopper_ddpg05__bc__seed1.log", (time.time() - 900, time.time() - 900))
     assert str(run_study.job_status(jobs["hopper_ddpg05/bc/seed1"], tmp_path)) == (
