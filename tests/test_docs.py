@@ -508,7 +508,8 @@ def test_readme_quotes_the_paper_scale_cell():
 
 @pytest.mark.parametrize("batch, start, end, env", [
     ("walker_ddpg05_b1", "Walker2d's batch is complete:", "differs between the two complete batches", "Walker2d"),
-    ("hopper_ddpg01_b1", "On Hopper DDPG σ = 0.1", "One claim is already read", "Hopper"),
+    ("hopper_ddpg01_b1", "On Hopper DDPG σ = 0.1", "On Hopper DDPG σ = 0.5 B2", "Hopper"),
+    ("hopper_ddpg05_b2", "On Hopper DDPG σ = 0.5 B2", "One claim is already read", "Hopper"),
 ])
 def test_readme_quotes_each_batchs_finished_cells_as_the_cross_batch_report_has_them(batch, start, end, env):
     """The README's sentence on a batch is ``cross_batch.json``'s entry: each central cell that has all its seeds,
