@@ -547,7 +547,8 @@ def test_readme_reads_bail_over_bc_across_batches_as_the_cross_batch_report_does
 def test_the_results_pages_cross_batch_state_is_the_reports():
     """"Across batches" includes the cross-batch report, whose first line (``cross_batch.json``'s ``status``) says
     where the study stands, so that the page never restates a state that the next job changes. Once all four batches
-    are complete this fails until the page gives the verdict across them in words of its own."""
+    are complete this fails until the page gives the verdict across them in words of its own, quoting each claim's
+    count of batches where it holds and each probability of improvement with its interval."""
     report = json.loads((ROOT / "results" / "paper_batches" / "cross_batch.json").read_text())
     page = (ROOT / "docs" / "results.md").read_text()
     section = " ".join(page[page.index("## Across batches"):].split())
@@ -555,6 +556,12 @@ def test_the_results_pages_cross_batch_state_is_the_reports():
     assert "Where it stands is the report's first line" in section
     if len(report["complete_batches"]) == len(report["batches"]):
         assert "**Across the four batches:**" in section, "write the cross-batch verdict on the Results page"
+        verdict = section[section.index("**Across the four batches:**"):]
+        for claim in report["claims_across_batches"]:  # the counts and probabilities the verdict rests on
+            assert f"{claim['claim'].split(' (')[0]} holds on {claim['holds']} of 4" in verdict, claim
+        for p in report["aggregate"]["probability_of_improvement"]:
+            assert (f"P({p['a'].upper()} > {p['b'].upper()}) = {p['p']:.2f} [{p['ci_low']:.2f}, {p['ci_high']:.2f}]"
+                    in verdict), p
     assert [b["batch"] for b in report["batches"]][0] == "hopper_ddpg05_b1" and len(report["batches"]) == 4
     assert report["status"] in (ROOT / "results" / "paper_batches" / "cross_batch.md").read_text()
     figures = [report["aggregate_figure"], *(b["figure"] for b in report["batches"] if b["figure"])]
