@@ -375,8 +375,9 @@ def _cross_batch_entry(batch: str) -> dict:
 def test_the_home_pages_headline_result_is_the_results_own():
     """Every figure of the home page's headline table is the one its results file holds: the study's Hopper DDPG
     sigma = 0.5 row, the paper-scale cell (results/paper_hopper: its report and its batch's metadata), and the
-    Walker2d and Hopper sigma = 0.1 batches of the cross-batch study (results/paper_batches/cross_batch.json: every
-    seed of the row's three cells); BAIL, BC and BCQ, the best of each row in bold, and the sentences on BCQ's order
+    Walker2d, Hopper sigma = 0.1 and Hopper sigma = 0.5 B2 batches of the cross-batch study
+    (results/paper_batches/cross_batch.json: every seed of the row's three cells); BAIL, BC and BCQ, the best of
+    each row in bold, and the sentences on BCQ's order
     against BAIL (and against BC where it ends level with it) are the data's."""
     page = (ROOT / "docs" / "index.md").read_text()
     headline = page[page.index("## The headline result"):page.index("## Where to start")]
@@ -385,9 +386,12 @@ def test_the_home_pages_headline_result_is_the_results_own():
     paper = home["Hopper-v5, 10^6 transitions, the paper's size (`preset=paper`)"]
     walker = home["Walker2d-v5, 10^6 transitions (`preset=paper`)"]
     sigma01 = home["Hopper-v5 σ = 0.1, 10^6 transitions (`preset=paper`)"]
+    b2 = home["Hopper-v5 σ = 0.5 B2 (the same recipe, another behaviour seed), 10^6 transitions (`preset=paper`)"]
     text = " ".join(headline.split())
-    for row, batch_label, published in ((walker, "walker_ddpg05_b1", "2522 ± 51 on the Walker2d one"),
-                                        (sigma01, "hopper_ddpg01_b1", "2173 ± 291 on the σ = 0.1 one")):
+    for row, batch_label, published, bcq_verdict in (
+            (walker, "walker_ddpg05_b1", "2522 ± 51 on the Walker2d one", "holds"),
+            (sigma01, "hopper_ddpg01_b1", "2173 ± 291 on the σ = 0.1 one", "holds"),
+            (b2, "hopper_ddpg05_b2", "2623 ± 282 on the B2 one", "holds")):
         across = _cross_batch_entry(batch_label)
         assert [row["the batch's own mean episode return"], row["BAIL"], row["BC"], row["BCQ"]] == [
             f"{across['metadata']['episode_return_mean']:.1f}",
@@ -396,7 +400,7 @@ def test_the_home_pages_headline_result_is_the_results_own():
         assert [across["cells"][a]["seeds"] for a in ("bail", "bc", "bcq")] == [5, 5, 3]
         assert published in text and across["published_bail"] == published.split(" on ")[0]
         claim = next(c for c in across["claims"] if c["claim"].startswith("BAIL above BCQ"))
-        assert claim["verdict"].startswith("holds"), (batch_label, claim)
+        assert claim["verdict"].startswith(bcq_verdict), (batch_label, claim)
     bc, bcq = (_cross_batch_entry("hopper_ddpg01_b1")["cells"][a] for a in ("bc", "bcq"))
     assert "(there BCQ ends level with BC)" in text
     assert bcq["final_return_iqm_ci_low"] <= bc["final_return_iqm_ci_high"], "level: the IQM intervals overlap"
@@ -417,7 +421,7 @@ def test_the_home_pages_headline_result_is_the_results_own():
     assert cell["bail"]["seeds"] == cell["bc"]["seeds"] == "5" and cell["bcq"]["seeds"] == "3"
     assert "over 5 seeds (BCQ: 3 seeds)" in page
     assert "2054 ± 158" in page and cell["bail"]["published (gym v2)"] == "2054 ± 158"
-    rows = (small, paper, walker, sigma01)
+    rows = (small, paper, walker, sigma01, b2)
     for row in rows:  # the bold cell is the row's best mean
         means = {algo: float(row[algo].split(" ± ")[0]) for algo in ("BAIL", "BC", "BCQ")}
         best = max(means, key=means.get)
@@ -432,6 +436,8 @@ def test_the_home_pages_headline_result_is_the_results_own():
     verdict = next(c["verdict"] for c in json.loads((ROOT / "results" / "paper_hopper" / "cell.json").read_text())[
         "claims"] if (c["a"], c["b"]) == ("bail", "bcq"))
     assert verdict.startswith("does not hold") and "BAIL beats BCQ does not hold on this batch" in text
+    assert ("B2), BCQ ends below BAIL and the claim holds: BCQ's lead on the first "
+            "σ = 0.5 batch belongs to that batch, not to its recipe") in text, "B2's reading"
 
 
 def test_getting_started_quotes_the_kept_run_of_the_first_command():
@@ -509,7 +515,7 @@ def test_readme_quotes_the_paper_scale_cell():
 @pytest.mark.parametrize("batch, start, end, env", [
     ("walker_ddpg05_b1", "Walker2d's batch is complete:", "differs between the two complete batches", "Walker2d"),
     ("hopper_ddpg01_b1", "On Hopper DDPG σ = 0.1", "On Hopper DDPG σ = 0.5 B2", "Hopper"),
-    ("hopper_ddpg05_b2", "On Hopper DDPG σ = 0.5 B2", "One claim is already read", "Hopper"),
+    ("hopper_ddpg05_b2", "On Hopper DDPG σ = 0.5 B2", "Across all four:", "Hopper"),
 ])
 def test_readme_quotes_each_batchs_finished_cells_as_the_cross_batch_report_has_them(batch, start, end, env):
     """The README's sentence on a batch is ``cross_batch.json``'s entry: each central cell that has all its seeds,
@@ -542,6 +548,12 @@ def test_readme_reads_bail_over_bc_across_batches_as_the_cross_batch_report_does
             in readme) and claim["holds"] == len(report["batches"])
     assert (f"the probability that a BAIL run ends above a BC run on the same batch is {improvement['p']:.2f} "
             f"[{improvement['ci_low']:.2f}, {improvement['ci_high']:.2f}] over the four") in readme
+    bcq = next(p for p in report["aggregate"]["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+    counts = {c["claim"].split(" (")[0]: c["holds"] for c in report["claims_across_batches"]}
+    per_batch = ", ".join(f"{v:.2f}" for v in bcq["per_batch"].values())
+    assert (f"BAIL above BCQ holds on {counts['BAIL above BCQ']} of 4 (P(BAIL > BCQ) = {bcq['p']:.2f} "
+            f"[{bcq['ci_low']:.2f}, {bcq['ci_high']:.2f}]; per batch {per_batch}, the headline batch first); "
+            f"Progressive BAIL ≈ BAIL holds on {counts['Progressive BAIL ≈ BAIL']} of 4") in readme
 
 
 def test_the_results_pages_cross_batch_state_is_the_reports():
