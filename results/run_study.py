@@ -286,8 +286,37 @@ def ope_headline_jobs() -> list[Job]:
     return jobs
 
 
+#: the execution-batch study (``--study paper_exec``, issue 51): per env in turn, the 10^6-step SAC run (its ``sac``
+#: training batch) and its four execution batches of supp. Table 2 (B1, 10^6 transitions each), then on each of those
+#: five batches :data:`PAPER_EXEC_CELLS` at the paper-scale schedules; Hopper's batches complete before Walker2d's start
+PAPER_EXEC_ENVS = ("hopper", "walker")
+PAPER_EXEC_KINDS = ("sac", "med_det", "med_stoch", "opt_det", "opt_stoch")
+PAPER_EXEC_CELLS = [("bail", 3), ("bc", 3), ("marwil", 3), ("bcq", 3)]
+#: when both envs are complete: BEAR on Hopper's execution batches (supp. Table 2's BEAR often scores 0)
+PAPER_EXEC_EXTRA_CELLS = [("hopper", kind, "bear", 3) for kind in PAPER_EXEC_KINDS[1:]]
+
+
+def paper_exec_jobs() -> list[Job]:
+    """The paper's SAC-made half at its scale (results in ``results/paper_exec``): for each of :data:`PAPER_EXEC_ENVS`,
+    the collection of each of :data:`PAPER_EXEC_KINDS` (the first, ``sac``, trains the shared SAC run that the
+    execution batches reuse), then :data:`PAPER_EXEC_CELLS` on each batch, seed 1 of every cell first; then
+    :data:`PAPER_EXEC_EXTRA_CELLS`."""
+    def train(exp, algo, seed):
+        return Job(f"{exp}_b1/{algo}/seed{seed}", [*batch_args(exp, 1), f"algo={algo}", f"seed={seed}",
+                                                   *paper_schedule(algo)])
+
+    jobs = []
+    for env in PAPER_EXEC_ENVS:
+        exps = [f"{env}_{kind}" for kind in PAPER_EXEC_KINDS]
+        jobs += [Job(f"collect/{exp}_b1", batch_args(exp, 1), "torchrl_bail.collect") for exp in exps]
+        jobs += [train(exp, algo, seed) for seed in range(1, max(n for _, n in PAPER_EXEC_CELLS) + 1)
+                 for exp in exps for algo, n in PAPER_EXEC_CELLS if seed <= n]
+    return jobs + [train(f"{env}_{kind}", algo, seed) for seed in range(1, 4)
+                   for env, kind, algo, n in PAPER_EXEC_EXTRA_CELLS if seed <= n]
+
+
 STUDIES = {"study": study_jobs, "paper_hopper": paper_hopper_jobs, "paper_batches": paper_batches_jobs,
-           "ope_headline": ope_headline_jobs}
+           "ope_headline": ope_headline_jobs, "paper_exec": paper_exec_jobs}
 
 
 def batch_label(job: Job) -> str:
@@ -486,7 +515,8 @@ def _seconds_left(done: int, total: int, wall: float | None, checkpoint: Path,
 
 #: the studies whose jobs run at a study's scale (``preset=paper``, the same schedules), so whose recorded costs price
 #: its jobs of a kind it has not recorded yet (``--status``'s estimate of the work left)
-COST_PEERS = {"paper_batches": ("paper_hopper",), "paper_hopper": ("paper_batches",)}
+COST_PEERS = {"paper_batches": ("paper_hopper",), "paper_hopper": ("paper_batches",),
+              "paper_exec": ("paper_batches", "paper_hopper")}
 
 
 def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
@@ -1874,7 +1904,8 @@ def write_reports(study: str, results: Path, headline: Path) -> str:
     if study == "ope_headline":
         ope_headline_report(results, headline)
     return {"study": "study.md, ablations.md", "paper_hopper": "study.md, cell.md",
-            "paper_batches": "study.md, cross_batch.md", "ope_headline": "study.md, ope.md"}[study]
+            "paper_batches": "study.md, cross_batch.md", "ope_headline": "study.md, ope.md",
+            "paper_exec": "study.md"}[study]
 
 
 def pin_cpus(parallel: int) -> queue.SimpleQueue:
