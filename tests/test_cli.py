@@ -53,6 +53,9 @@ def test_bail_end_to_end_writes_every_artifact(tmp_path, data_dir):
                 "num_transitions", "wall_time_s"):
         assert key in s, key
     assert (s["algo"], s["env"], s["batch_index"], s["seed"], s["num_transitions"]) == ("bail", "Hopper-v5", 1, 1, 1500)
+    # one torch thread by default (conf/config.yaml: threads), said among the run's first lines and kept
+    assert s["torch_threads"] == 1
+    assert "torch threads: 1 (threads=1)" in "\n".join((run_dir / "train.log").read_text().splitlines()[:3])
     assert 0.29 <= s["selected_fraction"] <= 0.32
     for name in ("config.yaml", "learning_curve.png", "envelope.png", "summary.json", "policy.pt",
                  "checkpoint.pt"):

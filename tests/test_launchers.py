@@ -24,15 +24,17 @@ def _compose(*overrides):
 
 def test_joblib_jobs_share_the_cores():
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
-    cfg = _compose("hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+    assert _compose().threads == 1  # the default: one thread per job, whatever the launcher
+    cfg = _compose("hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "threads=null")
     launcher = cfg.hydra.launcher
+    assert job_threads(_compose("hydra/launcher=joblib", "hydra.launcher.n_jobs=2"), launcher) == 1
     assert "JoblibLauncher" in launcher._target_
     cores = len(os.sched_getaffinity(0))
     assert job_threads(cfg, launcher) == max(1, cores // 2)
     assert job_threads(cfg, OmegaConf.merge(launcher, {"n_jobs": 4 * cores})) == 1  # never 0
     assert job_threads(cfg, OmegaConf.merge(launcher, {"n_jobs": -1})) == 1  # one job per core
     assert job_threads(OmegaConf.create({"threads": 3}), launcher) == 3  # an explicit key wins
-    assert job_threads(cfg, _compose().hydra.launcher) is None  # the basic launcher: torch's default
+    assert job_threads(cfg, _compose().hydra.launcher) is None  # threads=null, basic launcher: torch's default
 
 
 def test_the_joblib_launcher_runs_two_jobs_by_default_without_hydras_schema_warning():

@@ -40,8 +40,14 @@ log = logging.getLogger("torchrl_bail")
 
 
 def job_threads(cfg, launcher=None) -> int | None:
-    """Torch threads for this job: the ``threads`` config key when set, else ``cores // n_jobs`` under the joblib
-    launcher (so that side-by-side jobs do not oversubscribe the cores), else ``None`` (torch's default)."""
+    """Torch threads for this job: the ``threads`` config key when set (1 by default, ``conf/config.yaml``), else
+    (``threads=null``) ``cores // n_jobs`` under the joblib launcher (so that side-by-side jobs do not oversubscribe
+    the cores), else ``None`` (torch's default, one thread per core).
+
+    Why 1 by default: the networks here (256 x 256, mini-batches of 100-1000) gain little from a second thread on a
+    quiet machine and lose everything when one of its threads is descheduled: beside one busy process a collection
+    with torch's default ran 15 times slower than with one thread (``benchmarks/bench_threads.py``; the record is
+    ``results/benchmarks/bench_threads.json``, the Benchmarks page quotes it)."""
     threads = cfg.get("threads")
     if threads:
         return int(threads)
@@ -55,15 +61,16 @@ def job_threads(cfg, launcher=None) -> int | None:
 def use_job_threads(cfg) -> None:
     """Sets torch's thread count to the job's (:func:`job_threads`, under the running Hydra launcher) when it has
     one: every ``train`` and ``collect`` job, so that side-by-side jobs share the cores and ``threads=N`` means the
-    same to both commands."""
+    same to both commands. Logs the count the job runs with, among its first lines (``train`` also keeps it in
+    ``summary.json`` as ``torch_threads``, a collection in its batch's metadata as ``collection_threads``)."""
+    import torch
     from hydra.core.hydra_config import HydraConfig
 
     threads = job_threads(cfg, HydraConfig.get().get("launcher"))
     if threads is not None:
-        import torch
-
         torch.set_num_threads(threads)
-        log.info("torch threads: %d", threads)
+    log.info("torch threads: %d (%s)", torch.get_num_threads(),
+             "threads=null: torch's default" if threads is None else f"threads={threads}")
 
 
 def describe_error(err: BaseException) -> str:

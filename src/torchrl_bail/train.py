@@ -144,6 +144,8 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
                resumption: Resumption, *, wall_time_s: float) -> dict[str, Any]:
     """After training: ``policy.pt``, ``summary.json`` (written last: it marks the run complete) and the learning
     curve of one seed's run; returns the summary."""
+    import torch
+
     from torchrl_bail.data.batch import platform_record
     from torchrl_bail.io import write_json_atomic
     from torchrl_bail.plots import plot_learning_curve
@@ -177,6 +179,7 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
         **algorithm.summary(),
         **resumption.summary_fields(),
         "wall_time_s": wall_time_s,
+        "torch_threads": torch.get_num_threads(),
         "run_dir": str(run_dir),
         "batch_path": str(batch.path),
         "platform": platform_record(),
