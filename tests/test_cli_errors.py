@@ -187,3 +187,32 @@ def test_help_lists_each_groups_real_options(tmp_path):
     assert groups == group_options()
     assert groups["algo"] == sorted(ALGO_SCHEMAS)
     assert "ddpg05" in groups["batch"] and "base_" not in proc.stdout and "_collection" not in proc.stdout
+
+
+@pytest.mark.parametrize("command", ["train", "collect"])
+def test_help_opens_with_the_commands_a_user_types(tmp_path, command):
+    """``--help`` starts with the commands to type (README command 1 for ``train``), what ``+exp=`` and ``preset=``
+    choose, then Hydra's help; not Hydra's bare "train is powered by Hydra."; every option its examples name exists."""
+    import re
+
+    from torchrl_bail.hydra_setup import group_options
+
+    proc = _run(f"torchrl_bail.{command}", ["--help"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    head, groups_header, _ = proc.stdout.partition("== Configuration groups ==")
+    assert groups_header and "powered by Hydra" not in head
+    assert head.startswith(f"python -m torchrl_bail.{command}:")
+    assert "+exp=<env>_<batch>" in head and "preset=quick|study|paper" in head
+    if command == "train":
+        readme = (REPO / "README.md").read_text()
+        first = re.search(r"python -m torchrl_bail\.train \+exp=\S+ preset=quick seed=1", readme).group(0)
+        assert f"  {first}   #" in head  # README command 1, as the first example
+    examples = [line.split("#")[0].split()[3:] for line in head.splitlines()
+                if line.startswith(f"  python -m torchrl_bail.{command} ")]
+    assert len(examples) >= 3
+    options = group_options()
+    for args in examples:
+        for arg in args:
+            key, _, value = arg.lstrip("+").partition("=")
+            if key in options and "," not in value:
+                assert value in options[key], arg

@@ -78,6 +78,44 @@ def group_options(conf: Path | None = None) -> dict[str, list[str]]:
     return groups
 
 
+#: what ``--help`` opens with, per command (Hydra's job name): the commands a user types first, then what ``+exp=`` and
+#: ``preset=`` choose; Hydra's own help (the groups' options, the composed config) follows
+COMMAND_HELP = {
+    "train": """\
+python -m torchrl_bail.train: train one of the paper's algorithms (BAIL by default, algo=...) on an offline batch,
+generating and caching the batch first if it is not cached yet.
+
+  python -m torchrl_bail.train +exp=hopper_ddpg05 preset=quick seed=1   # BAIL end to end, under an hour on 2 cores
+  python -m torchrl_bail.train +exp=hopper_ddpg05 algo=bc seed=2        # another algorithm, the paper's scale
+  python -m torchrl_bail.train -m +exp=hopper_ddpg05 seed=1,2,3         # a sweep of seeds (multirun)
+  python -m torchrl_bail.train dataset=path/to/d4rl.hdf5 env=hopper     # your own data instead of a generated batch
+
++exp=<env>_<batch> picks the environment and the batch (the exp group below, e.g. walker_sac, hopper_med_stoch);
+batch.index=2 the second behaviour seed (B2). preset=quick|study|paper scales the batch and the schedules (paper, the
+default: 10^6 transitions). threads=1 by default (threads=N opts in to more). Docs: docs/getting-started.md.
+The README's two commands: pip install torch==2.13.0 && pip install -e . && python -m torchrl_bail.train
++exp=hopper_ddpg05 preset=quick seed=1 (the first example above); pip install -e ".[test]" && python -m pytest -q.
+""",
+    "collect": """\
+python -m torchrl_bail.collect: make a batch (train the behaviour agent online, keep its data) into the cache.
+
+  python -m torchrl_bail.collect +exp=hopper_ddpg05 preset=quick   # a 50k-transition DDPG sigma=0.5 batch
+  python -m torchrl_bail.collect +exp=walker_med_stoch             # trains the shared SAC run first if needed
+  python -m torchrl_bail.collect --list                            # the cached batches
+
++exp=<env>_<batch> picks the environment and the batch (the exp group below); batch.index=2 the second behaviour
+seed (B2). preset=quick|study|paper sets the batch's size (paper, the default: 10^6 transitions). Docs:
+docs/guides/batch-catalogue.md.
+""",
+}
+
+
+def _command_help(job_name: str) -> str:
+    """The opening of ``--help`` for the command named ``job_name`` (:data:`COMMAND_HELP`; the ``command_help``
+    resolver of ``conf/config.yaml``'s ``hydra.help.header``), Hydra's plain line for any other."""
+    return COMMAND_HELP.get(job_name, f"{job_name} is powered by Hydra.\n")
+
+
 def _groups_help() -> str:
     """The ``--help`` lines of :func:`group_options`: the ``config_groups`` resolver of ``conf/config.yaml``'s
     ``hydra.help.template`` (Hydra's own list also shows the schemas, ``base_<name>_schema``, and the parts)."""
@@ -96,7 +134,7 @@ def config_dir() -> Path:
     """
     register_schemas()
     for name, resolver in (("run_dir_suffix", run_dir_suffix), ("batch_label", batch_label),
-                           ("config_groups", _groups_help)):
+                           ("config_groups", _groups_help), ("command_help", _command_help)):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     packaged = Path(__file__).resolve().parent / "conf"
