@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from _contract import ALGO_CASES
@@ -18,6 +20,7 @@ TINY = [
     "eval.episodes=2", "eval.max_steps=200", "eval.every_epochs=0.002", "samples_per_epoch=1000000",
     "returns.horizon=200", "progress=false",
 ]
+REPO = Path(__file__).resolve().parents[1]
 #: each algorithm's tiny run: the contract's (tests/_contract.py), except BAIL's (an envelope fitted well enough for
 #: the selection and ablation checks below) and BC's (5 evaluations, tests/test_policy.py)
 ALGO_TINY = {**{name: list(case.cli) for name, case in ALGO_CASES.items()},
@@ -61,6 +64,18 @@ def test_bail_end_to_end_writes_every_artifact(tmp_path, data_dir):
                  "checkpoint.pt"):
         assert (run_dir / name).stat().st_size > 0, name
     assert (run_dir / "logs" / "scalars" / "eval" / "return.csv").exists()
+    # Getting started's table of what a run writes names every entry of the run dir, and each entry it names exists
+    section = (REPO / "docs" / "getting-started.md").read_text().split("## What a run writes")[1]
+    table = next(block for block in section.split("\n\n") if block.startswith("| file |"))
+    named = [path for line in table.splitlines()[2:] for path in re.findall(r"`([^`]+)`", line.split(" | ")[0])]
+    for entry in run_dir.iterdir():
+        assert any(path.split("/")[0] == entry.name for path in named), f"{entry.name} is not in Getting started"
+    for path in named:
+        if "{" in path:  # logs/scalars/{eval,train,envelope,selection}/*.csv: the folders a BAIL run writes
+            folder, options = re.match(r"(.*)/\{(.*)\}/", path).groups()
+            assert {p.name for p in (run_dir / folder).iterdir()} <= set(options.split(",")), path
+        else:
+            assert (run_dir / path.rstrip("/")).exists(), f"Getting started names {path}, which the run lacks"
 
 
 @pytest.mark.parametrize("algo", ["bail", "bcq"])
