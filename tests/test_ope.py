@@ -178,13 +178,15 @@ def test_bad_numbers_stop_the_command(tiny_run, args, message, capsys):
 
 
 def test_bad_paths_stop_the_command_in_one_line(tiny_run, tmp_path, capsys):
+    """A run that cannot be scored alone (or a bad --data-dir) stops the command in one line; beside a run that can
+    be, see test_every_run_that_can_be_scored_is_scored_and_each_other_named."""
     (tmp_path / "not_a_run").mkdir()
     unfinished = tmp_path / "unfinished"
     unfinished.mkdir()
     (unfinished / "config.yaml").write_text("seed: 1\n")
     for args, message in [([str(tmp_path / "nowhere")], "no such run directory"),
                           ([str(tmp_path / "not_a_run")], "not a run directory (no config.yaml)"),
-                          ([str(tiny_run), str(unfinished)], "no policy.pt (a finished run directory holds it)"),
+                          ([str(unfinished)], "no policy.pt (a finished run directory holds it)"),
                           ([str(tiny_run), "--data-dir", str(tmp_path / "nowhere")], "--data-dir")]:
         assert main(args) == 2, args
         err = capsys.readouterr().err.strip()
@@ -203,3 +205,119 @@ def test_the_module_refuses_a_bad_path_before_loading_torch(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert proc.stderr.strip() == f"torchrl_bail.ope: {nowhere}: no such run directory", proc.stderr
     assert proc.stdout.split() == ["2", "False"], proc.stdout
+
+
+# -- issue 53, item 4 ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("args", [["--updates", "-5"], ["--gamma", "2"], ["--updates", "x"], ["--lr", "0"]])
+def test_a_bad_number_is_one_line_not_the_usage(tiny_run, args, capsys):
+    """The guide promises one line and exit status 2 for a bad number: argparse's usage block (a dozen lines of
+    options) is not printed, the option and its value are."""
+    with pytest.raises(SystemExit) as stop:
+        main([str(tiny_run), *args])
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("torchrl_bail.ope: ") and args[0] in err and "usage:" not in err, err
+
+
+def _copy_config(tiny_run: Path, run_dir: Path) -> Path:
+    run_dir.mkdir()
+    (run_dir / "config.yaml").write_text((tiny_run / "config.yaml").read_text())
+    return run_dir
+
+
+@pytest.mark.parametrize("damage", ["random_bytes", "truncated"])
+def test_a_corrupt_policy_file_is_named_as_such(tiny_run, tmp_path, damage, capsys):
+    """A policy.pt of random bytes, or cut short, is reported as a damaged file at its path, without torch's advice
+    to load it with weights_only=False (right for a trusted file in another format, wrong for a damaged one)."""
+    import os
+
+    run_dir = _copy_config(tiny_run, tmp_path / "damaged")
+    data = (tiny_run / "policy.pt").read_bytes()
+    (run_dir / "policy.pt").write_bytes(os.urandom(4096) if damage == "random_bytes" else data[:len(data) // 2])
+    assert main([str(run_dir), *FAST]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert str(run_dir / "policy.pt") in err and "corrupt or truncated" in err and "weights_only" not in err, err
+    assert not (run_dir / "ope.json").exists()
+
+
+@pytest.mark.parametrize("bad", ["no_policy", "corrupt_policy", "no_config"])
+def test_every_run_that_can_be_scored_is_scored_and_each_other_named(tiny_run, tmp_path, bad, capsys):
+    """A run that cannot be scored, whatever the reason (no policy.pt, a damaged one, no config.yaml), is reported
+    in one line with its reason; every other run is scored all the same, and the command exits with status 2."""
+    (tiny_run / "ope.json").unlink(missing_ok=True)
+    broken = tmp_path / bad
+    if bad == "no_config":
+        broken.mkdir()
+    else:
+        _copy_config(tiny_run, broken)
+    if bad == "corrupt_policy":
+        (broken / "policy.pt").write_bytes(b"\x00" * 100)
+    assert main([str(broken), str(tiny_run), *FAST]) == 2
+    captured = capsys.readouterr()
+    assert (tiny_run / "ope.json").is_file() and f"{tiny_run}: FQE estimate" in captured.out
+    reasons = [line for line in captured.err.splitlines() if str(broken) in line]
+    assert reasons and all(line.startswith("torchrl_bail.ope: ") for line in reasons), captured.err
+    assert "1 of 2 runs could not be scored" in captured.err, captured.err
+
+
+def test_a_kept_estimate_prints_as_a_fitted_one(tiny_run, capsys):
+    """The estimate reads the same, to 3 decimals, whether the command fits it or keeps it."""
+    import re
+
+    assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
+    fitted = re.search(r"FQE estimate (\S+)", capsys.readouterr().out).group(1)
+    assert main([str(tiny_run), "--seed", "3", *FAST]) == 0
+    kept = capsys.readouterr().out
+    assert "kept" in kept and re.search(r"FQE estimate (\S+)", kept).group(1) == fitted, (fitted, kept)
+    assert fitted == f"{_ope(tiny_run)['estimate']:.3f}"
+
+
+def _guide_snippet() -> str:
+    import re
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "ope.md").read_text()
+    section = page[page.index("## In your own code"):]
+    return re.search(r"```python\n(.*?)```", section, flags=re.DOTALL).group(1)
+
+
+def test_the_guides_own_code_snippet_runs_as_written(tiny_run, tmp_path, monkeypatch, capsys):
+    """The guide's "In your own code" example runs as written, from the directory the README's first command ran in:
+    its run directory (here the module's tiny run, linked at that path) and every name it uses are its own. Only
+    the number of updates is cut, to keep the test short."""
+    snippet = _guide_snippet()
+    assert "updates=20_000" in snippet
+    names = {}
+    monkeypatch.chdir(tmp_path)
+    match = next(line for line in snippet.splitlines() if line.startswith("run_dir = "))
+    exec(compile(match, "run_dir", "exec"), {"Path": Path}, names)
+    link = tmp_path / names["run_dir"]
+    link.parent.mkdir(parents=True)
+    link.symlink_to(tiny_run, target_is_directory=True)
+    namespace = {"__name__": "__guide__"}
+    exec(compile(snippet.replace("updates=20_000", "updates=20"), "ope.md example", "exec"), namespace)
+    assert math.isfinite(namespace["result"]["estimate"]) and namespace["result"]["curve"][-1]["update"] == 20
+    assert "FQE estimate" in capsys.readouterr().out
+
+
+def test_the_fit_leaves_the_callers_random_stream_as_it_was(tiny_run):
+    """fit_fqe and action_gap seed a generator of their own: the caller's torch stream goes on as without them."""
+    import torch
+
+    from torchrl_bail.data.cache import load_cached_batch
+    from torchrl_bail.ope import FQESettings, action_gap, fit_fqe
+    from torchrl_bail.policy import load_policy
+
+    main([str(tiny_run), "--seed", "3", *FAST])
+    data = load_cached_batch(Path(_ope(tiny_run)["batch"]), remedy="").data
+    policy = load_policy(tiny_run)
+    settings = FQESettings(updates=5, hidden=(8,), log_every=5)
+    torch.manual_seed(11)
+    expected = torch.rand(4)
+    torch.manual_seed(11)
+    before = torch.rand(2)
+    first = fit_fqe(policy, data, settings, seed=3)
+    action_gap(policy, data, seed=3)
+    assert torch.equal(torch.cat([before, torch.rand(2)]), expected), "the caller's stream changed"
+    torch.manual_seed(999)  # and the fit's own numbers do not depend on the caller's stream
+    assert fit_fqe(policy, data, settings, seed=3)["curve"] == first["curve"]

@@ -20,8 +20,10 @@ tqdm bar (ETA) and checkpoints into ``ope_checkpoint.pt`` every ``--checkpoint-e
 SIGTERM; the same command continues from it, to the same numbers as an uninterrupted fit (the checkpoint is used only
 when its settings, seed, policy and batch are the command's; it is removed once ``ope.json`` is written).
 
-A bad argument or path stops the command before anything is loaded, with one line (exit status 2); a run whose
-policy or batch cannot be read is reported in one line and the others are still scored (exit status 2 at the end).
+A bad option stops the command before anything is loaded, with one line (exit status 2). A run that cannot be
+scored (no such directory, no ``config.yaml`` or policy file, a damaged policy file, a batch not in the cache) is
+reported in one line with its reason, and every other run is scored all the same; the command then ends with a line
+naming the runs not scored, and exit status 2. When none of the runs can be scored it stops before torch loads.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["FQESettings", "OPEError", "action_gap", "fit_fqe", "fqe_update", "listed_snapshots", "ranking_quality",
-           "score_run", "select_snapshot", "main"]
+           "run_batch", "score_run", "select_snapshot", "main"]
 
 OPE_FORMAT = 1
 #: the entries of a batch the fit reads
@@ -62,7 +64,8 @@ class FQESettings:
         hidden: the Q network's hidden sizes (ReLU). Defaults to ``(256, 256)``.
         target_update_period: the target network is copied from the network every this many updates.
             Defaults to ``100``.
-        gamma: discount. Defaults to ``0.99``.
+        gamma: discount. Defaults to ``0.99``, the one place this default is set: the evaluation's discounted
+            return (:class:`~torchrl_bail.evaluation.Evaluator`) takes it from here.
         log_every: a point of the fitting curve (estimate, mean TD loss) every this many updates, and at the last.
             Defaults to ``1000``.
 
@@ -132,6 +135,23 @@ def _read_checkpoint(path: Path | None, identity: dict) -> dict | None:
     return state
 
 
+@contextlib.contextmanager
+def _own_random_stream(seed: int, device):
+    """Inside the block, torch's global generators (the CPU's, and ``device``'s when it is a GPU) seeded with
+    ``seed``; after it, as they were before. What a fit draws from them (the Q network's initial weights, a sampling
+    policy's actions) is its seed's alone, and the caller's random stream goes on as if the fit had not run."""
+    import torch
+
+    device = torch.device(device)
+    cuda = [torch.cuda.current_device() if device.index is None else device.index] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=cuda):
+        torch.default_generator.manual_seed(int(seed))
+        for index in cuda:
+            with torch.cuda.device(index):
+                torch.cuda.manual_seed(int(seed))
+        yield
+
+
 def fqe_update(loss, optimizer, updater, batch):
     """One update of the fit (:func:`fit_fqe`'s step, and ``benchmarks/bench_fqe.py``'s): the squared TD error of
     ``loss`` (:class:`~torchrl_bail.objectives.fqe.FQELoss`) on ``batch``, a step of ``optimizer``, a step of the
@@ -149,10 +169,12 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
             identity: dict | None = None, desc: str = "fqe") -> dict[str, Any]:
     """Fits FQE for the fixed ``policy`` on ``data`` and returns its estimate and fitting curve.
 
-    Seeded with ``seed``: torch's global generator draws the Q network's initial weights, then the policy's actions
-    at every state and next state (computed once: :meth:`~torchrl_bail.objectives.fqe.FQELoss.add_policy_actions`;
-    only a sampling policy such as BCQ's draws here); a generator of its own draws the mini-batches. The same seed,
-    data, settings, device and thread count give the same numbers. Those actions (minutes of draws for a sampling
+    Seeded with ``seed``: torch's global generator, seeded with ``seed`` for the fit and restored after it (the
+    caller's random stream goes on as if the fit had not run), draws the Q network's initial weights, then the
+    policy's actions at every state and next state (computed once:
+    :meth:`~torchrl_bail.objectives.fqe.FQELoss.add_policy_actions`; only a sampling policy such as BCQ's draws
+    here); a generator of its own draws the mini-batches. The same seed, data, settings, device and thread count
+    give the same numbers, whatever the caller drew before. Those actions (minutes of draws for a sampling
     policy at 10^6 transitions, with a bar of their own) are part of every checkpoint, and the first checkpoint is
     written as soon as they are computed: a continued fit never computes them again.
 
@@ -197,6 +219,16 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         >>> result["estimate"] == fit_fqe(policy, data, settings, seed=1)["estimate"]  # same seed, same numbers
         True
     """
+    with _own_random_stream(seed, device):
+        return _fit_fqe(policy, data, settings, seed=seed, device=device, progress=progress,
+                        checkpoint_path=checkpoint_path, checkpoint_every_s=checkpoint_every_s, identity=identity,
+                        desc=desc)
+
+
+def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, progress: bool,
+             checkpoint_path: str | Path | None, checkpoint_every_s: float, identity: dict | None,
+             desc: str) -> dict[str, Any]:
+    """:func:`fit_fqe` inside its own random stream (torch's global generator seeded with ``seed``)."""
     import torch
     from torchrl.objectives import HardUpdate
 
@@ -215,7 +247,6 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
     num = int(data.batch_size[0])
     obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
 
-    torch.manual_seed(int(seed))
     loss = FQELoss(make_qvalue_network(obs_dim, act_dim, settings.hidden), policy, gamma=settings.gamma).to(device)
     # TorchRL's HardUpdate copies on the (interval + 1)-th step(): every target_update_period-th update here
     updater = HardUpdate(loss, value_network_update_interval=settings.target_update_period - 1)
@@ -293,11 +324,20 @@ def _sha1(path: Path) -> str:
     return digest.hexdigest()
 
 
-def run_batch(run_dir: Path, cfg, data_dir: str | Path | None = None):
-    """The batch run ``run_dir`` (its config ``cfg``) trained on, from the data cache (``data_dir``: else the
-    config's ``data_dir``, else ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``); never collected here."""
+def run_batch(run_dir: str | Path, cfg=None, data_dir: str | Path | None = None):
+    """The batch the run in ``run_dir`` trained on (an :class:`~torchrl_bail.data.batch.OfflineBatch`; its
+    transitions are ``.data``), from the data cache (``data_dir``: else the config's ``data_dir``, else
+    ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``), or its ``dataset=``; never collected here. ``cfg``: the
+    run's config, read from its ``config.yaml`` when not given. Raises :class:`OPEError` when the batch is not in the
+    cache."""
     from torchrl_bail.config_builders import collection_config
     from torchrl_bail.data.cache import batch_path, load_cached_batch
+
+    run_dir = Path(run_dir)
+    if cfg is None:
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.load(run_dir / "config.yaml")
 
     if cfg.get("dataset"):
         from torchrl_bail.data.importers import import_dataset
@@ -330,9 +370,9 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
 
     A diagnostic beside FQE's estimate, not a part of it: FQE's target queries ``Q(s', pi(s'))``, and the further
     ``pi`` leaves the batch's actions the more of its estimate is extrapolation (Fujimoto et al. 2019,
-    arXiv:1812.02900, sec. 3). A sampling policy (BCQ's) draws its actions from a generator seeded with ``seed``
-    (torch's global state is left as it was); at 10^6 transitions those draws take minutes, hence ``progress`` (a
-    tqdm bar over the states).
+    arXiv:1812.02900, sec. 3). A sampling policy (BCQ's) draws its actions from torch's generator seeded with
+    ``seed``, restored afterwards (the caller's random stream is left as it was); at 10^6 transitions those draws
+    take minutes, hence ``progress`` (a tqdm bar over the states).
 
     Examples:
         >>> import torch
@@ -356,10 +396,7 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
     observation, action = data["observation"], data["action"]
     device = next(iter(policy.parameters()), torch.empty(0)).device
     total, count = 0.0, 0
-    # torch.manual_seed seeds every device: the policy's GPU generator, if it has one, is restored too
-    with torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else []), \
-            _bar(observation.shape[0], "action gap", "state", progress) as bar:
-        torch.manual_seed(int(seed))
+    with _own_random_stream(seed, device), _bar(observation.shape[0], "action gap", "state", progress) as bar:
         for start in range(0, observation.shape[0], chunk):
             acted = policy_actions(policy, observation[start:start + chunk]).to("cpu", torch.float64)
             gap = (acted - action[start:start + chunk].to("cpu", torch.float64)) / half_range
@@ -367,6 +404,29 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
             count += gap.numel()
             bar.update(acted.shape[0])
     return math.sqrt(total / count)
+
+
+def _load_policy(path: Path, device):
+    """:func:`~torchrl_bail.policy.load_policy` of the policy file ``path``, a damaged file reported as such.
+
+    ``torch.save`` writes a zip archive with a checksum per entry. A file that is no such archive, or one whose
+    entries fail their checksums (random bytes, a copy cut short), is corrupt or truncated, and the error says so:
+    ``torch.load``'s own message for it advises loading with ``weights_only=False``, which no damaged file survives.
+    """
+    import zipfile
+
+    from torchrl_bail.policy import PolicyFileError, load_policy
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+        reason = None if bad is None else f"its entry {bad} fails its checksum"
+    except (zipfile.BadZipFile, EOFError):
+        reason = "not the zip archive torch.save writes"
+    if reason is not None:
+        raise PolicyFileError(f"{path}: not a readable policy file: corrupt or truncated ({reason}); train the run "
+                              f"again or restore the file")
+    return load_policy(path, device=device)
 
 
 def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, device, progress: bool,
@@ -494,7 +554,6 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
     import torch
 
     from torchrl_bail.io import write_json_atomic
-    from torchrl_bail.policy import load_policy
 
     run_dir = Path(run_dir)
     snapshots = listed_snapshots(run_dir) if snapshots is None else snapshots
@@ -509,7 +568,7 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
         path = run_dir / str(entry["path"])
         if not path.is_file():
             raise OPEError(f"{run_dir}: its summary.json lists the policy snapshot {entry['path']}, which is missing")
-        policy = load_policy(path, device=device)
+        policy = _load_policy(path, device)
         is_final = _same_weights(policy, final_policy)
         final_seen = final_seen or is_final
         if is_final and final_fit_usable:
@@ -564,8 +623,6 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     import torch
     from omegaconf import OmegaConf
 
-    from torchrl_bail.policy import load_policy
-
     settings = (settings or FQESettings()).check()
     run_dir = Path(run_dir)
     out = output_path(run_dir, best=best)
@@ -576,7 +633,7 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
             _record_selection(run_dir, kept["fqe_selected"])  # a command stopped between ope.json and summary.json
         return kept, False
     device = torch.device(device)
-    policy = load_policy(run_dir, device=device, best=best)
+    policy = _load_policy(run_dir / ("policy_best.pt" if best else "policy.pt"), device)
     cfg = OmegaConf.load(run_dir / "config.yaml")
     batch = run_batch(run_dir, cfg, data_dir)
     record = policy.record
@@ -652,9 +709,17 @@ def _hidden(text: str) -> tuple[int, ...]:
     return sizes
 
 
+class _Parser(argparse.ArgumentParser):
+    """The command's parser: an error is one line, ``torchrl_bail.ope: <what is wrong>`` (exit status 2), not
+    argparse's usage block (``--help`` shows it)."""
+
+    def error(self, message: str):
+        self.exit(2, f"torchrl_bail.ope: {message} (--help lists the options)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
     defaults = FQESettings()
-    parser = argparse.ArgumentParser(prog="python -m torchrl_bail.ope", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="python -m torchrl_bail.ope", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="finished run directories")
     parser.add_argument("--updates", type=int, default=defaults.updates,
                         help=f"gradient updates of the fit (default {defaults.updates})")
@@ -704,7 +769,7 @@ def _print_result(run_dir: Path, out: Path, ope: dict, fitted: bool, settings: F
     else:
         same = ope.get("settings") == _settings_record(settings) and ope.get("seed") == seed
         note = "" if same else " (fitted with other settings or seed: --force refits)"
-        print(f"{run_dir}: kept {out}, FQE estimate {ope.get('estimate')}{note}")
+        print(f"{run_dir}: kept {out}, FQE estimate {ope['estimate']:.3f}{note}")
     selected = ope.get("fqe_selected")
     if selected is not None:
         print(f"{run_dir}: FQE selects {selected['path']} (iteration {selected['iteration']}, estimate "
@@ -712,9 +777,8 @@ def _print_result(run_dir: Path, out: Path, ope: dict, fitted: bool, settings: F
               f"{selected['online_return']} -> {out}, {run_dir / 'summary.json'}")
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = _parser()
-    args = parser.parse_args(argv)
+def _checked_settings(parser: _Parser, args: argparse.Namespace) -> FQESettings:
+    """The fit's settings from the command line; a number out of range stops the command in one line."""
     settings = FQESettings(updates=args.updates, batch_size=args.batch_size, lr=args.lr, hidden=tuple(args.hidden),
                            target_update_period=args.target_update_period, gamma=args.gamma,
                            log_every=args.log_every)
@@ -727,13 +791,23 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--threads {args.threads}: expected a positive number of threads")
     if not args.checkpoint_every_s > 0:
         parser.error(f"--checkpoint-every-s {args.checkpoint_every_s}: expected a positive number of seconds")
+    return settings
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    settings = _checked_settings(parser, args)
     if args.data_dir is not None and not args.data_dir.is_dir():
         print(f"torchrl_bail.ope: --data-dir {args.data_dir}: no such directory", file=sys.stderr)
         return 2
     run_dirs = list(dict.fromkeys(args.run_dirs))
-    for problem in filter(None, (_check_run_dir(path, args.best) for path in run_dirs)):
+    # the runs that cannot be scored: each is reported, every other one scored, and the status is then 2
+    failed = {path: problem for path in run_dirs if (problem := _check_run_dir(path, args.best)) is not None}
+    for problem in failed.values():
         print(f"torchrl_bail.ope: {problem}", file=sys.stderr)
-        return 2
+    if len(failed) == len(run_dirs):
+        return 2  # nothing to score: stopped before torch loads
 
     import torch
 
@@ -750,9 +824,10 @@ def main(argv: list[str] | None = None) -> int:
         print("torchrl_bail.ope: --device cuda: no CUDA device is available (use --device cpu)", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
-    status = 0
     with handled():
         for run_dir in run_dirs:
+            if run_dir in failed:
+                continue
             try:
                 ope, fitted = score_run(run_dir, settings, seed=args.seed, device=device, best=args.best,
                                         data_dir=args.data_dir, force=args.force, progress=not args.no_progress,
@@ -763,10 +838,14 @@ def main(argv: list[str] | None = None) -> int:
                 return err.exit_status
             except (OPEError, PolicyFileError, FileSystemError, *USER_ERRORS) as err:
                 print(f"torchrl_bail.ope: {err}", file=sys.stderr)
-                status = 2
+                failed[run_dir] = str(err)
                 continue
             _print_result(run_dir, output_path(run_dir, best=args.best), ope, fitted, settings, args.seed)
-    return status
+    if failed and len(run_dirs) > 1:  # after the fits' output: which runs the lines above were about
+        names = ", ".join(str(path) for path in run_dirs if path in failed)
+        print(f"torchrl_bail.ope: {len(failed)} of {len(run_dirs)} runs could not be scored (see above): {names}",
+              file=sys.stderr)
+    return 2 if failed else 0
 
 
 if __name__ == "__main__":
