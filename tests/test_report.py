@@ -198,6 +198,30 @@ def test_the_aggregates_take_each_batchs_first_seeds_not_its_lowest_scores():
                                                         zip((4, 2, 5, 1, 3), (50.0, 300.0, 10.0, 500.0, 400.0),
                                                             strict=True)])
     three = Group(("b", None), "bail", (), "bail", "", [run("b", s, 100.0 * s) for s in (1, 2, 3)])
-    matrices, name = _normalized_scores([five, three])
-    assert name == "final return / batch mean episode return"
+    matrices, name, level = _normalized_scores([five, three])
+    assert name == "final return / batch mean episode return" and level == 1.0
     assert matrices["bail"].tolist() == [[5.0, 1.0], [3.0, 2.0], [4.0, 3.0]]  # seeds 1, 2, 3 of each batch
+
+
+def test_the_optimality_gap_is_measured_below_the_scores_own_reference_level():
+    """On the D4RL 0-100 scale the gap is the shortfall below 100 (expert), on the batch-mean ratio below 1.0 (the
+    data's mean): runs at 40-60 normalised are about 50 short of the expert, not 0 (the figure's panel read 0 for every
+    algorithm when its threshold was 1.0 on the 0-100 scale)."""
+    from torchrl_bail.report import Group, Run, _normalized_scores, aggregate_estimates
+
+    def run(batch, seed, normalised, final):
+        summary = {"seed": seed, "final_return": final, "dataset_mean_episode_return": 100.0,
+                   "final_return_normalized": normalised}
+        return Run(Path(f"/runs/{batch}/bail/seed{seed}"), summary, {}, (batch, None))
+
+    runs = [run(b, s, 40.0 + 10 * (s - 1), 80.0 + 20 * (s - 1)) for b in ("a", "b") for s in (1, 2, 3)]
+    groups = [Group((b, None), "bail", (), "bail", "", [r for r in runs if r.batch[0] == b]) for b in ("a", "b")]
+    matrices, name, level = _normalized_scores(groups)
+    assert (name, level) == ("normalised score", 100.0)
+    point, _, panels = aggregate_estimates(matrices, level, reps=50)
+    assert panels[-1] == "Optimality gap (below 100)" and point["bail"][-1] == pytest.approx(50.0)
+    for r in runs:  # without D4RL scores: the ratio to the batch's mean, 0.8, 1.0 and 1.2 -> 0.2 short of 1.0 / 3
+        del r.summary["final_return_normalized"]
+    matrices, name, level = _normalized_scores(groups)
+    point, _, panels = aggregate_estimates(matrices, level, reps=50)
+    assert level == 1.0 and point["bail"][-1] == pytest.approx(0.2 / 3)

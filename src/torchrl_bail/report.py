@@ -508,20 +508,21 @@ def _plot_curves(groups, path: Path) -> Path | None:
 
 
 def _normalized_scores(groups):
-    """``label -> (runs x batches)`` matrix and the score's name.
+    """``label -> (runs x batches)`` matrix, the score's name and its reference level (the score that means "as good
+    as the reference": the optimality gap's threshold).
 
-    The D4RL/Minari normalised score when every run has one, otherwise ``final_return`` divided by the batch's
-    mean episode return (1.0 = as good as the data on average). Each batch contributes its first ``n`` seeds in
-    seed order (whatever their scores), ``n`` the fewest seeds any of the label's batches has (rliable needs a full
-    matrix).
+    The D4RL/Minari normalised score when every run has one (0 random, 100 expert: reference level 100), otherwise
+    ``final_return`` divided by the batch's mean episode return (1.0 = as good as the data on average: level 1.0).
+    Each batch contributes its first ``n`` seeds in seed order (whatever their scores), ``n`` the fewest seeds any of
+    the label's batches has (rliable needs a full matrix).
     """
     import numpy as np
 
     runs = [r for g in groups for r in g.runs]
     if all(r.summary.get("final_return_normalized") is not None for r in runs):
-        name, score = "normalised score", lambda s: float(s["final_return_normalized"])
+        name, level, score = "normalised score", 100.0, lambda s: float(s["final_return_normalized"])
     else:
-        name = "final return / batch mean episode return"
+        name, level = "final return / batch mean episode return", 1.0
         score = lambda s: float(s["final_return"]) / float(s["dataset_mean_episode_return"])  # noqa: E731
     by_label: dict[str, list] = {}
     for g in groups:
@@ -533,7 +534,25 @@ def _normalized_scores(groups):
     for label, columns in by_label.items():
         n = min(len(c) for c in columns)
         matrices[label] = np.array([c[:n] for c in columns]).T
-    return matrices, name
+    return matrices, name, level
+
+
+def aggregate_estimates(matrices, level: float, *, reps: int = 2_000, seed: int = 0):
+    """rliable's median, IQM, mean and optimality gap of each label's ``(runs x batches)`` matrix with their
+    stratified-bootstrap intervals: ``(point, interval, names)``. The optimality gap is the mean shortfall below
+    ``level``, the score's reference level (:func:`_normalized_scores`: 100 on the D4RL 0-100 scale, 1.0 for the
+    batch-mean ratio); a threshold of 1.0 on the 0-100 scale would show 0 for every algorithm."""
+    import numpy as np
+
+    library, metrics = _rliable()
+
+    def aggregates(x):
+        return np.array([metrics.aggregate_median(x), metrics.aggregate_iqm(x), metrics.aggregate_mean(x),
+                         metrics.aggregate_optimality_gap(x, level)])
+
+    with numpy_seed(seed):
+        point, interval = library.get_interval_estimates(matrices, aggregates, reps=reps)
+    return point, interval, ["Median", "IQM", "Mean", f"Optimality gap (below {level:g})"]
 
 
 def plot_report(groups, prefix: str, *, reps: int = 2_000, seed: int = 0) -> list[Path]:
@@ -544,20 +563,14 @@ def plot_report(groups, prefix: str, *, reps: int = 2_000, seed: int = 0) -> lis
     curves = _plot_curves(groups, Path(f"{prefix}_curves.png"))
     if curves is not None:
         written.append(curves)
-    matrices, name = _normalized_scores(groups)
+    matrices, name, level = _normalized_scores(groups)
     if not matrices:
         return written
-    library, metrics = _rliable()
+    library, _ = _rliable()
     from rliable import plot_utils
 
-    def aggregates(x):
-        return np.array([metrics.aggregate_median(x), metrics.aggregate_iqm(x), metrics.aggregate_mean(x),
-                         metrics.aggregate_optimality_gap(x, 1.0)])
-
-    with numpy_seed(seed):
-        point, interval = library.get_interval_estimates(matrices, aggregates, reps=reps)
-    fig, _ = plot_utils.plot_interval_estimates(point, interval, ["Median", "IQM", "Mean", "Optimality gap"],
-                                                algorithms=list(matrices), xlabel=name,
+    point, interval, panels = aggregate_estimates(matrices, level, reps=reps, seed=seed)
+    fig, _ = plot_utils.plot_interval_estimates(point, interval, panels, algorithms=list(matrices), xlabel=name,
                                                 xlabel_y_coordinate=-0.35)
     written.append(save_figure(fig, Path(f"{prefix}_aggregate.png")))
     all_scores = np.concatenate([m.ravel() for m in matrices.values()])
