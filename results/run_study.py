@@ -1177,13 +1177,14 @@ def _train_cell(job: Job) -> tuple[str, str, int] | None:
     return batch_label(job), named["algo"], int(named["seed"])
 
 
-def batch_cells(results: Path, jobs: list[Job], label: str) -> dict[str, dict]:
+def batch_cells(results: Path, jobs: list[Job], label: str, algos: tuple[str, ...] | None = None) -> dict[str, dict]:
     """``algo -> {"scheduled": seeds the study runs, "runs": kept run directories}`` of batch ``label``, for the
-    cross-batch columns."""
+    columns ``algos`` (default: the cross-batch report's)."""
+    algos = CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA if algos is None else algos
     cells: dict[str, dict] = {}
     for job in jobs:
         cell = _train_cell(job)
-        if cell is None or cell[0] != label or cell[1] not in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA:
+        if cell is None or cell[0] != label or cell[1] not in algos:
             continue
         entry = cells.setdefault(cell[1], {"scheduled": 0, "runs": []})
         entry["scheduled"] += 1
@@ -1191,6 +1192,27 @@ def batch_cells(results: Path, jobs: list[Job], label: str) -> dict[str, dict]:
         if run is not None and (run / "summary.json").is_file():
             entry["runs"].append(run)
     return cells
+
+
+def batch_rows(root: Path, jobs: list[Job], label: str, algos: tuple[str, ...]
+               ) -> tuple[dict[str, dict], Path | None, dict | None, dict[str, dict]]:
+    """Batch ``label`` of a study (``jobs``, its kept results in ``root``) as a report row reads it: its cells
+    (:func:`batch_cells` over ``algos``), its kept metadata (:func:`kept_metadata`, the one whose recipe hash the
+    runs name) with that file's path, and per algorithm its :func:`_cell_row` with the seeds scheduled (``{"seeds":
+    0}`` and the seeds scheduled while no run is kept)."""
+    cells = batch_cells(root, jobs, label, algos)
+    hashes = set()
+    for cell in cells.values():
+        for run in cell["runs"]:
+            path = json.loads((run / "summary.json").read_text()).get("batch_path") or ""
+            if "-" in Path(path).name:
+                hashes.add(Path(path).name.rsplit("-", 1)[1])
+    meta_path, metadata = kept_metadata(root, label, hashes)
+    rows = {}
+    for algo, cell in cells.items():
+        row = _cell_row(label, algo, cell["runs"], metadata) if cell["runs"] else {"seeds": 0}
+        rows[algo] = {"scheduled": cell["scheduled"], **row}
+    return cells, meta_path, metadata, rows
 
 
 def _shown(path: Path) -> str:
@@ -1241,15 +1263,17 @@ def _windowed_curve(run: Path):
     return np.array(ends) * CURVE_WINDOW_UPDATES, np.array([np.mean(windows[w]) for w in ends])
 
 
-def plot_batch_curves(label: str, cells: dict[str, dict], metadata: dict | None, path: Path) -> Path | None:
+def plot_batch_curves(label: str, cells: dict[str, dict], metadata: dict | None, path: Path,
+                      algos: tuple[str, ...] | None = None) -> Path | None:
     """``curves_<batch>.png``: every algorithm's evaluation return against updates on a linear axis (every schedule
     of the study ends between 5 x 10^4 and 1.25 x 10^5 updates, where its epochs of 10^6 samples run from 10 to 100),
     each seed averaged per :data:`CURVE_WINDOW_UPDATES` updates; the mean over seeds as a line, the lowest to the
-    highest seed as a band; the batch's mean episode return dashed."""
+    highest seed as a band; the batch's mean episode return dashed. ``algos``: the algorithms, in the order that
+    gives each its colour (default: the cross-batch report's)."""
     from torchrl_bail.plots import new_figure, read_eval_curve, save_figure
 
     lines = []
-    for i, algo in enumerate(CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA):
+    for i, algo in enumerate(CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA if algos is None else algos):
         runs = cells.get(algo, {}).get("runs", [])
         curves = [c for c in map(_windowed_curve, runs) if c is not None and len(c[0])]
         if not curves:
@@ -1279,7 +1303,9 @@ def plot_batch_curves(label: str, cells: dict[str, dict], metadata: dict | None,
 
 def _seeded_interval(scores, func) -> tuple[float, float, float]:
     """``(point, low, high)`` of rliable's stratified bootstrap over ``scores`` (a runs x batches matrix, or a pair
-    of them), under the report's seeded numpy stream (:func:`torchrl_bail.report.numpy_seed`)."""
+    of them), under the report's seeded numpy stream (:func:`torchrl_bail.report.numpy_seed`): seeds resampled within
+    each batch, the batches themselves fixed. Kept beside each aggregate as ``seeds_only`` to show what the batches
+    add: where every batch is perfectly separated it is a single point."""
     from rliable import library
 
     from torchrl_bail.report import numpy_seed
@@ -1289,10 +1315,42 @@ def _seeded_interval(scores, func) -> tuple[float, float, float]:
     return float(np.ravel(point["x"])[0]), float(np.ravel(interval["x"][0])[0]), float(np.ravel(interval["x"][1])[0])
 
 
-def _matrix(batches: list[dict], algo: str, entered: list[str]) -> np.ndarray:
-    """``runs x batches`` of ``algo``'s normalised final returns on the batches ``entered``: each batch's first ``n``
-    seeds in seed order, ``n`` the fewest seeds any of them has (rliable needs a full matrix)."""
-    columns = [b["cells"][algo]["per_seed_normalised"] for b in batches if b["batch"] in entered]
+#: how every aggregate over batches gets its interval (:func:`hierarchical_interval`), as the reports say it
+HIERARCHICAL_BOOTSTRAP = ("a hierarchical bootstrap: each replication draws the batches with replacement, then the "
+                          "seeds of each drawn batch with replacement (each algorithm's on its own), so the interval "
+                          "covers which batches were drawn as well as which seeds")
+
+
+def hierarchical_interval(matrices: list[np.ndarray], func, reps: int | None = None,
+                          seed: int | None = None) -> tuple[float, float, float]:
+    """``(point, low, high)`` of ``func(*matrices)`` (each a runs x batches matrix over the same batches, in the same
+    column order; the runs may differ between matrices) with its 95 % percentile interval from
+    :data:`HIERARCHICAL_BOOTSTRAP`: ``reps`` replications (default :data:`CROSS_BATCH_REPS`) of a numpy generator
+    seeded with ``seed`` (default :data:`CROSS_BATCH_SEED`), so a rerun gives the same numbers. Each replication
+    draws the batch columns with replacement, one draw shared by every matrix (a comparison stays within a batch),
+    then resamples each drawn column's rows with replacement, for each matrix apart (a batch drawn twice gets two
+    independent draws of its seeds). With one batch it is the bootstrap over seeds alone."""
+    reps = CROSS_BATCH_REPS if reps is None else reps
+    rng = np.random.default_rng(CROSS_BATCH_SEED if seed is None else seed)
+    matrices = [np.asarray(m, dtype=float) for m in matrices]
+    n_batches = matrices[0].shape[1]
+    if any(m.shape[1] != n_batches for m in matrices):
+        raise ValueError(f"every matrix needs the same batches (columns): {[m.shape for m in matrices]}")
+    columns = np.arange(n_batches)
+    stats = np.empty(reps)
+    for i in range(reps):
+        drawn = rng.integers(0, n_batches, n_batches)
+        stats[i] = float(np.ravel(func(*(m[:, drawn][rng.integers(0, m.shape[0], (m.shape[0], n_batches)), columns]
+                                         for m in matrices)))[0])
+    low, high = np.percentile(stats, [2.5, 97.5])
+    return float(np.ravel(func(*matrices))[0]), float(low), float(high)
+
+
+def _matrix(batches: list[dict], algo: str, entered: list[str], key: str = "per_seed_normalised") -> np.ndarray:
+    """``runs x batches`` of ``algo``'s final returns (``key``: normalised, or ``per_seed`` for the raw ones) on the
+    batches ``entered``: each batch's first ``n`` seeds in seed order, ``n`` the fewest seeds any of them has (rliable
+    needs a full matrix)."""
+    columns = [b["cells"][algo][key] for b in batches if b["batch"] in entered]
     n = min(len(c) for c in columns)
     return np.array([c[:n] for c in columns]).T
 
@@ -1304,52 +1362,75 @@ def _against(row: dict, side: str) -> str:
     return f", though {side} 0.5 on {', '.join(against)}" if against else ""
 
 
-def cross_batch_aggregate(batches: list[dict]) -> dict:
-    """Over all batches, on the normalised scale (:data:`NORMALISATION`): each algorithm's IQM with its 95 %
-    stratified-bootstrap interval over the batches where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds, and for each of
-    :data:`CROSS_BATCH_PAIRS` the probability of improvement (rliable) with its interval over the batches where both
-    have them, with each batch's own value beside it (``per_batch``: the interval is over seeds, not over which
-    batches were drawn, so it cannot show the batches disagreeing). A batch without kept metadata enters nothing.
-    Unequal seeds: each batch gives its first ``n`` seeds, ``n`` the fewest of the batches entered (so 5-seed BAIL
-    stays 5 where every batch has 5)."""
+def _ready(batch: dict, algo: str, normalised: bool = True) -> bool:
+    """Whether ``algo`` enters an aggregate on ``batch``: :data:`MIN_SEEDS_FOR_VERDICT` seeds there and, on the
+    normalised scale, the batch's metadata kept."""
+    cell = batch["cells"].get(algo)
+    return ((batch["metadata"] is not None or not normalised) and cell is not None
+            and cell.get("seeds", 0) >= MIN_SEEDS_FOR_VERDICT)
+
+
+def aggregate_iqm(batches: list[dict], algo: str) -> dict | None:
+    """``algo``'s IQM of normalised final returns over the batches where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds,
+    with its :func:`hierarchical_interval` (and, as ``seeds_only``, the interval over seeds alone); ``None`` where
+    no batch is entered."""
     from rliable import metrics
 
-    def ready(batch: dict, algo: str) -> bool:
-        cell = batch["cells"].get(algo)
-        return (batch["metadata"] is not None and cell is not None and cell.get("seeds", 0) >= MIN_SEEDS_FOR_VERDICT)
+    entered = [b["batch"] for b in batches if _ready(b, algo)]
+    if not entered:
+        return None
+    m = _matrix(batches, algo, entered)
+    point, low, high = hierarchical_interval([m], metrics.aggregate_iqm)
+    seeds_only = _seeded_interval(m, lambda x: np.array([metrics.aggregate_iqm(x)]))[1:]
+    return {"batches": entered, "n_batches": len(entered), "seeds_per_batch": int(m.shape[0]), "iqm": point,
+            "ci_low": low, "ci_high": high, "seeds_only": list(seeds_only)}
 
-    total = len(batches)
-    iqm = {}
-    for algo in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA:
-        entered = [b["batch"] for b in batches if ready(b, algo)]
-        if not entered:
-            continue
-        m = _matrix(batches, algo, entered)
-        point, low, high = _seeded_interval(m, lambda x: np.array([metrics.aggregate_iqm(x)]))
-        iqm[algo] = {"batches": entered, "seeds_per_batch": int(m.shape[0]), "iqm": point, "ci_low": low,
-                     "ci_high": high}
-    pairs = []
-    for a, b in CROSS_BATCH_PAIRS:
-        entered = [x["batch"] for x in batches if ready(x, a) and ready(x, b)]
-        row = {"a": a, "b": b, "batches": entered, "p": None, "ci_low": None, "ci_high": None, "seeds": None,
-               "per_batch": {}}
-        if entered:
-            x, y = _matrix(batches, a, entered), _matrix(batches, b, entered)
-            row["p"], row["ci_low"], row["ci_high"] = _seeded_interval([x, y], metrics.probability_of_improvement)
-            row["seeds"] = [int(x.shape[0]), int(y.shape[0])]
-            row["per_batch"] = {batch: float(metrics.probability_of_improvement(x[:, [i]], y[:, [i]]))
-                                for i, batch in enumerate(entered)}
-        if len(entered) < total:
-            row["reading"] = (f"pending ({len(entered)} of {total} batches entered; the reading needs every batch "
-                              f"with {MIN_SEEDS_FOR_VERDICT} seeds of both)")
-        elif row["ci_low"] > 0.5:
-            row["reading"] = f"{a} above {b} across batches (the interval lies above 0.5)" + _against(row, "below")
-        elif row["ci_high"] < 0.5:
-            row["reading"] = f"{a} below {b} across batches (the interval lies below 0.5)" + _against(row, "above")
-        else:
-            row["reading"] = "no difference shown (the interval contains 0.5)"
-        pairs.append(row)
-    return {"normalisation": NORMALISATION, "iqm": iqm, "probability_of_improvement": pairs}
+
+def improvement(batches: list[dict], a: str, b: str, normalised: bool = True) -> dict:
+    """P(``a`` > ``b``) (rliable's probability of improvement: a run of ``a`` ends above a run of ``b`` on the same
+    batch, averaged over batches) over the batches where both have :data:`MIN_SEEDS_FOR_VERDICT` seeds, with its
+    :func:`hierarchical_interval` (``seeds_only``: the interval over seeds alone) and each batch's own value
+    (``per_batch``), and the reading: pending until every batch is entered, then above or below 0.5 where the whole
+    interval is, naming the batches that go the other way. ``normalised``: read the normalised final returns (the
+    same ordering within a batch; a batch without metadata enters nothing) or the raw ones."""
+    from rliable import metrics
+
+    key = "per_seed_normalised" if normalised else "per_seed"
+    entered = [x["batch"] for x in batches if _ready(x, a, normalised) and _ready(x, b, normalised)]
+    row = {"a": a, "b": b, "batches": entered, "n_batches": len(entered), "p": None, "ci_low": None,
+           "ci_high": None, "seeds_only": None, "seeds": None, "per_batch": {}}
+    if entered:
+        x, y = _matrix(batches, a, entered, key), _matrix(batches, b, entered, key)
+        row["p"], row["ci_low"], row["ci_high"] = hierarchical_interval([x, y], metrics.probability_of_improvement)
+        row["seeds_only"] = list(_seeded_interval([x, y], metrics.probability_of_improvement)[1:])
+        row["seeds"] = [int(x.shape[0]), int(y.shape[0])]
+        row["per_batch"] = {batch: float(metrics.probability_of_improvement(x[:, [i]], y[:, [i]]))
+                            for i, batch in enumerate(entered)}
+    if len(entered) < len(batches):
+        row["reading"] = (f"pending ({len(entered)} of {len(batches)} batches entered; the reading needs every batch "
+                          f"with {MIN_SEEDS_FOR_VERDICT} seeds of both)")
+    elif row["ci_low"] > 0.5:
+        row["reading"] = f"{a} above {b} across batches (the interval lies above 0.5)" + _against(row, "below")
+    elif row["ci_high"] < 0.5:
+        row["reading"] = f"{a} below {b} across batches (the interval lies below 0.5)" + _against(row, "above")
+    else:
+        row["reading"] = "no difference shown (the interval contains 0.5)"
+    return row
+
+
+def cross_batch_aggregate(batches: list[dict]) -> dict:
+    """Over all batches, on the normalised scale (:data:`NORMALISATION`): each algorithm's IQM with its 95 % interval
+    over the batches where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds (:func:`aggregate_iqm`), and each of
+    :data:`CROSS_BATCH_PAIRS`'s probability of improvement over the batches where both have them
+    (:func:`improvement`), with each batch's own value beside it. Every interval is :data:`HIERARCHICAL_BOOTSTRAP`'s
+    (:func:`hierarchical_interval`): with four batches drawn, most of its width is which batches they were. A batch
+    without kept metadata enters nothing. Unequal seeds: each batch gives its first ``n`` seeds, ``n`` the fewest of
+    the batches entered (so 5-seed BAIL stays 5 where every batch has 5)."""
+    iqm = {algo: row for algo in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA
+           if (row := aggregate_iqm(batches, algo)) is not None}
+    pairs = [improvement(batches, a, b) for a, b in CROSS_BATCH_PAIRS]
+    return {"normalisation": NORMALISATION, "bootstrap": HIERARCHICAL_BOOTSTRAP, "iqm": iqm,
+            "probability_of_improvement": pairs}
 
 
 #: the markers that tell the batches apart in the aggregate figure, in :func:`cross_batches` order
@@ -1370,8 +1451,8 @@ def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
     beside it. Left, per algorithm, its IQM of the normalised final return over the batches entered with its 95 %
     interval (black), and on each batch where it has :data:`MIN_SEEDS_FOR_VERDICT` seeds the IQM of that batch's
     normalised final returns alone (a marker per batch); right, the same for each probability of improvement. Where
-    the batches' markers fall on both sides of an aggregate, the batches disagree, which the interval (over seeds)
-    does not show. ``None`` while no algorithm has entered a batch."""
+    the batches' markers fall on both sides of an aggregate, the batches disagree, and the interval (over batches and
+    seeds: :func:`hierarchical_interval`) widens with it. ``None`` while no algorithm has entered a batch."""
     from rliable import metrics
 
     from torchrl_bail.plots import new_figure
@@ -1417,7 +1498,7 @@ def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
     right.set_title("Probability of improvement [95 % CI], and per batch", fontsize="medium")
     right.grid(axis="x", alpha=0.3)
     fig.legend(loc="outside lower center", ncol=len(seen), fontsize="small", title="batch (hollow markers)")
-    fig.suptitle("Across batches: interval over seeds (black), each batch on its own (markers)")
+    fig.suptitle("Across batches: interval over batches and seeds (black), each batch on its own (markers)")
     return fig
 
 
@@ -1447,6 +1528,36 @@ def _iqm_cell(cell: dict | None) -> str:
     return text + (f" ({seeds} of {scheduled} seeds)" if seeds < scheduled else "")
 
 
+def _bootstrap_sentence(n_batches: int) -> str:
+    """What every interval over batches is, for the reports' text."""
+    return (f"Intervals: 95 %, {HIERARCHICAL_BOOTSTRAP} ({CROSS_BATCH_REPS} replications, numpy seed "
+            f"{CROSS_BATCH_SEED}, the same numbers on every rerun). With {n_batches} batches, most of an interval's "
+            "width is which batches were drawn; '[over seeds alone]' is rliable's stratified bootstrap within the "
+            "batches, the interval these reports gave before, which cannot show batches that disagree.")
+
+
+def _improvement_lines(pairs: list[dict], n_batches: int) -> list[str]:
+    """The table of :func:`improvement` rows and what they mean, as Markdown lines."""
+    lines = ["| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
+             "| [over seeds alone] | per batch | reading |", "|---|---|---|---|---|---|---|"]
+    for p in pairs:
+        entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {n_batches})" if p["batches"] else "none"
+        value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
+        alone = "" if p["seeds_only"] is None else f"[{_fmt(p['seeds_only'][0], 3)}, {_fmt(p['seeds_only'][1], 3)}]"
+        seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
+        per_batch = ", ".join(f"{batch} {_fmt(v, 2)}" for batch, v in p["per_batch"].items())
+        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {alone} | {per_batch} | "
+                     f"{p['reading']} |")
+    return lines + ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above "
+                    "a run of the second on the same batch, averaged over the batches entered; the reading needs all "
+                    f"{n_batches} batches, and then says 'above' when the whole interval lies above 0.5, naming any "
+                    "batch whose own value lies on the other side, and 'no difference shown' when the interval "
+                    "contains 0.5. A batch where every run of one algorithm ends above every run of the other gives 1 "
+                    "(or 0) whatever seeds are drawn, so over seeds alone batches that disagree that cleanly give a "
+                    "one-point interval; drawing the batches too shows the disagreement as width. Read it with the "
+                    "per-batch column."]
+
+
 def _aggregate_lines(aggregate: dict, algos: list[str], n_batches: int, figure: Path | None) -> list[str]:
     """The cross-batch report's "Over all batches" section (:func:`cross_batch_aggregate`'s tables, and the figure
     of :func:`plot_cross_batch_aggregate` where there is one), as Markdown lines."""
@@ -1455,30 +1566,17 @@ def _aggregate_lines(aggregate: dict, algos: list[str], n_batches: int, figure: 
              "batches differ in env and behaviour quality; it changes no ordering within a batch. A batch enters "
              f"an algorithm's IQM when the algorithm has {MIN_SEEDS_FOR_VERDICT} seeds there, and a comparison "
              f"when both sides have; each batch gives its first n seeds (seed order), n the fewest of the batches "
-             f"entered. Intervals: rliable's stratified bootstrap (over seeds within each batch), 95 %.", "",
-             "| algorithm | batches entered | seeds per batch | IQM of normalised final return [95 % CI] |",
-             "|---|---|---|---|"]
+             f"entered. {_bootstrap_sentence(n_batches)}", "",
+             "| algorithm | batches entered | seeds per batch | IQM of normalised final return [95 % CI] "
+             "| [over seeds alone] |", "|---|---|---|---|---|"]
     for algo in algos:
         row = aggregate["iqm"].get(algo)
-        lines.append(f"| {algo} | pending (no batch with {MIN_SEEDS_FOR_VERDICT} seeds) |  |  |" if row is None else
+        lines.append(f"| {algo} | pending (no batch with {MIN_SEEDS_FOR_VERDICT} seeds) |  |  |  |" if row is None else
                      f"| {algo} | {', '.join(row['batches'])} ({len(row['batches'])} of {n_batches}) | "
                      f"{row['seeds_per_batch']} | {_fmt(row['iqm'], 3)} [{_fmt(row['ci_low'], 3)}, "
-                     f"{_fmt(row['ci_high'], 3)}] |")
-    lines += ["", "| comparison | batches entered | seeds (first, second) | probability of improvement [95 % CI] "
-              "| per batch | reading |", "|---|---|---|---|---|---|"]
-    for p in aggregate["probability_of_improvement"]:
-        entered = f"{', '.join(p['batches'])} ({len(p['batches'])} of {n_batches})" if p["batches"] else "none"
-        value = "" if p["p"] is None else f"{_fmt(p['p'], 3)} [{_fmt(p['ci_low'], 3)}, {_fmt(p['ci_high'], 3)}]"
-        seeds = "" if p["seeds"] is None else f"{p['seeds'][0]}, {p['seeds'][1]}"
-        per_batch = ", ".join(f"{batch} {_fmt(v, 2)}" for batch, v in p["per_batch"].items())
-        lines.append(f"| P({p['a']} > {p['b']}) | {entered} | {seeds} | {value} | {per_batch} | {p['reading']} |")
-    lines += ["", "Probability of improvement (rliable): the chance that a run of the first algorithm ends above a run "
-              "of the second on the same batch, averaged over the batches entered; the reading needs all "
-              f"{n_batches} batches, and then says 'above' when the whole interval lies above 0.5, naming any "
-              "batch whose own value lies on the other side. The interval is over seeds within these batches, not "
-              "over which batches were drawn: a batch where every run of one algorithm ends above every run of the "
-              "other gives 1 (or 0) in every bootstrap replication, so batches that disagree that cleanly give a "
-              "one-point interval (0.5 [0.5, 0.5] for one such batch each way). Read it with the per-batch column."]
+                     f"{_fmt(row['ci_high'], 3)}] | [{_fmt(row['seeds_only'][0], 3)}, "
+                     f"{_fmt(row['seeds_only'][1], 3)}] |")
+    lines += ["", *_improvement_lines(aggregate["probability_of_improvement"], n_batches)]
     if figure is not None:
         lines += ["", "Both tables at a glance, with each batch on its own beside the aggregate: "
                   f"`{_shown(figure)}`."]
@@ -1502,23 +1600,13 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     for exp, index, published, study in cross_batches():
         label = f"{exp}_b{index}"
         root, jobs = sources[study]
-        cells = batch_cells(root, jobs, label)
-        hashes = set()
-        for cell in cells.values():
-            for run in cell["runs"]:
-                path = json.loads((run / "summary.json").read_text()).get("batch_path") or ""
-                if "-" in Path(path).name:
-                    hashes.add(Path(path).name.rsplit("-", 1)[1])
-        meta_path, metadata = kept_metadata(root, label, hashes)
-        rows = {}
-        for algo, cell in cells.items():
-            row = _cell_row(label, algo, cell["runs"], metadata) if cell["runs"] else {"seeds": 0}
-            rows[algo] = {"scheduled": cell["scheduled"], **row}
+        cells, meta_path, metadata, rows = batch_rows(root, jobs, label, CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA)
         claims = [{"claim": claim, "a": a, "b": b, "verdict": claim_verdict(rows.get(a), rows.get(b), kind)}
                   for claim, a, b, kind in CROSS_BATCH_CLAIMS]
         complete = all(rows.get(a, {}).get("seeds", 0) >= rows[a]["scheduled"] for a in CROSS_BATCH_CENTRAL
                        if a in rows) and metadata is not None
-        figure = plot_batch_curves(label, cells, metadata, results / f"curves_{label}.png")
+        figure = plot_batch_curves(label, cells, metadata, results / f"curves_{label}.png",
+                                   CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA)
         keys = ("episode_return_mean", "episode_return_min", "episode_return_max", "behaviour_final_return_mean10",
                 "collection_wall_time_s", "collection_timed_from_step", "num_transitions", "num_episodes", "env_id",
                 "recipe_hash")

@@ -553,6 +553,10 @@ def test_readme_reads_bail_over_bc_across_batches_as_the_cross_batch_report_does
     assert (f"BAIL above BCQ holds on {counts['BAIL above BCQ']} of 4 (P(BAIL > BCQ) = {bcq['p']:.2f} "
             f"[{bcq['ci_low']:.2f}, {bcq['ci_high']:.2f}]; per batch {per_batch}, the headline batch first); "
             f"Progressive BAIL ≈ BAIL holds on {counts['Progressive BAIL ≈ BAIL']} of 4") in readme
+    assert "bootstrap over batches, then seeds within each" in readme and "batches with replacement" in (
+        report["aggregate"]["bootstrap"]), "the README says which bootstrap the report's intervals come from"
+    assert ("four batches show no difference between BAIL and BCQ" in readme) == bcq["reading"].startswith(
+        "no difference shown"), bcq["reading"]
 
 
 def test_the_results_pages_cross_batch_state_is_the_reports():
@@ -573,6 +577,14 @@ def test_the_results_pages_cross_batch_state_is_the_reports():
         for p in report["aggregate"]["probability_of_improvement"]:
             assert (f"P({p['a'].upper()} > {p['b'].upper()}) = {p['p']:.2f} [{p['ci_low']:.2f}, {p['ci_high']:.2f}]"
                     in verdict), p
+        names = {"pbail": "Progressive BAIL", "bail": "BAIL", "bcq": "BCQ", "bc": "BC"}
+        for algo, name in names.items():  # the IQMs over all four batches, with the intervals over batches and seeds
+            row = report["aggregate"]["iqm"][algo]
+            assert f"{row['iqm']:.2f} [{row['ci_low']:.2f}, {row['ci_high']:.2f}] for {name}" in verdict, algo
+        assert "hierarchical bootstrap" in verdict and "hierarchical bootstrap" in report["aggregate"]["bootstrap"]
+        bcq = next(p for p in report["aggregate"]["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+        assert (f"P(BAIL > BCQ) = {bcq['p']:.2f} [{bcq['seeds_only'][0]:.2f}, {bcq['seeds_only'][1]:.2f}]"
+                in verdict), "the page quotes the interval over seeds alone beside the one over batches"
     assert [b["batch"] for b in report["batches"]][0] == "hopper_ddpg05_b1" and len(report["batches"]) == 4
     assert report["status"] in (ROOT / "results" / "paper_batches" / "cross_batch.md").read_text()
     figures = [report["aggregate_figure"], *(b["figure"] for b in report["batches"] if b["figure"])]

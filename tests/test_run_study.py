@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
@@ -785,30 +786,69 @@ def test_the_ope_report_with_no_runs_is_all_pending(run_study, tmp_path):
     assert "Ranking: pending" in (tmp_path / "ope" / "ope.md").read_text()
 
 
-def test_the_probability_of_improvement_names_the_batches_that_go_the_other_way(run_study):
-    """Four batches, BAIL above BCQ on three (every BAIL run above every BCQ run) and below on one: the aggregate is
-    0.75 with a one-point interval (the bootstrap is over seeds, and clean batches give 1 or 0 in every replication);
-    the per-batch values show the split and the reading names the batch that goes the other way."""
-    def batch(name: str, bail: list[float], bcq: list[float]) -> dict:
-        return {"batch": name, "metadata": {"episode_return_min": 0.0, "episode_return_max": 1.0},
-                "cells": {"bail": {"seeds": len(bail), "per_seed_normalised": bail},
-                          "bcq": {"seeds": len(bcq), "per_seed_normalised": bcq}}}
+def _batch(name: str, **cells: list[float]) -> dict:
+    """A cross-batch report's batch entry with only what the aggregate reads: per algorithm its normalised (and, the
+    same, raw) final returns."""
+    return {"batch": name, "metadata": {"episode_return_min": 0.0, "episode_return_max": 1.0},
+            "cells": {algo: {"seeds": len(xs), "per_seed_normalised": xs, "per_seed": xs}
+                      for algo, xs in cells.items()}}
 
+
+def test_the_probability_of_improvement_over_batches_that_disagree_has_the_width_of_their_disagreement(run_study):
+    """Four batches, BAIL above BCQ on three (every BAIL run above every BCQ run) and below on one: the aggregate is
+    0.75. Over seeds alone its interval is the point [0.75, 0.75] (clean batches give 1 or 0 whatever seeds are
+    drawn); the hierarchical bootstrap draws the batches too, so the interval spans what four batches drawn from
+    these could give, and the reading is no difference shown. The per-batch values show the split."""
     up, down = ([0.6, 0.7, 0.8], [0.2, 0.3, 0.4]), ([0.2, 0.3, 0.4], [0.6, 0.7, 0.8])
-    batches = [batch("b1", *up), batch("b2", *down), batch("b3", *up), batch("b4", *up)]
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(run_study, "CROSS_BATCH_REPS", 200)
-        out = run_study.cross_batch_aggregate(batches)
-    row = next(p for p in out["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+
+    def pair(batches):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(run_study, "CROSS_BATCH_REPS", 500)
+            out = run_study.cross_batch_aggregate(batches)
+        return out, next(p for p in out["probability_of_improvement"] if (p["a"], p["b"]) == ("bail", "bcq"))
+
+    batches = [_batch(f"b{i}", bail=xs, bcq=ys) for i, (xs, ys) in enumerate((up, down, up, up), 1)]
+    out, row = pair(batches)
     assert row["per_batch"] == {"b1": 1.0, "b2": 0.0, "b3": 1.0, "b4": 1.0}
-    assert row["p"] == pytest.approx(0.75) and row["ci_low"] == pytest.approx(0.75) == row["ci_high"]
-    assert row["reading"] == "bail above bcq across batches (the interval lies above 0.5), though below 0.5 on b2"
-    batches[1] = batch("b2", *up)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(run_study, "CROSS_BATCH_REPS", 200)
-        row = next(p for p in run_study.cross_batch_aggregate(batches)["probability_of_improvement"]
-                   if (p["a"], p["b"]) == ("bail", "bcq"))
+    assert row["p"] == pytest.approx(0.75) and row["seeds_only"] == [pytest.approx(0.75)] * 2
+    # four batches drawn with replacement from three 1s and one 0: 2.5 % and 97.5 % of the mean land at 0.25 and 1
+    assert (row["ci_low"], row["ci_high"]) == (pytest.approx(0.25), pytest.approx(1.0))
+    assert row["n_batches"] == 4 and row["reading"] == "no difference shown (the interval contains 0.5)"
+    assert "hierarchical bootstrap" in out["bootstrap"] and "batches with replacement" in out["bootstrap"]
+    assert pair(batches)[1] == row  # seeded: the same numbers on every rerun
+    # every batch agrees: the interval stays above 0.5, whatever batches are drawn
+    _, row = pair([_batch(name, bail=up[0], bcq=up[1]) for name in ("b1", "b2", "b3", "b4")])
     assert row["reading"] == "bail above bcq across batches (the interval lies above 0.5)"
+    assert (row["p"], row["ci_low"], row["ci_high"]) == (1.0, 1.0, 1.0)
+
+
+def test_the_iqm_over_batches_at_different_levels_is_as_wide_as_their_spread(run_study):
+    """BAIL's seeds agree closely within each batch, but the batches sit at 0.2, 0.4, 0.6 and 0.8: over seeds alone
+    the IQM's interval is narrow (±0.01 or so); drawing the batches too, it spans most of 0.2 to 0.8."""
+    levels = (0.2, 0.4, 0.6, 0.8)
+    batches = [_batch(f"b{i}", bail=[x - 0.01, x, x + 0.01]) for i, x in enumerate(levels, 1)]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 500)
+        bail = run_study.cross_batch_aggregate(batches)["iqm"]["bail"]
+    assert bail["iqm"] == pytest.approx(0.5) and bail["n_batches"] == 4
+    assert bail["seeds_only"][1] - bail["seeds_only"][0] < 0.05
+    assert bail["ci_low"] < 0.35 and bail["ci_high"] > 0.65
+
+
+def test_the_hierarchical_bootstrap_draws_the_batches_once_for_both_sides_of_a_comparison(run_study):
+    """A comparison stays within a batch: the batches drawn are the same for both algorithms. Here every batch has
+    BAIL above BCQ but at levels far apart, so P(BAIL > BCQ) is 1 in every replication; drawing each side's batches
+    apart would set one batch's BAIL against another's BCQ and give less. With one batch it is the bootstrap over
+    seeds alone."""
+    from rliable import metrics
+
+    x = np.array([[10.0, 100.0, 1000.0], [11.0, 101.0, 1001.0], [12.0, 102.0, 1002.0]])
+    y = x - 5.0
+    assert run_study.hierarchical_interval([x, y], metrics.probability_of_improvement, reps=500) == (1.0, 1.0, 1.0)
+    point, low, high = run_study.hierarchical_interval([x[:, :1]], metrics.aggregate_iqm, reps=500)
+    assert point == pytest.approx(11.0) and 10.0 <= low < 11.0 < high <= 12.0
+    with pytest.raises(ValueError, match="same batches"):
+        run_study.hierarchical_interval([x, y[:, :2]], metrics.probability_of_improvement)
 
 
 def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
