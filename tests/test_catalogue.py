@@ -21,7 +21,7 @@ from torchrl_bail.config import ConfigError
 from torchrl_bail.config_builders import collection_config
 from torchrl_bail.data.cache import batch_name, batch_path
 from torchrl_bail.data.listing import list_batches
-from torchrl_bail.data.locks import SCRATCH, clean_stale, host_name
+from torchrl_bail.data.locks import SCRATCH, clean_stale, owned_name
 
 ENVS = ["hopper", "walker", "halfcheetah", "ant", "humanoid"]
 SAC_KINDS = ["sac", "med_det", "med_stoch", "opt_det", "opt_stoch"]
@@ -245,8 +245,8 @@ def test_interrupted_collection_leaves_nothing_loadable_and_recollects(tmp_path,
 
 
 def test_stale_scratch_of_a_live_process_is_kept(tmp_path):
-    live = tmp_path / SCRATCH / f"x.{host_name()}.{os.getpid()}.abcd1234"
-    dead = tmp_path / SCRATCH / f"y.{host_name()}.999999999.abcd1234"
+    live = tmp_path / SCRATCH / owned_name("x")
+    dead = tmp_path / SCRATCH / owned_name("y").replace(f".{os.getpid()}.", ".999999999.", 1)  # this namespace's
     live.mkdir(parents=True)
     dead.mkdir(parents=True)
     assert clean_stale(tmp_path) == [dead]

@@ -19,6 +19,7 @@ from torchrl_bail.data.locks import (
     clean_stale,
     file_lock,
     host_name,
+    owned_name,
     owner_alive,
     owner_record,
     scratch_directory,
@@ -36,6 +37,11 @@ def _age(path: Path, seconds: float) -> None:
 
 def _foreign_owner(**extra) -> dict:
     return {"host": OTHER, "pid": os.getpid(), "start_time": 1, "created": time.time(), **extra}
+
+
+def _dead_name(stem: str) -> str:
+    """A private name of a dead process of this host, boot and pid namespace (:func:`owned_name`'s format)."""
+    return owned_name(stem).replace(f".{os.getpid()}.", ".999999999.", 1)
 
 
 def test_owner_records_name_host_pid_and_start_time():
@@ -92,15 +98,20 @@ def test_scratch_of_another_host_is_kept_while_fresh_and_removed_when_stale(tmp_
     theirs = tmp_path / SCRATCH / f"b.{OTHER}.{os.getpid()}.abcd1234"
     theirs.mkdir(parents=True)
     (theirs / OWNER_FILE).write_text(json.dumps(_foreign_owner()))
-    dead_here = tmp_path / SCRATCH / f"c.{host_name()}.999999999.abcd1234"
+    dead_here = tmp_path / SCRATCH / _dead_name("c")
     dead_here.mkdir()
     legacy = tmp_path / SCRATCH / "d.999999999.abcd1234"  # old name, no host: judged by age only
     legacy.mkdir()
+    # an older version's name (host and pid, no namespace): maybe a container's of this host name, so judged by age
+    older = tmp_path / SCRATCH / f"e.{host_name()}.999999999.abcd1234"
+    older.mkdir()
     assert clean_stale(tmp_path, stale_after_s=60) == [dead_here]
-    assert theirs.exists() and legacy.exists(), "another host's (or an unknown) owner is presumed alive while fresh"
+    assert theirs.exists() and legacy.exists() and older.exists(), \
+        "another host's (or an unknown) owner is presumed alive while fresh"
     _age(theirs / OWNER_FILE, 120)
     _age(legacy, 120)
-    assert sorted(clean_stale(tmp_path, stale_after_s=60)) == sorted([theirs, legacy])
+    _age(older, 120)
+    assert sorted(clean_stale(tmp_path, stale_after_s=60)) == sorted([theirs, legacy, older])
 
 
 def _child(data_dir: Path, overrides: list[str]) -> str:
@@ -167,7 +178,7 @@ def test_a_cached_batch_clears_the_scratch_a_dead_collector_left_behind(tiny_run
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=[*TINY_RUN, f"data_dir={tiny_run_data_dir}"])
     made = ensure_batch(cfg, progress=False, data_dir=tiny_run_data_dir)  # made here or by an earlier test
-    dead = tiny_run_data_dir / SCRATCH / f"{made.path.name}.{host_name()}.999999999.abcd1234"
+    dead = tiny_run_data_dir / SCRATCH / _dead_name(made.path.name)
     dead.mkdir(parents=True)
     (dead / "data.bin").write_bytes(b"\0" * 1024)
     with scratch_directory(tiny_run_data_dir, "live") as live:

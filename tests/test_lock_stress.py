@@ -28,11 +28,15 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 DEAD_PID = 999_999_999
 
 
+def _dead_owner() -> dict:
+    """The owner record of a killed job of this host, boot and pid namespace (whose pid is looked up here)."""
+    return {"host": host_name(), "pid": DEAD_PID, "start_time": 1, **locks.process_table_identity()}
+
+
 def _dead_lock(path: Path, token: str = "dead-owner") -> None:
     """A lock left by a killed job of this host."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"host": host_name(), "pid": DEAD_PID, "start_time": 1, "token": token,
-                                "created": time.time(), "what": "b"}))
+    path.write_text(json.dumps({**_dead_owner(), "token": token, "created": time.time(), "what": "b"}))
 
 
 def _token(path: Path) -> str | None:
@@ -182,18 +186,22 @@ def test_take_overs_are_serialized_by_a_claim_on_the_judged_lock(tmp_path, monke
 def test_a_killed_takers_claim_is_superseded_and_its_debris_removed(tmp_path, caplog):
     """A taker killed while holding its claim (a dead pid) does not block the lock for ever: the next taker creates
     the next claim and goes on. What killed jobs left next to the lock (claims, files being written, an older
-    version's moved-aside lock, clock probes) is removed by the next owner; a live job's private file is kept."""
+    version's moved-aside lock, clock probes) is removed by the next owner; a live job's private file is kept, and
+    so is an older version's (host and pid in its name, no namespace: maybe another container's) while fresh."""
     path = tmp_path / LOCKS / "b.lock"
     _dead_lock(path)
-    dead, me = f"{host_name()}.{DEAD_PID}", f"{host_name()}.{os.getpid()}"
+    ns = locks.owned_name("x").split(".")[3]  # ns<tag>: this boot and pid namespace
+    dead, me = f"{host_name()}.{DEAD_PID}.{ns}", f"{host_name()}.{os.getpid()}.{ns}"
     claim = locks._claim(path, _instance_of(path), 1)
-    claim.write_text(json.dumps({"host": host_name(), "pid": DEAD_PID, "start_time": 1}))
+    claim.write_text(json.dumps(_dead_owner()))
     debris = [f".b.lock.new.{dead}.abcdef12", f".b.lock.stale.{dead}.abcdef12", f".clock.{dead}.abcdef12",
               f".clock.{dead}", f"..b.lock.takeover.{'0' * 16}.1.new.{dead}.abcdef12"]
     for name in debris:
         (path.parent / name).write_text("{}")
     live = path.parent / f".b.lock.new.{me}.abcdef12"
     live.write_text("{}")
+    older = path.parent / f".b.lock.new.{host_name()}.{DEAD_PID}.abcdef12"
+    older.write_text("{}")
     other = path.parent / "c.lock"
     other.write_text("{}")
     caplog.set_level("INFO", logger="torchrl_bail")
@@ -201,7 +209,7 @@ def test_a_killed_takers_claim_is_superseded_and_its_debris_removed(tmp_path, ca
     with file_lock(path, poll_s=0.01):
         assert time.monotonic() - start < 5
         assert json.loads(path.read_text())["pid"] == os.getpid()
-        assert sorted(p.name for p in path.parent.iterdir()) == sorted(["b.lock", live.name, "c.lock"])
+        assert sorted(p.name for p in path.parent.iterdir()) == sorted(["b.lock", live.name, older.name, "c.lock"])
     assert caplog.text.count("taking over the lock b.lock") == 1
 
 

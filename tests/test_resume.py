@@ -31,7 +31,7 @@ import torchrl_bail.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import BehaviourCloning, PrepareContext
 from torchrl_bail.config_builders import algo_config
-from torchrl_bail.data.locks import host_name
+from torchrl_bail.data.locks import host_name, process_table_identity
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.resume import RUN_LOCK, ResumeError, Resumption
 from torchrl_bail.trainer import make_trainee, train
@@ -345,7 +345,7 @@ def test_the_run_directory_lock_is_the_batches_owner_file_lock(tmp_path, data_di
     assert "taking it over if none comes" in caplog.text and "taking over the lock .lock" in caplog.text
 
     monkeypatch.setattr(resume_module, "RUN_LOCK_STALE_AFTER_S", 600.0)
-    _foreign_lock(tmp_path / "killed_here", host=host_name(), pid=999_999_999)
+    _foreign_lock(tmp_path / "killed_here", host=host_name(), pid=999_999_999, **process_table_identity())
     start = time.monotonic()
     with Resumption(cfg, tmp_path / "killed_here"):
         pass

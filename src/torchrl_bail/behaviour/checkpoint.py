@@ -13,7 +13,10 @@ is the batch's directory name, or the SAC run's, hash included) and is written o
 
 Every file is written to a temporary name and renamed into place (:func:`~torchrl_bail.io.atomic_path`), so a
 kill at any moment leaves the previous complete checkpoint (segments named in ``state.pt`` exist before it is
-renamed): nothing half-written ever loads as whole.
+renamed): nothing half-written ever loads as whole. Each rename is fenced
+(:func:`~torchrl_bail.data.locks.check_fence`): a job whose lock was taken over meanwhile (suspended, or cut off
+from the file server, past the staleness timeout) raises :class:`~torchrl_bail.data.locks.LockLost` just before
+it, and its file is never published, so it cannot overwrite the checkpoint of the job that took over.
 
 When: only at an episode end (after the agent's gradient steps and any evaluation), when
 ``batch.checkpoint_every_s`` seconds of work passed since the last one (default 120) or
@@ -48,7 +51,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_bail import interrupts
-from torchrl_bail.data.locks import HEARTBEAT, partial_directory
+from torchrl_bail.data.locks import check_fence, partial_directory
 from torchrl_bail.io import atomic_path
 
 __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_rng_state", "set_global_rng_state"]
@@ -171,14 +174,16 @@ class CollectionCheckpoint:
     def save(self, state: dict[str, Any], stores: Mapping[str, Any]) -> None:
         """Writes the rows the ``stores`` (name -> :class:`~torchrl_bail.behaviour.buffers.EpisodeStore`) gained
         since the last checkpoint, then ``state`` (atomically, last). Raises
-        :class:`~torchrl_bail.data.locks.LockLost` instead if this job's lock was taken over meanwhile."""
-        HEARTBEAT.check()
+        :class:`~torchrl_bail.data.locks.LockLost` instead, before any file it would rename into place, if this
+        job's lock was taken over meanwhile (the fence: the lock file no longer carries this job's token)."""
+        check_fence()
         for name, store in stores.items():
             done, n = self._saved_rows.get(name, 0), len(store)
             if n > done:
                 fname = f"segments/{name}_{done:012d}_{n:012d}.pt"
                 with atomic_path(self.directory / fname) as tmp:
                     torch.save(_nested_copy(store.data()[done:n]), tmp)
+                    check_fence()  # right before the rename: a fenced owner publishes nothing
                 self._segments.setdefault(name, []).append(fname)
                 self._saved_rows[name] = n
         state = {**state, "format": FORMAT, "segments": {k: list(v) for k, v in self._segments.items()},
@@ -186,6 +191,7 @@ class CollectionCheckpoint:
                  "timed_from_step": self.timed_from_step}
         with atomic_path(self.directory / STATE_FILE) as tmp:
             torch.save(state, tmp)
+            check_fence()
         self.saves += 1
         self._last_time = time.monotonic()
         self._last_step = int(state["loop"]["t"])

@@ -68,7 +68,15 @@ from torchrl_bail.data.cache import (
     sac_identity,
     stable_hash,
 )
-from torchrl_bail.data.locks import LOCKS, clean_stale, file_lock, liveness_settings, owned_name, scratch_directory
+from torchrl_bail.data.locks import (
+    LOCKS,
+    check_fence,
+    clean_stale,
+    file_lock,
+    liveness_settings,
+    owned_name,
+    scratch_directory,
+)
 from torchrl_bail.errors import ConfigError
 from torchrl_bail.evaluation import Evaluator
 from torchrl_bail.io import atomic_path
@@ -307,6 +315,7 @@ def _sac_resumable(checkpoint: CollectionCheckpoint, runner: BehaviourRun, buffe
             if not (checkpoint.directory / fname).is_file():
                 with atomic_path(checkpoint.directory / fname) as tmp:
                     torch.save(weights, tmp)
+                    check_fence()  # a job whose lock was taken over publishes nothing
         return {"agent": agent.state_dict(), "evaluations": copy.deepcopy(evaluations),
                 "timers": dict(timers)}
 
@@ -361,6 +370,7 @@ def _save_run(path: Path, record: dict, snapshots: dict[str, dict]) -> SACRun:
         if path.exists():  # a concurrent identical run finished first: keep it
             shutil.rmtree(tmp)
         else:
+            check_fence()  # a job whose lock was taken over publishes nothing
             os.replace(tmp, path)
     finally:
         if tmp.exists():

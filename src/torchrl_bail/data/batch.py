@@ -47,6 +47,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_bail.data.locks import check_fence
 from torchrl_bail.errors import BatchValidationError
 from torchrl_bail.io import write_json_atomic
 
@@ -362,7 +363,9 @@ def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = Fa
     ``metadata`` must name ``env_id``; sizes, return statistics, library versions and the creation time are
     filled in (fields the caller gave are kept). float64 observations, actions and rewards are converted to
     float32. An existing ``path`` raises :class:`FileExistsError` unless ``overwrite=True``, in which case the
-    old batch is replaced only once the new one is complete.
+    old batch is replaced only once the new one is complete. Called under a lock (:func:`~torchrl_bail.data.locks.
+    file_lock`, in this thread), it is fenced: once that lock was taken over, it raises
+    :class:`~torchrl_bail.data.locks.LockLost` instead of renaming the batch into place.
     """
     path = Path(path)
     td = _to_format(td)
@@ -387,6 +390,7 @@ def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = Fa
     try:
         td.memmap(tmp / "data", num_threads=0, copy_existing=True)
         write_json_atomic(tmp / "metadata.json", meta)
+        check_fence()  # a job whose lock was taken over publishes nothing (locks: fencing)
         if path.exists():
             old = path.with_name(f"{path.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}")
             os.replace(path, old)
