@@ -363,9 +363,9 @@ def save_batch(td: TensorDictBase, path, metadata: dict, *, overwrite: bool = Fa
     ``metadata`` must name ``env_id``; sizes, return statistics, library versions and the creation time are
     filled in (fields the caller gave are kept). float64 observations, actions and rewards are converted to
     float32. An existing ``path`` raises :class:`FileExistsError` unless ``overwrite=True``, in which case the
-    old batch is replaced only once the new one is complete. Called under a lock (:func:`~torchrl_bail.data.locks.
-    file_lock`, in this thread), it is fenced: once that lock was taken over, it raises
-    :class:`~torchrl_bail.data.locks.LockLost` instead of renaming the batch into place.
+    old batch is replaced only once the new one is complete. Called under a lock
+    (:func:`~torchrl_bail.data.locks.file_lock`, in this thread), it is fenced: once that lock was taken over, it
+    raises :class:`~torchrl_bail.data.locks.LockLost` instead of renaming the batch into place.
     """
     path = Path(path)
     td = _to_format(td)
