@@ -186,3 +186,63 @@ def test_guard_is_a_drop_in_for_torchrl_collection_envs():
     assert td["next", "terminated"].item() and td["next", "done"].item() and guard.unstable_episodes == 1
     plain.close()
     guarded.close()
+
+
+class _KnownRewards(gym.Env):
+    """Rewards ``1, 2, 3, ...`` (step ``t`` pays ``t + 1``), terminated after ``length`` steps; the action is unused."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, length: int = 5):
+        self.length, self.t = length, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.zeros(2, np.float32), float(self.t), self.t >= self.length, False, {}
+
+
+gym.register("KnownRewards-v0", entry_point=_KnownRewards)
+
+
+def _zero_policy():
+    return TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 1), in_keys=["observation"], out_keys=["action"])
+
+
+def test_the_discounted_return_is_recorded_beside_the_return():
+    """Each episode's discounted return from its start, sum_t gamma^t r_t, at the gamma FQE estimates (its default
+    FQESettings.gamma, one constant) or another, beside the undiscounted return; a failed episode scores 0 in both."""
+    from torchrl_bail.ope import FQESettings
+
+    rewards = [1.0, 2.0, 3.0, 4.0, 5.0]
+    with Evaluator("KnownRewards-v0", episodes=2, seeds=[0], max_steps=50, env_kwargs={"length": 5}) as ev:
+        assert ev.gamma == FQESettings.gamma == 0.99
+        (res,) = ev.evaluate(_zero_policy())
+    assert res.returns == [15.0, 15.0] and res.lengths == [5, 5] and res.gamma == 0.99
+    expected = sum(0.99 ** t * r for t, r in enumerate(rewards))
+    assert all(math.isclose(d, expected, rel_tol=1e-12) for d in res.discounted_returns), res.discounted_returns
+    assert math.isclose(res.mean_discounted_return, expected, rel_tol=1e-12)
+
+    with Evaluator("KnownRewards-v0", episodes=1, seeds=[1, 2], max_steps=3, gamma=0.5,
+                   env_kwargs={"length": 5}) as ev:  # two seeds; the step budget cuts the episodes at 3 steps
+        results = ev.evaluate(_zero_policy())
+    assert [r.discounted_returns for r in results] == [[1.0 + 0.5 * 2.0 + 0.25 * 3.0]] * 2
+    assert [r.returns for r in results] == [[6.0]] * 2
+
+    evaluator = Evaluator("KnownRewards-v0", episodes=2, seeds=[0], max_steps=10, env_kwargs={"length": 5})
+
+    def broken_step(action):
+        raise RuntimeError("the simulator exploded")
+
+    evaluator.envs[0].step = broken_step
+    (res,) = evaluator.evaluate(_zero_policy())
+    evaluator.close()
+    assert res.failed_episodes == [0] and res.returns[0] == res.discounted_returns[0] == 0.0
+    assert math.isclose(res.discounted_returns[1], expected, rel_tol=1e-12)
+    with pytest.raises(ValueError, match="gamma"):
+        Evaluator("KnownRewards-v0", gamma=1.5)

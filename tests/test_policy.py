@@ -46,6 +46,10 @@ def test_evaluate_reproduces_the_runs_last_evaluation(bc_run):
     replayed = float(out.split("return ")[1].split(" ±")[0])
     assert replayed == pytest.approx(summary["final_return"], abs=0.01), out
     assert "over 2 episodes (seed 4)" in out
+    # and the discounted return at FQE's gamma, as the run logged it beside the return
+    discounted = float(out.split("discounted return (gamma 0.99, the scale of an FQE estimate): ")[1].split(" ±")[0])
+    logged = (bc_run / "logs" / "scalars" / "eval" / "discounted_return.csv").read_text().splitlines()
+    assert discounted == pytest.approx(float(logged[-1].split(",")[1]), abs=0.01), out
     # another seed gives other start states
     assert f"{summary['final_return']:.2f}" not in _evaluate_cli(bc_run, "--episodes", 3, "--seed", 11)
 

@@ -64,6 +64,35 @@ def test_final_return_window_is_the_mean_of_the_last_evaluations():
     assert h.final_return(50) == sum(range(1, 21)) / 20
 
 
+def test_each_evaluation_keeps_and_logs_its_discounted_return(tmp_path):
+    """The evaluation's mean discounted return (at FQE's gamma) goes into each evaluation point, the eval logs
+    (``eval/discounted_return`` beside ``eval/return``) and the checkpoint; a float score has none."""
+    from torchrl_bail.evaluation import EvalResult
+
+    class Logger:
+        def __init__(self):
+            self.scalars = {}
+
+        def log_scalar(self, name, value, step):
+            self.scalars.setdefault(name, []).append((step, value))
+
+    logger, results = Logger(), iter([EvalResult([3.0, 5.0], [4, 4], discounted_returns=[2.0, 3.0], gamma=0.99),
+                                      EvalResult([7.0, 9.0], [4, 4], discounted_returns=[6.0, 7.0], gamma=0.99)])
+    algo = _bc(epochs=20 / 1e6, batch_size=10)  # 2 updates, an evaluation after each
+    (history,) = train(make_trainee([algo], [_data()]), evaluate=lambda p: [next(results)], loggers=[logger],
+                       eval_every_epochs=10 / 1e6, progress=False, checkpoint_paths=[tmp_path / "checkpoint.pt"])
+    assert [e.discounted_return for e in history.evaluations] == [2.5, 6.5]
+    assert logger.scalars["eval/discounted_return"] == [(1, 2.5), (2, 6.5)]
+    assert logger.scalars["eval/return"] == [(1, 4.0), (2, 8.0)]
+    assert history.final_discounted_return(window=2) == 4.5 and history.final_discounted_return(window=1) == 6.5
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert [e["discounted_return"] for e in state["evaluations"]] == [2.5, 6.5]
+    assert EvalPoint(**{k: v for k, v in state["evaluations"][0].items() if k != "discounted_return"}) == \
+        EvalPoint(1, history.evaluations[0].epoch, 4.0, [3.0, 5.0], 0)  # a checkpoint from before: None
+    (floats,) = train(make_trainee([_bc(epochs=10 / 1e6)], [_data()]), evaluate=lambda p: [1.0], progress=False)
+    assert floats.evaluations[0].discounted_return is None and floats.final_discounted_return() is None
+
+
 def test_empty_data_is_a_clear_error():
     import pytest
 

@@ -2,7 +2,9 @@
 
 Loads the run's ``policy.pt`` (``--best``: ``policy_best.pt``) with :func:`torchrl_bail.policy.load_policy` and
 plays ``--episodes`` deterministic episodes with the training run's :class:`~torchrl_bail.evaluation.Evaluator`
-(same env id, time limit and step budget as the run), printing ``mean ± std`` of the returns.
+(same env id, time limit and step budget as the run), printing ``mean ± std`` of the returns, then of the discounted
+returns at FQE's gamma (``sum_t gamma^t r_t`` from each episode's start: the scale of ``python -m torchrl_bail.ope``'s
+estimate).
 
 ``--reproduce`` replays the evaluation that scored the saved policy: the run's seed, episode count and step
 budget, and the Evaluator called as often as the run called it (the ``k``-th evaluation of a seed gets its own
@@ -84,6 +86,11 @@ def record_video(policy, directory: Path, *, episodes: int, seed: int, env_id: s
     return Path(directory)
 
 
+def _sample_std(values) -> float:
+    mean = sum(values) / len(values)
+    return math.sqrt(sum((v - mean) ** 2 for v in values) / max(1, len(values) - 1))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m torchrl_bail.evaluate", description=__doc__.split("\n\n")[0])
     parser.add_argument("source", type=Path, help="a run directory or a policy file")
@@ -119,9 +126,11 @@ def main(argv: list[str] | None = None) -> int:
         info = policy.record["info"]
         evaluation = int(info.get("evaluation", 0)) if args.reproduce else 0
         result = evaluate_policy(policy, evaluation=evaluation, **settings)
-        std = math.sqrt(sum((r - result.mean_return) ** 2 for r in result.returns) / max(1, len(result.returns) - 1))
-        print(f"{policy.record['algo']} on {settings['env_id']}: return {result.mean_return:.2f} ± {std:.2f} "
-              f"(sample std) over {len(result.returns)} episodes (seed {settings['seed']})")
+        print(f"{policy.record['algo']} on {settings['env_id']}: return {result.mean_return:.2f} ± "
+              f"{_sample_std(result.returns):.2f} (sample std) over {len(result.returns)} episodes (seed "
+              f"{settings['seed']})")
+        print(f"discounted return (gamma {result.gamma}, the scale of an FQE estimate): "
+              f"{result.mean_discounted_return:.2f} ± {_sample_std(result.discounted_returns):.2f} (sample std)")
         if args.reproduce and "mean_return" in info:
             print(f"logged by the run at evaluation {evaluation} (iteration {info.get('iteration')}): "
                   f"{info['mean_return']:.2f}")

@@ -10,6 +10,10 @@ Semantics:
 * each episode's return is the undiscounted sum of its rewards up to its *own* first ``terminated`` or
   ``truncated`` (the env's time limit), or up to ``max_steps`` steps; an episode that ended is not stepped again,
   the others go on;
+* beside it, each episode's *discounted* return from its start, ``sum_t gamma^t r_t`` over the same steps
+  (:attr:`EvalResult.discounted_returns`), at the ``gamma`` off-policy evaluation estimates (FQE's,
+  :attr:`torchrl_bail.ope.FQESettings.gamma`, ``0.99``, unless ``gamma=`` says otherwise): the value an FQE estimate
+  of the same policy aims at, from this evaluation's start states rather than the batch's;
 * the policy acts deterministically (:class:`~torchrl.envs.utils.ExplorationType` ``DETERMINISTIC``) and is
   always called on the whole ``[*batch_shape]`` batch (finished episodes keep their last observation), so its
   outputs never depend on which other episodes are still running;
@@ -35,8 +39,8 @@ Examples:
     >>> evaluator = Evaluator("Hopper-v5", episodes=2, seeds=[0], max_steps=20)
     >>> actor = make_deterministic_actor(evaluator.obs_dim, evaluator.action_spec, hidden=(8,))
     >>> (result,) = evaluator.evaluate(actor)
-    >>> len(result.returns), result.failures, evaluator.evaluations
-    (2, 0, 1)
+    >>> len(result.returns), len(result.discounted_returns), result.gamma, result.failures, evaluator.evaluations
+    (2, 2, 0.99, 0, 1)
     >>> evaluator.close()
 """
 
@@ -54,6 +58,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_bail.modules import action_spec_from_bounds
+from torchrl_bail.ope import FQESettings
 from torchrl_bail.simulator import make_guarded_env
 
 __all__ = ["EvalResult", "Evaluator", "episode_seed"]
@@ -70,16 +75,26 @@ def episode_seed(seed: int, evaluation: int, episode: int) -> int:
 
 @dataclass
 class EvalResult:
-    """Returns and lengths (steps taken) of the evaluation episodes; failed episodes score 0."""
+    """Returns and lengths (steps taken) of the evaluation episodes, and their discounted returns
+    (``sum_t gamma^t r_t`` from each episode's start, at ``gamma``); failed episodes score 0 in both."""
 
     returns: list[float]
     lengths: list[int]
     failures: int = 0
     failed_episodes: list[int] = field(default_factory=list)
+    discounted_returns: list[float] = field(default_factory=list)
+    gamma: float | None = None
 
     @property
     def mean_return(self) -> float:
         return float(sum(self.returns) / len(self.returns))
+
+    @property
+    def mean_discounted_return(self) -> float | None:
+        """The mean of :attr:`discounted_returns` (``None`` when the result has none)."""
+        if not self.discounted_returns:
+            return None
+        return float(sum(self.discounted_returns) / len(self.discounted_returns))
 
     @property
     def std_return(self) -> float:
@@ -106,6 +121,8 @@ class Evaluator:
             ``"cpu"``.
         env_kwargs (dict, optional): extra keyword arguments of ``gymnasium.make`` (e.g.
             ``{"terminate_when_unhealthy": False}``). Defaults to ``None``.
+        gamma (float): discount of :attr:`EvalResult.discounted_returns`, in ``[0, 1]``. Defaults to FQE's
+            (:attr:`torchrl_bail.ope.FQESettings.gamma`, ``0.99``).
     """
 
     def __init__(
@@ -119,7 +136,10 @@ class Evaluator:
         max_episode_steps: int | None = None,
         device="cpu",
         env_kwargs: Mapping[str, Any] | None = None,
+        gamma: float = FQESettings.gamma,
     ) -> None:
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma = {gamma!r}: expected a discount in [0, 1]")
         if episodes < 1:
             raise ValueError(f"eval.episodes must be >= 1, got {episodes}")
         if max_steps < 1:
@@ -129,6 +149,7 @@ class Evaluator:
         self.env_id = env_id
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
+        self.gamma = float(gamma)
         #: the seeds evaluated: ``seeds``, or ``[seed]``
         self.seeds = [int(seed)] if seeds is None else [int(s) for s in seeds]
         #: the policy's batch: ``[episodes]`` for one seed (an unstacked policy), ``[S, episodes]`` for ``S > 1``
@@ -150,6 +171,8 @@ class Evaluator:
         seeds = self.seeds
         obs = np.zeros((n, self.obs_dim), dtype=np.float32)
         returns = np.zeros(n)
+        discounted = np.zeros(n)  # sum_t gamma^t r_t: discount[i] is gamma^t at episode i's step t
+        discount = np.ones(n)
         lengths = np.zeros(n, dtype=np.int64)
         running = np.ones(n, dtype=bool)
         failed = np.zeros(n, dtype=bool)
@@ -181,10 +204,14 @@ class Evaluator:
                         fail(i)
                         continue
                     returns[i] += r
+                    discounted[i] += discount[i] * r
+                    discount[i] *= self.gamma
                     obs[i] = o
                     running[i] = not (terminated or truncated)
         returns[failed] = 0.0
-        return [_result(returns[j], lengths[j], failed[j]) for j in np.split(np.arange(n), len(seeds))]
+        discounted[failed] = 0.0
+        return [_result(returns[j], lengths[j], failed[j], discounted[j], self.gamma)
+                for j in np.split(np.arange(n), len(seeds))]
 
     def state_dict(self) -> dict[str, int]:
         """What a checkpoint needs to continue the evaluation stream: the number of evaluations run so far (every
@@ -206,6 +233,8 @@ class Evaluator:
         self.close()
 
 
-def _result(returns: np.ndarray, lengths: np.ndarray, failed: np.ndarray) -> EvalResult:
+def _result(returns: np.ndarray, lengths: np.ndarray, failed: np.ndarray, discounted: np.ndarray,
+            gamma: float) -> EvalResult:
     failed_idx = np.flatnonzero(failed).tolist()
-    return EvalResult([float(r) for r in returns], [int(x) for x in lengths], len(failed_idx), failed_idx)
+    return EvalResult([float(r) for r in returns], [int(x) for x in lengths], len(failed_idx), failed_idx,
+                      [float(d) for d in discounted], gamma)

@@ -66,6 +66,8 @@ class EvalPoint:
     mean_return: float
     returns: list[float] = field(default_factory=list)
     failures: int = 0
+    #: the mean discounted return at FQE's gamma (:attr:`~torchrl_bail.evaluation.EvalResult.mean_discounted_return`)
+    discounted_return: float | None = None
 
 
 @dataclass
@@ -78,6 +80,11 @@ class TrainHistory:
         """Mean of the last ``window`` evaluations (our per-seed score; supp. C.4)."""
         last = self.evaluations[-window:]
         return float(sum(e.mean_return for e in last) / len(last)) if last else float("nan")
+
+    def final_discounted_return(self, window: int = 10) -> float | None:
+        """:meth:`final_return` of the discounted returns (``None`` when one of those evaluations has none)."""
+        last = [e.discounted_return for e in self.evaluations[-window:]]
+        return None if not last or None in last else float(sum(last) / len(last))
 
     def best_return(self) -> float:
         return max((e.mean_return for e in self.evaluations), default=float("nan"))
@@ -412,6 +419,8 @@ def _record_evaluation(points: list[EvalPoint], histories: list[TrainHistory], l
             snapshot(point, index)
         if seed_logger is not None:
             seed_logger.log_scalar("eval/return", point.mean_return, step=it)
+            if point.discounted_return is not None:
+                seed_logger.log_scalar("eval/discounted_return", point.discounted_return, step=it)
             seed_logger.log_scalar("eval/epoch", point.epoch, step=it)
             seed_logger.log_scalar("eval/failures", point.failures, step=it)
 
@@ -452,5 +461,6 @@ def _restore(trainee: Trainee, checkpoints: list[dict], iterations: int, histori
 def _evaluate(evaluate: Callable, trainee: Trainee, iteration: int, epoch: float) -> list[EvalPoint]:
     """One evaluation as one point per seed."""
     return [EvalPoint(iteration, epoch, float(result)) if isinstance(result, (int, float)) else
-            EvalPoint(iteration, epoch, result.mean_return, list(result.returns), result.failures)
+            EvalPoint(iteration, epoch, result.mean_return, list(result.returns), result.failures,
+                      getattr(result, "mean_discounted_return", None))
             for result in evaluate(trainee.policy)]
