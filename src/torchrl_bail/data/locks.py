@@ -61,11 +61,11 @@ Fencing. Each acquisition writes a fresh random token in the lock file (:class:`
 yields; :func:`held_locks`). Whoever publishes what a lock guards -- the rename of a checkpoint file into
 ``.partial/`` (:mod:`torchrl_bail.behaviour.checkpoint`), of a batch into its final name
 (:func:`~torchrl_bail.data.batch.save_batch`), of a SAC run into ``policies/`` -- first calls :func:`check_fence`
-(in the thread that holds the lock), immediately before the rename:
-unless the lock file still carries its token, it raises :class:`LockLost` and the file stays unpublished (its
-temporary copy is removed), so a fenced owner never overwrites its successor's checkpoint or batch. Its heartbeat
-also notices, logs one error and stops touching the lock. What the fence cannot close (no ``fcntl`` lease on NFS) is
-the moment between its check and the rename: a take-over must land within that one ``fsync`` and rename.
+(in the thread that holds the lock), immediately before the rename: unless the lock file still carries its token,
+it raises :class:`LockLost` and the file stays unpublished (its temporary copy is removed), so a fenced owner never
+overwrites its successor's checkpoint or batch. Its heartbeat also notices, logs one error and stops touching the
+lock. What the fence cannot close (no ``fcntl`` lease on NFS) is the moment between its check and the rename: a
+take-over must land within that one ``fsync`` and rename.
 
 The private files of a killed taker (claims, files being written) are removed by the lock's next owner. The
 ``batch`` keys that tune this and the checkpoints (:data:`~torchrl_bail.data.cache.OPERATIONAL_KEYS`) are outside
