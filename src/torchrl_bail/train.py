@@ -165,6 +165,8 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
         "batch_index": None if cfg.get("dataset") else int(cfg.batch.index),
         "seed": int(cfg.seed),
         "final_return": history.final_return(cfg.eval.final_window),
+        # the same window's mean discounted return from each test episode's start, at the gamma OPE estimates
+        "final_discounted_return": history.final_discounted_return(cfg.eval.final_window),
         "best_return": history.best_return(),
         "best_policy": _best_policy(history),
         **({"snapshots": _snapshots(history, cfg.eval.snapshots, run_dir)} if cfg.eval.snapshots else {}),
