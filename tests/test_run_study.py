@@ -626,6 +626,206 @@ def test_gather_keeps_the_paper_scale_policies_and_never_a_checkpoint(run_study,
             ["summary.json", "config.yaml", "logs", *(["policy.pt"] if policies else [])])
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# the execution-batch report (--study paper_exec): supp. Table 2's rows from a fake results tree
+# ---------------------------------------------------------------------------------------------------------------
+
+def _exec_meta(mean: float, behaviour: float, which: str, **policy) -> dict:
+    return {"episode_return_mean": mean, "episode_return_min": mean - 500.0, "episode_return_max": mean + 100.0,
+            "num_transitions": 10**6, "behaviour_return": behaviour, "recipe_hash": "feed0001",
+            "behaviour_policy": {"which": which, "stochastic": False, "eval_step": 600000, "run": "/machine/sac_run",
+                                 "file": "/machine/sac_run/evals/step_600000.pt", "threshold_reached": True,
+                                 **policy}}
+
+
+#: Hopper O σ = 0: BAIL and MARWIL on the behaviour policy's 3000, BC ~3 % below it (its interval apart), BCQ far
+#: below; Hopper M σ = σ(s): BAIL far below BC, MARWIL level with BC; Hopper M σ = 0: BC at 2 of 3 seeds; Walker's
+#: SAC batch: BAIL ≫ BC. The other batches not begun.
+EXEC_RUNS = {
+    "hopper_opt_det_b1": ({"bail": [2990.0, 3000.0, 3010.0], "bcq": [2000.0, 2100.0, 2200.0],
+                           "bc": [2900.0, 2905.0, 2910.0], "marwil": [2996.0, 3006.0, 3001.0], "bear": [1500.0]},
+                          _exec_meta(2990.0, 3000.0, "optimal")),
+    "hopper_med_stoch_b1": ({"bail": [400.0, 420.0, 440.0], "bcq": [900.0, 925.0, 950.0],
+                             "bc": [1000.0, 1010.0, 1020.0], "marwil": [1004.0, 1014.0, 1009.0]},
+                            _exec_meta(900.0, 1010.0, "mediocre", mediocre_threshold=1000.0,
+                                       threshold_reached=False)),
+    "hopper_med_det_b1": ({"bail": [1000.0, 1001.0, 1002.0], "bc": [990.0, 1010.0]}, None),
+    "walker_sac_b1": ({"bail": [2000.0, 2100.0, 2200.0], "bc": [500.0, 600.0, 700.0]},
+                      {"episode_return_mean": 1500.0, "episode_return_min": -5.0, "episode_return_max": 4000.0,
+                       "behaviour_final_eval_return": 3500.0, "recipe_hash": "feed0002"}),
+}
+
+
+def _exec_tree(run_study, root: Path) -> Path:
+    results = root / "paper_exec"
+    for label, (runs, meta) in EXEC_RUNS.items():
+        _fake_batch(run_study, results, label, (meta or {}).get("recipe_hash", "feed0003"), runs, meta)
+    return results
+
+
+@pytest.fixture(scope="module")
+def exec_table(run_study, tmp_path_factory):
+    results = _exec_tree(run_study, tmp_path_factory.mktemp("exec"))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run_study, "CROSS_BATCH_REPS", 300)
+        out = run_study.exec_table_report(results)
+    return out, results
+
+
+def test_the_table2_report_has_a_row_per_batch_with_the_papers_figure_beside_each_cell(exec_table):
+    out, results = exec_table
+    text = (results / "table2.md").read_text()
+    assert [b["batch"] for b in out["batches"]] == [f"{env}_{kind}_b1" for env in ("hopper", "walker") for kind in
+                                                     ("sac", "med_det", "med_stoch", "opt_det", "opt_stoch")]
+    assert ("| batch | paper's row | data: mean episode return | behaviour policy's return | BAIL | BCQ | BC | MARWIL "
+            "| BEAR |") in text  # BEAR: a run of it is kept
+    # supp. Table 2's Hopper O σ = 0 B1 row beside ours; BEAR at 1 of 3 seeds
+    assert ("| hopper_opt_det_b1 | O σ = 0 | 2990.0 | 3000.0 (optimal policy at step 600,000) | 3000.0 ± 10.0; paper "
+            "2602 ± 5 | 2100.0 ± 100.0; paper 1976 ± 383 | 2905.0 ± 5.0; paper 2594 ± 8 | 3001.0 ± 5.0; paper "
+            "2603 ± 4 | 1500.0 (1 of 3 seeds); paper 1904 ± 321 |") in text
+    assert ("| hopper_med_stoch_b1 | M σ = σ(s) | 900.0 | 1010.0 (mediocre policy at step 600,000; threshold 1000 "
+            "not reached: the best evaluation) |") in text
+    # no metadata, cells without runs: pending, with the paper's figure (a published number, named as such)
+    assert ("| hopper_med_det_b1 | M σ = 0 | pending | pending | 1001.0 ± 1.0; paper 1026 ± 0 | pending (0 of 3 "
+            "seeds); paper 901 ± 132 | 1000.0 ± 14.1 (2 of 3 seeds); paper 1026 ± 0 | pending (0 of 3 seeds); paper "
+            "1026 ± 0 | pending (0 of 3 seeds); paper 4 ± 1 |") in text
+    assert ("| walker_opt_stoch_b1 | O σ = σ(s) | pending | pending | pending (0 of 3 seeds); paper 2834 ± 120 | "
+            "pending (0 of 3 seeds); paper 3386 ± 196 | pending (0 of 3 seeds); paper 2024 ± 131 | pending (0 of 3 "
+            "seeds); paper 1987 ± 114 | not run; paper 3278 ± 128 |") in text  # BEAR runs on Hopper's alone
+    # the SAC training batches: Table 1 rows, the authors' BAIL alone published
+    assert ("| walker_sac_b1 | SAC training batch (Table 1) | 1500.0 | 3500.0 (SAC run's final evaluation) | "
+            "2100.0 ± 100.0; paper 2455 ± 211 | pending (0 of 3 seeds) | 600.0 ± 100.0 | pending (0 of 3 seeds) | "
+            "not run |") in text
+    assert ("| hopper_sac_b1 | SAC training batch (Table 1) | pending | pending | pending (0 of 3 seeds); paper "
+            "3296 ± 105 |") in text
+    iqm = text.split("Interquartile mean")[0].split("| batch | BAIL | BCQ | BC | MARWIL | BEAR |")[1]
+    assert "| hopper_med_det_b1 | 1001.0 [" in iqm and "pending (2 of 3 seeds)" in iqm  # no IQM below 3 seeds
+    assert "supp. Table 2 (arXiv:1910.12179)" in text and "gym's -v2" in text and "Gymnasium's -v5" in text
+    assert "/machine" not in (results / "table2.json").read_text()  # the policy's paths stay out
+    assert out["batches"][3]["metadata"]["behaviour_policy"]["which"] == "optimal"
+    assert sorted(p.name for p in results.glob("curves_*.png")) == [
+        f"curves_{label}.png" for label in sorted(EXEC_RUNS)]
+    assert json.loads((results / "table2.json").read_text()) == json.loads(json.dumps(out))
+
+
+def test_the_table2_claims_follow_the_paper_cells_rule(run_study, exec_table):
+    out, _ = exec_table
+    verdicts = {(c["batch"], c["claim"]): c for c in out["claims"]}
+    opt = "hopper_opt_det_b1"
+    assert verdicts[(opt, "BAIL ≈ the behaviour policy")]["verdict"] == (
+        "holds (no difference shown: the IQM intervals overlap)")  # 3000 inside BAIL's interval
+    bc = verdicts[(opt, "BC ≈ the behaviour policy")]
+    assert bc["verdict"] == "does not hold (below: the IQM intervals are disjoint)"
+    assert bc["gap"] == pytest.approx(100 * (2905 - 3000) / 3000)
+    assert verdicts[(opt, "MARWIL ≈ the behaviour policy")]["verdict"].startswith("holds")
+    assert verdicts[("hopper_med_stoch_b1", "BAIL below BC")]["verdict"] == (
+        "holds (below: the IQM intervals are disjoint)")
+    assert verdicts[("hopper_med_stoch_b1", "MARWIL ≈ BC")]["verdict"].startswith("holds (no difference")
+    assert verdicts[("hopper_med_det_b1", "MARWIL ≈ BC")]["verdict"] == (
+        "pending (seeds so far: 0 and 2; 3 each needed)")
+    assert verdicts[("walker_sac_b1", "BAIL ≫ BC (Table 1)")]["verdict"].startswith("holds (above")
+    assert verdicts[("walker_opt_det_b1", "BAIL ≈ the behaviour policy")]["verdict"].startswith(
+        "pending (the batch's metadata")
+    assert ("walker_med_stoch_b1", "BAIL below BC") not in verdicts  # the paper's claim is Hopper's
+    # each verdict is the training-batch cells' rule on the same rows
+    cells = out["batches"][3]["cells"]
+    assert bc["verdict"] == run_study.claim_verdict(cells["bc"], run_study.reference_row(3000.0), "similar")
+
+
+def test_the_table2_rankings_read_wins_and_orderings_against_the_papers(run_study, exec_table):
+    """The two ranked rows: on Hopper O σ = 0 MARWIL has the best IQM and BAIL's interval overlaps it (a tie), the
+    paper's best mean is MARWIL's, and the two orders agree (tau 1); on Hopper M σ = σ(s) BC and MARWIL tie, as in the
+    paper, whose equal means tie the pair (tau-b below 1, one tied pair). Six rows unranked: the most-wins verdict and
+    the average are pending."""
+    out, results = exec_table
+    rankings = out["rankings"]
+    rows = {r["batch"]: r for r in rankings["rows"]}
+    opt, stoch = rows["hopper_opt_det_b1"], rows["hopper_med_stoch_b1"]
+    assert opt["winners"] == ["bail", "marwil"] and opt["paper_winners"] == ["marwil"]
+    assert opt["ordering"]["ours"] == opt["ordering"]["paper"] == ["marwil", "bail", "bc", "bcq"]
+    assert opt["ordering"]["tau"] == pytest.approx(1.0) and opt["ordering"]["reading"] == "the same order"
+    assert stoch["winners"] == ["bc", "marwil"] and stoch["paper_winners"] == ["bc", "marwil"]
+    assert stoch["ordering"]["pairs"] == {"concordant": 5, "discordant": 0, "tied": 1}
+    assert stoch["ordering"]["tau"] == pytest.approx(5 / 30 ** 0.5)  # tau-b with the paper's tie
+    assert rows["hopper_med_det_b1"]["winners"] is None and rows["hopper_med_det_b1"]["ordering"]["tau"] is None
+    assert rankings["ordering"]["tau_pooled"] == pytest.approx(11 / 12) and rankings["ordering"]["same_order"] == 1
+    assert {a: w["ours"] for a, w in rankings["wins"].items()} == {"bail": 1, "bcq": 0, "bc": 1, "marwil": 2,
+                                                                    "bear": 0}
+    assert rankings["wins"]["bc"]["paper_all_rows"] == 14 and rankings["wins"]["marwil"]["paper_all_rows"] == 14
+    assert rankings["most_wins_verdict"] == "pending (2 of 8 execution batches ranked)"
+    assert rankings["average_verdict"].startswith("pending (2 of 8 batches entered")
+    text = (results / "table2.md").read_text()
+    assert ("| hopper_opt_det_b1 | BAIL, MARWIL | MARWIL | MARWIL > BAIL > BC > BCQ | MARWIL > BAIL > BC > BCQ | "
+            "1.00 | the same order |") in text
+    assert "| walker_opt_stoch_b1 | pending | pending |" in text
+    assert "| BC and MARWIL win the most rows | pending (2 of 8 execution batches ranked) |" in text
+
+
+def _ranked_cell(values: list[float]) -> dict:
+    """A report cell of three or more seeds as the rankings read it: IQM (here the mean) with the seeds' range as its
+    interval."""
+    return {"seeds": len(values), "per_seed": values, "final_return_iqm": sum(values) / len(values),
+            "final_return_iqm_ci_low": min(values), "final_return_iqm_ci_high": max(values)}
+
+
+@pytest.mark.parametrize("winner, verdict", [("bc", "holds (the most wins, 8 of 8: BC)"),
+                                             ("bail", "does not hold (the most wins, 8 of 8: BAIL)")])
+def test_the_most_wins_verdict_names_who_wins_the_most_rows(run_study, monkeypatch, winner, verdict):
+    monkeypatch.setattr(run_study, "CROSS_BATCH_REPS", 200)
+    batches = []
+    for env, kind in run_study.exec_batches():
+        if kind == "sac":
+            continue
+        levels = {"bail": 100.0, "bcq": 100.0, "bc": 100.0, "marwil": 100.0, winner: 500.0}
+        batches.append({"batch": f"{env}_{kind}_b1", "env": env, "kind": kind, "metadata": None,
+                        "paper": run_study.PAPER_TABLE2[(env, kind, 1)],
+                        "cells": {a: _ranked_cell([x - 1.0, x, x + 1.0]) for a, x in levels.items()}})
+    rankings = run_study.exec_rankings(batches)
+    assert rankings["most_wins_verdict"] == verdict
+    # BAIL and BCQ level on every batch (a run of each on both sides of the other): no difference shown
+    assert rankings["average_verdict"].startswith("holds (P(BAIL > BCQ) = 0.50 [") != (winner == "bail")
+
+
+def test_supp_table_2_is_transcribed_whole(run_study):
+    """40 rows (5 envs x 4 kinds x B1/B2), five columns each; spot checks of rows the report reads and the
+    summary supp. E gives (BC and MARWIL win the most rows; BAIL's mean above BCQ's over the 40)."""
+    table = run_study.PAPER_TABLE2
+    assert len(table) == 40 and {len(row) for row in table.values()} == {5}
+    assert {env for env, _, _ in table} == {"hopper", "walker", "halfcheetah", "ant", "humanoid"}
+    assert table[("hopper", "med_stoch", 1)] == {"bail": (375, 52), "bcq": (881, 155), "bear": (0, 0),
+                                                 "bc": (1026, 0), "marwil": (1026, 0)}
+    assert table[("walker", "opt_stoch", 1)]["bcq"] == (3386, 196) and table[("humanoid", "opt_det", 1)][
+        "marwil"] == (5503, 1)
+    wins = {a: sum(a in run_study.paper_winners(row, run_study.PAPER_TABLE2_COLUMNS) for row in table.values())
+            for a in run_study.PAPER_TABLE2_COLUMNS}
+    assert max(wins, key=wins.get) in ("bc", "marwil") and wins["bc"] == wins["marwil"] > wins["bcq"] > wins["bail"]
+    means = {a: sum(row[a][0] for row in table.values()) / 40 for a in ("bail", "bcq")}
+    assert means["bail"] > means["bcq"]
+
+
+def test_the_table2_report_is_the_same_bytes_twice_and_all_pending_with_no_runs(run_study, tmp_path, monkeypatch):
+    monkeypatch.setattr(run_study, "CROSS_BATCH_REPS", 300)
+    results = _exec_tree(run_study, tmp_path)
+    run_study.exec_table_report(results)
+    first = {p.name: p.read_bytes() for p in results.iterdir() if p.is_file()}
+    run_study.exec_table_report(results)
+    assert {p.name: p.read_bytes() for p in results.iterdir() if p.is_file()} == first
+    assert {"table2.md", "table2.json", "curves_hopper_opt_det_b1.png"} <= set(first)
+    empty = run_study.exec_table_report(tmp_path / "none")
+    text = (tmp_path / "none" / "table2.md").read_text()
+    assert empty["complete_batches"] == [] and "0 of 10" in empty["status"] and "none yet" in text
+    assert all(c["verdict"].startswith("pending") for c in empty["claims"])
+    assert "| BAIL ≈ BCQ on average" in text and "| BC | MARWIL |\n" in text and "| BEAR |\n" not in text
+
+
+def test_report_only_writes_the_table2_report_for_the_exec_study(run_study, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(run_study, "exec_table_report", lambda results: calls.append(results))
+    monkeypatch.setattr(run_study, "report", lambda results, ablations=True: None)
+    monkeypatch.setattr(run_study, "curve_check", lambda results: [])
+    assert run_study.write_reports("paper_exec", tmp_path, tmp_path) == "study.md, table2.md" and calls == [tmp_path]
+
+
 def test_the_ope_study_scores_20_headline_policies_of_every_algorithm_each_right_after_its_training(run_study):
     """Issue 38's study: >= 20 final policies on the headline batch over every algorithm of the headline cell, each
     training job the paper_hopper study's own (same overrides: its kept summary is the reference), BAIL keeping
