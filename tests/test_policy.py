@@ -222,6 +222,22 @@ def test_clear_errors(tmp_path, bc_run, capsys, monkeypatch):
     assert "moviepy" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("damage", ["random_bytes", "truncated"])
+def test_evaluate_names_a_damaged_policy_file_as_such(bc_run, tmp_path, damage):
+    """A policy.pt of random bytes, or cut short, is called corrupt or truncated by the policy-file reader itself,
+    so ``python -m torchrl_bail.evaluate`` says so as ``ope`` does: one line, exit status 2, without torch's advice
+    to load it with weights_only=False (right for a trusted file of another format, wrong for a damaged one)."""
+    data = (bc_run / "policy.pt").read_bytes()
+    damaged = tmp_path / "policy.pt"
+    damaged.write_bytes(os.urandom(4096) if damage == "random_bytes" else data[:len(data) // 2])
+    proc = subprocess.run([sys.executable, "-m", "torchrl_bail.evaluate", str(damaged)], capture_output=True,
+                          text=True, env=ENV, timeout=300)
+    err = proc.stderr.strip()
+    assert proc.returncode == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith(f"torchrl_bail.evaluate: {damaged}: not a readable policy file: corrupt or truncated"), err
+    assert "weights_only" not in err, err
+
+
 def test_video_of_a_trained_policy(bc_run, tmp_path):
     pytest.importorskip("moviepy")
     assert evaluate_main([str(bc_run), "--episodes", "1", "--video", str(tmp_path / "video")]) == 0

@@ -407,25 +407,11 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
 
 
 def _load_policy(path: Path, device):
-    """:func:`~torchrl_bail.policy.load_policy` of the policy file ``path``, a damaged file reported as such.
+    """:func:`~torchrl_bail.policy.load_policy` of the policy file ``path``; a damaged file raises
+    :class:`~torchrl_bail.policy.PolicyFileError` calling it corrupt or truncated (the policy-file reader checks
+    the zip archive ``torch.save`` writes, :func:`~torchrl_bail.policy.read_policy_file`)."""
+    from torchrl_bail.policy import load_policy
 
-    ``torch.save`` writes a zip archive with a checksum per entry. A file that is no such archive, or one whose
-    entries fail their checksums (random bytes, a copy cut short), is corrupt or truncated, and the error says so:
-    ``torch.load``'s own message for it advises loading with ``weights_only=False``, which no damaged file survives.
-    """
-    import zipfile
-
-    from torchrl_bail.policy import PolicyFileError, load_policy
-
-    try:
-        with zipfile.ZipFile(path) as archive:
-            bad = archive.testzip()
-        reason = None if bad is None else f"its entry {bad} fails its checksum"
-    except (zipfile.BadZipFile, EOFError):
-        reason = "not the zip archive torch.save writes"
-    if reason is not None:
-        raise PolicyFileError(f"{path}: not a readable policy file: corrupt or truncated ({reason}); train the run "
-                              f"again or restore the file")
     return load_policy(path, device=device)
 
 

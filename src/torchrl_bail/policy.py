@@ -125,13 +125,48 @@ def _policy_path(source: str | Path, best: bool = False) -> Path:
     return source
 
 
+def _damage(path: Path) -> str | None:
+    """Why the policy file at ``path`` is damaged, or ``None`` when its archive is whole.
+
+    ``torch.save`` writes a zip archive with a CRC-32 checksum per entry: an entry that fails its checksum (bytes
+    changed on disk or in a copy) is damage that ``torch.load`` may not notice. A file that is no zip archive at
+    all (random bytes, a copy cut short: a zip's directory is at its end) is ``"not a zip archive"``, damage only
+    if ``torch.load`` cannot read it either (the caller decides: torch's legacy format is no zip archive).
+    """
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, EOFError, OSError):
+        return "not the zip archive torch.save writes"
+    return None if bad is None else f"its entry {bad} fails its checksum"
+
+
+def _damaged(path: Path, reason: str) -> PolicyFileError:
+    return PolicyFileError(f"{path}: not a readable policy file: corrupt or truncated ({reason}); train the run "
+                           f"again or restore the file")
+
+
 def read_policy_file(source: str | Path, *, best: bool = False) -> dict:
-    """The record :func:`save_policy` wrote (``source``: a run directory or a policy file)."""
+    """The record :func:`save_policy` wrote (``source``: a run directory or a policy file).
+
+    A damaged file (random bytes, a copy cut short, an entry of its zip archive failing its checksum) raises
+    :class:`PolicyFileError` saying ``not a readable policy file: corrupt or truncated (<why>)`` at its path, rather
+    than ``torch.load``'s own message, which advises ``weights_only=False``: no damaged file survives that. Any other
+    unreadable file is named with the first line of torch's error.
+    """
     path = _policy_path(source, best)
+    reason = _damage(path)
+    if reason is not None and "checksum" in reason:
+        raise _damaged(path, reason)
     try:
         record = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling error names the file
-        raise PolicyFileError(f"{path}: not a readable policy file ({type(err).__name__}: {err})") from None
+        if reason is not None:  # no zip archive, and not a file torch reads either
+            raise _damaged(path, reason) from None
+        first_line = (str(err).strip().splitlines() or [""])[0]
+        raise PolicyFileError(f"{path}: not a readable policy file ({type(err).__name__}: {first_line})") from None
     if not isinstance(record, dict) or record.get("format") != POLICY_FORMAT:
         raise PolicyFileError(f"{path}: not a torchrl_bail policy file of format {POLICY_FORMAT} "
                               f"(files written before policy files carried their config cannot be rebuilt)")
