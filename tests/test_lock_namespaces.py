@@ -388,3 +388,24 @@ def test_file_lock_yields_its_token_and_the_fence_follows_the_thread(tmp_path):
             tokens.append(held.token)
         assert locks.held_locks() == ()
     assert tokens[0] != tokens[1]
+
+
+def test_a_fenced_training_run_cannot_overwrite_its_successors_checkpoint(tmp_path):
+    """A training run's checkpoint (:func:`torchrl_bail.trainer.save_checkpoint`) is fenced as a collection's is: once
+    the run directory's lock carries another job's token, the save raises ``LockLost`` before its rename, the
+    successor's ``checkpoint.pt`` is untouched and no temporary file is left."""
+    from torchrl_bail.trainer import save_checkpoint
+
+    lock, target = tmp_path / "run.lock", tmp_path / "checkpoint.pt"
+    with file_lock(lock, heartbeat_every_s=100.0) as held:
+        save_checkpoint(target, {"who": "owner"})  # its own lock: published
+        record = json.loads(lock.read_text())
+        assert record["token"] == held.token
+        lock.write_text(json.dumps({**record, "token": "the-successors-token"}))  # taken over meanwhile
+        torch.save({"who": "successor"}, target)
+        theirs = target.read_bytes()
+        with pytest.raises(LockLost, match="taken over by another job"):
+            save_checkpoint(target, {"who": "owner, woken up"})
+        assert target.read_bytes() == theirs and sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt",
+                                                                                                 "run.lock"]
+        lock.write_text(json.dumps(record))  # back to its own token, so that the context releases it cleanly

@@ -48,6 +48,7 @@ from torchrl.data import RandomSampler, TensorStorage
 from torchrl_bail import interrupts
 from torchrl_bail.algorithms.base import Algorithm
 from torchrl_bail.data.local_buffer import local_replay_buffer
+from torchrl_bail.data.locks import check_fence
 from torchrl_bail.io import write_atomic
 from torchrl_bail.progress import tqdm
 from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee
@@ -114,8 +115,16 @@ def snapshot_indices(evaluations: int, count: int) -> list[int]:
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """``torch.save`` to a temp file in the same directory, then an atomic rename (a full disk: one line naming it)."""
-    write_atomic(path, lambda f: torch.save(state, f))
+    """``torch.save`` to a temp file in the same directory, then an atomic rename (a full disk: one line naming it).
+
+    Fenced: right before the rename, :func:`~torchrl_bail.data.locks.check_fence` refuses (``LockLost``, the temp
+    file removed) when a lock this thread holds, the run directory's, was taken over by another job meanwhile, so a
+    suspended run that wakes up after a take-over never overwrites its successor's checkpoint."""
+    def write(f) -> None:
+        torch.save(state, f)
+        check_fence()
+
+    write_atomic(path, write)
 
 
 def rng_state() -> dict[str, Any]:
