@@ -66,7 +66,7 @@ def test_policy_file_records_how_to_rebuild_the_actor(bc_run):
     assert action.shape == (5, 3) and bool((action.abs() <= 1).all())
 
 
-def test_best_policy_is_kept_and_named_in_the_summary(tmp_path, data_dir):
+def test_best_policy_is_kept_and_named_in_the_summary(tmp_path, data_dir, monkeypatch):
     run_dir = tmp_path / "run"
     _train(run_dir, data_dir, "algo=bc", "seed=2", *ALGO_TINY["bc"])  # 5 evaluations
     summary = _summary(run_dir)
@@ -78,6 +78,18 @@ def test_best_policy_is_kept_and_named_in_the_summary(tmp_path, data_dir):
     assert best["epoch"] == pytest.approx(0.002 * (best["evaluation"] + 1))
     policy = load_policy(run_dir, best=True)
     assert policy.record["info"]["iteration"] == best["iteration"]
+    # the replay of a later evaluation plays that one evaluation alone, on its own start states, to the digit
+    from torchrl_bail.evaluate import replay_evaluation
+    from torchrl_bail.evaluation import Evaluator
+
+    played = []
+    original = Evaluator.evaluate
+    monkeypatch.setattr(Evaluator, "evaluate", lambda self, p: played.append(self.evaluations) or original(self, p))
+    final = load_policy(run_dir)
+    assert final.record["info"]["evaluation"] == 4
+    assert replay_evaluation(final).mean_return == final.record["info"]["mean_return"]
+    assert replay_evaluation(policy).mean_return == best["mean_return"]
+    assert played == [4, best["evaluation"]], "only the replayed evaluation is played"
 
 
 def _plain_torch_actions(fmt: str, path, obs) -> torch.Tensor:

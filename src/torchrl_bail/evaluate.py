@@ -6,11 +6,12 @@ plays ``--episodes`` deterministic episodes with the training run's :class:`~tor
 returns at FQE's gamma (``sum_t gamma^t r_t`` from each episode's start: the scale of ``python -m torchrl_bail.ope``'s
 estimate).
 
-``--reproduce`` replays the evaluation that scored the saved policy: the run's seed, episode count and step
-budget, and the Evaluator called as often as the run called it (the ``k``-th evaluation of a seed gets its own
-episode seeds), so a deterministic policy (BAIL, Progressive BAIL, BC, MARWIL) scores exactly the return the run
-logged. BCQ and BEAR sample their candidates from torch's random stream, which training also drew from, so their
-replayed return is a fresh draw, not the logged one.
+``--reproduce`` replays the evaluation that scored the saved policy (:func:`replay_evaluation`): the run's seed,
+episode count and step budget, and that evaluation's own episode seeds (the ``k``-th evaluation of a seed gets its
+own; the Evaluator's stream is set to ``k``, the earlier evaluations are not played), so a deterministic policy
+(BAIL, Progressive BAIL, BC, MARWIL, TD3+BC) scores exactly the return the run logged. BCQ and BEAR sample their
+candidates from torch's random stream, which training also drew from, so their replayed return is a fresh draw,
+not the logged one.
 
 ``--video DIR`` records one more episode per ``--episodes`` with gymnasium's ``RecordVideo`` (needs moviepy:
 ``pip install "torchrl_bail[video]"``; headless machines render through EGL, ``MUJOCO_GL=egl``).
@@ -26,7 +27,7 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["evaluate_policy", "record_video", "main"]
+__all__ = ["evaluate_policy", "record_video", "replay_evaluation", "main"]
 
 
 def _run_settings(policy) -> dict:
@@ -41,19 +42,32 @@ def evaluate_policy(policy, *, episodes: int, seed: int, max_steps: int, max_epi
                     evaluation: int = 0):
     """The ``evaluation``-th evaluation (0-based) of ``policy`` by a fresh :class:`Evaluator` seeded ``seed``.
 
-    The earlier calls only advance the Evaluator's episode seeding, as the training run's earlier evaluations did.
+    The ``k``-th evaluation's episode seeds depend on ``(seed, k, episode)`` alone
+    (:func:`~torchrl_bail.evaluation.episode_seed`), so the Evaluator's stream is set to ``evaluation``
+    (:meth:`~torchrl_bail.evaluation.Evaluator.load_state_dict`, as a resumed run sets it) and that one evaluation
+    is played: the same start states as the training run's, without playing the ``evaluation`` earlier ones.
     """
     from torchrl_bail.evaluation import Evaluator
 
     evaluator = Evaluator(env_id, episodes=episodes, seed=seed, max_steps=max_steps,
                           max_episode_steps=max_episode_steps, device="cpu")
     try:
-        for _ in range(evaluation):
-            evaluator.evaluate(policy)
+        evaluator.load_state_dict({"evaluations": int(evaluation)})
         (result,) = evaluator.evaluate(policy)
         return result
     finally:
         evaluator.close()
+
+
+def replay_evaluation(policy):
+    """The evaluation that scored a saved ``policy`` (from :func:`~torchrl_bail.policy.load_policy`), replayed: the
+    run's env, seed, episode count and step budget (its recorded config) and the evaluation index its file records
+    (``info["evaluation"]``; ``0`` when absent). Returns the :class:`~torchrl_bail.evaluation.EvalResult`: for a
+    deterministic policy (BAIL, Progressive BAIL, BC, MARWIL, TD3+BC) its ``mean_return`` is the ``mean_return`` the
+    file records, to the last digit; BCQ's and BEAR's candidates come from torch's random stream, so theirs is a
+    fresh draw on the same start states."""
+    evaluation = int(policy.record["info"].get("evaluation", 0))
+    return evaluate_policy(policy, evaluation=evaluation, **_run_settings(policy))
 
 
 def record_video(policy, directory: Path, *, episodes: int, seed: int, env_id: str, max_episode_steps=None) -> Path:
