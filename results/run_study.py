@@ -1971,6 +1971,71 @@ def _behaviour_cell(batch: dict) -> str:
     return _fmt(value) + (f" ({note})" if note else "")
 
 
+def sac_run_summary(env: str, metadata: dict | None) -> dict | None:
+    """What the report says of an env's SAC behaviour run, from its ``sac`` training batch's kept metadata (the batch is
+    the run's first 10^6 transitions and its metadata carries the run's evaluations): its pace (env steps and updates
+    per second, evaluations included in the first), its learning curve, the first evaluation at or above the env's
+    mediocre threshold (``conf/env/<env>.yaml``: the mediocre behaviour policy of the ``med_*`` batches) and its final
+    evaluation (the optimal policy of the ``opt_*`` batches); ``None`` until the metadata is kept."""
+    if metadata is None or not metadata.get("evaluations"):
+        return None
+    threshold = float(OmegaConf.load(HERE.parent / "conf" / "env" / f"{env}.yaml").mediocre_threshold)
+    curve = [(int(e["step"]), float(e["return_mean"])) for e in metadata["evaluations"]]
+    crossed = next(((step, ret) for step, ret in curve if ret >= threshold), None)
+    return {"env": env, "env_steps": metadata.get("sac_run_train_steps"),
+            "gradient_steps": metadata.get("gradient_steps"),
+            "env_steps_per_s": metadata.get("env_steps_per_s"), "updates_per_s": metadata.get("updates_per_s"),
+            "resumed_from_step": metadata.get("resumed_from_step"), "mediocre_threshold": threshold,
+            "crossed_at_step": None if crossed is None else crossed[0],
+            "crossed_with_return": None if crossed is None else crossed[1],
+            "final_eval_return": metadata.get("behaviour_final_eval_return"),
+            "best_eval_return": max(ret for _, ret in curve), "curve": curve}
+
+
+def plot_sac_runs(runs: list[dict], path: Path) -> Path | None:
+    """One figure of the SAC behaviour runs (:func:`sac_run_summary`): each env's evaluation return against env steps,
+    its mediocre threshold as a dashed line and the evaluation that crossed it marked; ``None`` without a run."""
+    if not runs:
+        return None
+    from torchrl_bail.plots import new_figure, save_figure
+
+    fig = new_figure(figsize=(7.0, 4.2), layout="constrained")
+    ax = fig.subplots()
+    for run in runs:
+        steps, returns = zip(*run["curve"], strict=True)
+        label = f"{run['env']} (final {run['final_eval_return']:.0f})"
+        (line,) = ax.plot(np.asarray(steps) / 1e6, returns, label=label)
+        ax.axhline(run["mediocre_threshold"], color=line.get_color(), linestyle="--", linewidth=0.8)
+        if run["crossed_at_step"] is not None:
+            ax.plot([run["crossed_at_step"] / 1e6], [run["crossed_with_return"]], "o", color=line.get_color())
+    ax.set_xlabel("env steps (millions)")
+    ax.set_ylabel("evaluation return (10 deterministic episodes)")
+    ax.set_title("SAC behaviour runs: dashed, the mediocre threshold; dot, the mediocre policy")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return save_figure(fig, path)
+
+
+def _sac_run_lines(runs: list[dict], figure: Path | None) -> list[str]:
+    """The Table 2 report's SAC-runs paragraph and table (:func:`sac_run_summary`)."""
+    lines = ["", "The SAC behaviour runs (one per env, B1: the training batch is the run's first 10^6 transitions, the "
+             "execution batches run its mediocre and final policies), from each SAC batch's kept metadata:", "",
+             "| env | env steps | env steps/s | updates/s | mediocre threshold | first evaluation at or above it "
+             "(step: return) | final evaluation | best evaluation |", "|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        crossed = ("never" if r["crossed_at_step"] is None
+                   else f"{r['crossed_at_step']:,}: {r['crossed_with_return']:.1f}")
+        lines.append(f"| {r['env']} | {r['env_steps']:,} | {_fmt(r['env_steps_per_s'])} | {_fmt(r['updates_per_s'])} | "
+                     f"{r['mediocre_threshold']:g} | {crossed} | {_fmt(r['final_eval_return'])} | "
+                     f"{_fmt(r['best_eval_return'])} |")
+    if not runs:
+        lines.append("| pending | | | | | | | |")
+    lines += ["", "Pace: one core, `threads=1`, evaluations (10 deterministic episodes every 5000 steps) included in "
+              "env steps/s; a run resumed from a checkpoint counts from its restart. "
+              + (f"Figure: `{figure.name}`." if figure is not None else "Figure: none yet.")]
+    return lines
+
+
 def exec_table_report(results: Path) -> dict:
     """``results/table2.{md,json}`` and ``results/curves_<batch>.png`` of the execution-batch study
     (:func:`paper_exec_jobs`, kept runs and batch metadata in ``results``), supp. Table 2 style: one row per batch
@@ -1984,10 +2049,12 @@ def exec_table_report(results: Path) -> dict:
     from torchrl_bail.io import write_json_atomic, write_text_atomic
 
     jobs = paper_exec_jobs()
-    batches = []
+    batches, sac_runs = [], []
     for env, kind in exec_batches():
         label = f"{env}_{kind}_b1"
         cells, meta_path, metadata, rows = batch_rows(results, jobs, label, EXEC_ALGOS)
+        if kind == "sac" and (run := sac_run_summary(env, metadata)) is not None:
+            sac_runs.append(run)
         complete = metadata is not None and all(rows.get(a, {}).get("seeds", 0) >= rows[a]["scheduled"]
                                                 for a in EXEC_CENTRAL if a in rows)
         figure = plot_batch_curves(label, cells, metadata, results / f"curves_{label}.png", EXEC_ALGOS)
@@ -2011,7 +2078,8 @@ def exec_table_report(results: Path) -> dict:
                               and any(b["cells"].get(a, {}).get("seeds") for b in batches))]
     out = {"status": status, "complete_batches": done, "min_seeds_for_verdict": MIN_SEEDS_FOR_VERDICT,
            "bootstrap": {"reps": CROSS_BATCH_REPS, "seed": CROSS_BATCH_SEED, "across_batches": HIERARCHICAL_BOOTSTRAP},
-           "batches": batches, "claims": claims, "rankings": rankings}
+           "batches": batches, "claims": claims, "rankings": rankings, "sac_runs": sac_runs}
+    sac_figure = plot_sac_runs(sac_runs, results / "sac_runs.png")
 
     def meta(b, key):
         return "pending" if b["metadata"] is None or b["metadata"].get(key) is None else _fmt(b["metadata"][key])
@@ -2048,6 +2116,7 @@ def exec_table_report(results: Path) -> dict:
     lines += ["", f"Learning curves, one figure per batch (updates on a linear axis, each seed's evaluations averaged "
               f"per {CURVE_WINDOW_UPDATES} updates; the mean over seeds, a band from the lowest to the highest seed): "
               f"{figures}."]
+    lines += _sac_run_lines(sac_runs, sac_figure)
     text = "\n".join(lines) + "\n"
     write_text_atomic(results / "table2.md", text)
     write_json_atomic(results / "table2.json", out)

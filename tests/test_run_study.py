@@ -652,7 +652,13 @@ EXEC_RUNS = {
     "hopper_med_det_b1": ({"bail": [1000.0, 1001.0, 1002.0], "bc": [990.0, 1010.0]}, None),
     "walker_sac_b1": ({"bail": [2000.0, 2100.0, 2200.0], "bc": [500.0, 600.0, 700.0]},
                       {"episode_return_mean": 1500.0, "episode_return_min": -5.0, "episode_return_max": 4000.0,
-                       "behaviour_final_eval_return": 3500.0, "recipe_hash": "feed0002"}),
+                       "behaviour_final_eval_return": 3500.0, "recipe_hash": "feed0002",
+                       # the SAC run's record (Walker2d's mediocre threshold: 500): crossed at its third evaluation
+                       "evaluations": [{"step": 5000, "return_mean": 120.0}, {"step": 10000, "return_mean": 499.9},
+                                       {"step": 15000, "return_mean": 510.5}, {"step": 20000, "return_mean": 3700.0},
+                                       {"step": 25000, "return_mean": 3500.0}],
+                       "sac_run_train_steps": 25000, "gradient_steps": 15000, "env_steps_per_s": 104.2,
+                       "updates_per_s": 120.5, "resumed_from_step": None}),
 }
 
 
@@ -706,6 +712,20 @@ def test_the_table2_report_has_a_row_per_batch_with_the_papers_figure_beside_eac
     assert sorted(p.name for p in results.glob("curves_*.png")) == [
         f"curves_{label}.png" for label in sorted(EXEC_RUNS)]
     assert json.loads((results / "table2.json").read_text()) == json.loads(json.dumps(out))
+
+
+def test_the_table2_report_records_each_sac_run_its_pace_crossing_and_final_evaluation(exec_table):
+    """Issue 51's record of a SAC behaviour run, from its SAC batch's kept metadata: pace, the first evaluation at or
+    above the env's mediocre threshold (conf/env: Walker2d 500; 499.9 is below it), the final and best evaluations,
+    and one figure; a run whose metadata is not kept (Hopper's here) is absent, not made up."""
+    out, results = exec_table
+    (run,) = out["sac_runs"]
+    assert (run["env"], run["mediocre_threshold"], run["crossed_at_step"], run["crossed_with_return"]) == (
+        "walker", 500.0, 15000, 510.5)
+    assert (run["final_eval_return"], run["best_eval_return"], run["env_steps_per_s"]) == (3500.0, 3700.0, 104.2)
+    text = (results / "table2.md").read_text()
+    assert "| walker | 25,000 | 104.2 | 120.5 | 500 | 15,000: 510.5 | 3500.0 | 3700.0 |" in text
+    assert "Figure: `sac_runs.png`." in text and (results / "sac_runs.png").is_file()
 
 
 def test_the_table2_claims_follow_the_paper_cells_rule(run_study, exec_table):
