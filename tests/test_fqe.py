@@ -132,3 +132,80 @@ def test_episode_starts_and_bad_input():
 def test_gamma_out_of_range_is_refused():
     with pytest.raises(ValueError, match=r"gamma must be in \[0, 1\]"):
         FQELoss(make_qvalue_network(3, 1, (8,)), always_plus_one(), gamma=1.5)
+
+
+def test_fqelosss_default_discount_is_fqesettings():
+    """FQE's discount has one default, :attr:`FQESettings.gamma`; FQELoss' own default (ope imports the loss'
+    module, so the loss cannot import it back) is held equal to it here."""
+    import inspect
+
+    assert inspect.signature(FQELoss).parameters["gamma"].default == FQESettings.gamma
+
+
+# -- issue 53, item 2: the stopping rule and several fits -------------------------------------------------------
+def test_the_stopping_rule_stops_a_settled_curve_and_not_a_rising_one():
+    """:func:`curve_converged` compares the mean of the last ``window`` points with the mean of the ``window`` points
+    ending at half the curve: a curve that has settled stops, one that keeps rising (linearly, or as a logarithm,
+    whose doubling always adds the same amount) never does, and a plateau shorter than half the curve is not taken
+    for the limit."""
+    import math
+
+    from torchrl_bail.ope import curve_converged
+
+    settled = [200.0 * (1.0 - math.exp(-k / 10.0)) for k in range(1, 201)]
+    stops = [n for n in range(1, 201) if curve_converged(settled[:n], 20, 0.02)]
+    assert stops and 40 <= stops[0] < 200, "a settled curve stops before its end"
+    assert abs(settled[stops[0] - 1] - 200.0) < 0.02 * 200.0, "and its estimate there is within the tolerance"
+    rising = [100.0 + 0.5 * k for k in range(1, 201)]
+    logarithmic = [50.0 * math.log(k + 1.0) for k in range(1, 201)]
+    for curve in (rising, logarithmic):
+        assert not any(curve_converged(curve[:n], 20, 0.02) for n in range(1, 201))
+    plateau = [100.0 + min(k, 60) + max(0, k - 90) for k in range(1, 121)]  # rising, flat for 30 points, rising
+    assert not any(curve_converged(plateau[:n], 20, 0.02) for n in range(1, 121))
+    assert not curve_converged(settled, 0, 0.02), "window 0: no rule"
+    assert not curve_converged(settled[:39], 20, 0.5), "it waits until half the curve holds a window"
+
+
+def test_a_fit_stops_once_its_curve_settles_and_runs_to_the_cap_otherwise():
+    """The chain's fit settles long before a cap of 4000 updates: with the rule it stops there (recorded as
+    converged), within 1 % of the exact value; without it (``stop_window = 0``) it runs to the cap, not converged."""
+    states = 5
+    exact = sum(GAMMA**k for k in range(states))
+    ruled = FQESettings(**{**vars(SETTINGS), "updates": 4000, "log_every": 50, "stop_window": 5, "stop_tol": 0.005})
+    stopped = fit_fqe(always_plus_one(), chain_batch(states, episodes=4), ruled, seed=0)
+    assert stopped["converged"] and stopped["updates"] < 4000 and stopped["updates"] == stopped["curve"][-1]["update"]
+    assert abs(stopped["estimate"] - exact) < 0.01 * exact, (stopped["estimate"], exact)
+    capped = fit_fqe(always_plus_one(), chain_batch(states, episodes=4),
+                     FQESettings(**{**vars(ruled), "stop_window": 0}), seed=0)
+    assert not capped["converged"] and capped["updates"] == 4000
+    assert capped["curve"][:len(stopped["curve"])] == stopped["curve"], "the same fit, stopped earlier"
+
+
+def test_several_fits_give_one_curve_each_their_mean_and_spread(tmp_path, monkeypatch):
+    """:func:`fit_fqe_fits`: ``K`` fits of seeds ``seed .. seed + K - 1``, each the single fit of its seed, the
+    estimate their mean and the spread their standard deviation; a finished fit's checkpoint holds its result, so
+    the same call keeps it without fitting again."""
+    import statistics
+
+    from torchrl_bail.ope import fit_fqe_fits
+
+    data = chain_batch(5, episodes=4)
+    settings = FQESettings(**{**vars(SETTINGS), "updates": 200, "log_every": 50})
+    result = fit_fqe_fits(always_plus_one(), data, settings, fits=3, seed=7,
+                          checkpoint_path=tmp_path / "c_checkpoint.pt")
+    fits = result["fits"]
+    assert [fit["seed"] for fit in fits] == [7, 8, 9] and all(len(fit["curve"]) == 4 for fit in fits)
+    assert len({fit["estimate"] for fit in fits}) == 3, "three seeds, three estimates"
+    assert fits[1]["curve"] == fit_fqe(always_plus_one(), data, settings, seed=8)["curve"]
+    estimates = [fit["estimate"] for fit in fits]
+    assert result["estimate"] == pytest.approx(statistics.mean(estimates), abs=1e-12)
+    assert result["spread"] == pytest.approx(statistics.stdev(estimates), abs=1e-12) and result["spread"] > 0
+    assert fit_fqe_fits(always_plus_one(), data, settings, fits=1, seed=7)["spread"] is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c_checkpoint.pt", "c_fit1_checkpoint.pt",
+                                                          "c_fit2_checkpoint.pt"]
+    import torchrl_bail.ope as ope_module
+
+    monkeypatch.setattr(ope_module, "fqe_update", lambda *a, **k: pytest.fail("a finished fit was fitted again"))
+    monkeypatch.setattr(FQELoss, "add_policy_actions", lambda *a, **k: pytest.fail("the actions were drawn again"))
+    kept = fit_fqe_fits(always_plus_one(), data, settings, fits=3, seed=7, checkpoint_path=tmp_path / "c_checkpoint.pt")
+    assert kept["fits"] == fits and kept["estimate"] == result["estimate"]

@@ -18,16 +18,17 @@ from hydra import compose, initialize_config_dir
 from torchrl_bail import config_dir, interrupts
 from torchrl_bail.ope import main
 
-#: a fit of seconds: 60 updates of a 16-16 network, a curve point every 20
-FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress"]
+#: a fit of seconds: 60 updates of a 16-16 network, a curve point every 20 (too few for the stopping rule), one fit
+FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress", "--fits", "1"]
 
 
-def _train_tiny(algo: str, data_dir, run_dir: Path) -> Path:
+def _train_tiny(algo: str, data_dir, run_dir: Path, *extra: str) -> Path:
     """A run of ``algo`` through the config on the session's tiny batch (``_contract.TINY_RUN``), in ``run_dir``."""
     from torchrl_bail.train import run
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[*TINY_RUN, f"algo={algo}", *ALGO_CASES[algo].cli, f"data_dir={data_dir}"])
+        cfg = compose("config", overrides=[*TINY_RUN, f"algo={algo}", *ALGO_CASES[algo].cli, f"data_dir={data_dir}",
+                                           *extra])
     run(cfg, run_dir)
     return run_dir
 
@@ -42,14 +43,21 @@ def _ope(run_dir, name="ope.json") -> dict:
     return json.loads((run_dir / name).read_text())
 
 
+def _numbers(fits: list[dict]) -> list[dict]:
+    """A record's fits without their wall times (the numbers a seed fixes)."""
+    return [{k: v for k, v in fit.items() if k != "wall_time_s"} for fit in fits]
+
+
 def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_run, capsys):
     assert main([str(tiny_run), "--seed", "3", *FAST]) == 0
     assert "FQE estimate" in capsys.readouterr().out
     first = _ope(tiny_run)
     assert math.isfinite(first["estimate"]) and first["updates"] == 60 and first["seed"] == 3
-    assert [p["update"] for p in first["curve"]] == [20, 40, 60]
-    assert all(math.isfinite(p["estimate"]) and math.isfinite(p["td_loss"]) for p in first["curve"])
-    assert first["estimate"] == first["curve"][-1]["estimate"] and first["algo"] == "bc"
+    (fit,) = first["fits"]
+    assert [p["update"] for p in fit["curve"]] == [20, 40, 60] and fit["seed"] == 3 and not fit["converged"]
+    assert all(math.isfinite(p["estimate"]) and math.isfinite(p["td_loss"]) for p in fit["curve"])
+    assert first["estimate"] == fit["estimate"] == fit["curve"][-1]["estimate"] and first["algo"] == "bc"
+    assert first["num_fits"] == 1 and first["spread"] is None and first["converged_fits"] == 0
     assert first["num_transitions"] == 600 and first["num_episode_starts"] >= 1
     assert first["platform"] == json.loads((tiny_run / "summary.json").read_text())["platform"], \
         "the fit records the platform as the run's summary does"
@@ -61,7 +69,7 @@ def test_ope_writes_a_finite_estimate_and_the_same_seed_gives_the_same_one(tiny_
 
     assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
     again = _ope(tiny_run)
-    assert again["estimate"] == first["estimate"] and again["curve"] == first["curve"]
+    assert again["estimate"] == first["estimate"] and _numbers(again["fits"]) == _numbers(first["fits"])
 
     assert main([str(tiny_run), "--seed", "4", "--force", *FAST]) == 0
     assert _ope(tiny_run)["estimate"] != first["estimate"]
@@ -125,7 +133,7 @@ def test_a_killed_fit_continues_to_the_uninterrupted_numbers(tiny_run, monkeypat
     assert main(args) == 0
     resumed = _ope(tiny_run, "ope_best.json")
     assert resumed["resumed_at"] == 30 and reference["resumed_at"] == 0
-    assert resumed["estimate"] == reference["estimate"] and resumed["curve"] == reference["curve"]
+    assert resumed["estimate"] == reference["estimate"] and resumed["fits"][0]["curve"] == reference["fits"][0]["curve"]
     assert not (tiny_run / "ope_best_checkpoint.pt").exists()
 
 
@@ -154,7 +162,7 @@ def test_a_fit_stopped_before_its_first_timed_checkpoint_never_draws_the_policys
     monkeypatch.setattr(FQELoss, "add_policy_actions", lambda *a, **k: pytest.fail("the actions were drawn again"))
     assert main(args) == 0
     resumed = _ope(run_dir)
-    assert resumed["estimate"] == reference["estimate"] and resumed["curve"] == reference["curve"]
+    assert resumed["estimate"] == reference["estimate"] and resumed["fits"][0]["curve"] == reference["fits"][0]["curve"]
     assert not (run_dir / "ope_checkpoint.pt").exists()
 
 
@@ -170,6 +178,11 @@ def test_a_run_whose_batch_is_not_in_the_cache(tiny_run, tmp_path, capsys):
     (["--gamma", "2"], "--gamma 2.0: expected a discount in [0, 1]"),
     (["--hidden", "16,x"], "expected layer sizes like 256,256"),
     (["--threads", "0"], "--threads 0: expected a positive number of threads"),
+    (["--fits", "0"], "--fits 0: expected an integer >= 1"),
+    (["--stop-window", "-1"], "--stop-window -1: expected an integer >= 0"),
+    (["--stop-tol", "-0.1"], "--stop-tol -0.1: expected a tolerance >= 0"),
+    (["--rule", "lower_bound", "--fits", "1"], "--rule lower_bound needs a spread, so --fits 2 or more"),
+    (["--rule-lambda", "-1"], "--rule-lambda -1.0: expected a finite number >= 0"),
 ])
 def test_bad_numbers_stop_the_command(tiny_run, args, message, capsys):
     with pytest.raises(SystemExit) as stop:
@@ -321,3 +334,109 @@ def test_the_fit_leaves_the_callers_random_stream_as_it_was(tiny_run):
     assert torch.equal(torch.cat([before, torch.rand(2)]), expected), "the caller's stream changed"
     torch.manual_seed(999)  # and the fit's own numbers do not depend on the caller's stream
     assert fit_fqe(policy, data, settings, seed=3)["curve"] == first["curve"]
+
+
+# -- issue 53, items 2 and 3: several fits per policy, the selection rules ------------------------------------------
+SEVERAL = [arg for arg in FAST if arg not in ("--fits", "1")]
+
+
+def test_several_fits_are_recorded_each_with_its_curve(tiny_run, capsys):
+    """``--fits 2``: two fits of seeds 3 and 4, each the single fit of its seed; the estimate is their mean, the
+    spread their standard deviation, and ``ope.json`` keeps every fit's curve."""
+    import statistics
+
+    assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
+    one = _ope(tiny_run)["fits"][0]
+    assert main([str(tiny_run), "--seed", "4", "--force", *FAST]) == 0
+    other = _ope(tiny_run)["fits"][0]
+    assert main([str(tiny_run), "--seed", "3", "--force", *SEVERAL, "--fits", "2"]) == 0
+    assert "std " in capsys.readouterr().out
+    record = _ope(tiny_run)
+    assert record["num_fits"] == 2 and _numbers(record["fits"]) == _numbers([one, other])
+    assert [len(fit["curve"]) for fit in record["fits"]] == [3, 3]
+    assert record["estimate"] == pytest.approx(statistics.mean([one["estimate"], other["estimate"]]), abs=1e-12)
+    assert record["spread"] == pytest.approx(statistics.stdev([one["estimate"], other["estimate"]]), abs=1e-12)
+    assert not list(tiny_run.glob("*_checkpoint.pt"))
+
+
+def test_a_command_killed_in_its_second_fit_keeps_the_first(tiny_run, monkeypatch, capsys):
+    """SIGTERM at update 30 of the second fit: the first fit's result is kept in its checkpoint, the second continues
+    from its own, and the record equals an uninterrupted command's."""
+    args = [str(tiny_run), "--best", "--seed", "5", "--force", *SEVERAL, "--fits", "2"]
+    assert main(args) == 0
+    reference = _ope(tiny_run, "ope_best.json")
+    (tiny_run / "ope_best.json").unlink()
+    calls = {"n": 0}
+
+    def sigterm_in_the_second_fit():  # polled once per update: 60 of the first fit, then 30 of the second
+        calls["n"] += 1
+        return signal.SIGTERM if calls["n"] >= 90 else None
+
+    monkeypatch.setattr(interrupts, "requested", sigterm_in_the_second_fit)
+    assert main(args) == 128 + signal.SIGINT  # the poll is faked: stop() finds no real pending signal
+    assert "saved the FQE fit at update 30" in capsys.readouterr().err
+    assert (tiny_run / "ope_best_checkpoint.pt").is_file() and (tiny_run / "ope_best_fit1_checkpoint.pt").is_file()
+    monkeypatch.undo()
+    polls = {"n": 0}
+    real_requested = interrupts.requested
+    monkeypatch.setattr(interrupts, "requested", lambda: polls.update(n=polls["n"] + 1) or real_requested())
+    assert main(args) == 0
+    assert polls["n"] == 30, "only the second fit's last 30 updates ran: the first fit was kept"
+    resumed = _ope(tiny_run, "ope_best.json")
+    assert [fit["resumed_at"] for fit in resumed["fits"]] == [0, 30] and resumed["resumed_at"] == 30
+    assert [fit["curve"] for fit in resumed["fits"]] == [fit["curve"] for fit in reference["fits"]]
+    assert resumed["estimate"] == reference["estimate"] and resumed["spread"] == reference["spread"]
+    assert not list(tiny_run.glob("*_checkpoint.pt"))
+
+
+def test_each_rule_picks_its_own_policy_on_a_case_where_they_differ():
+    """Three policies: the first has the highest estimate but fits that disagree, the second acts far from the
+    batch, the third is the best. ``mean`` deploys the first, ``lower_bound`` (k = 1) the second, ``gap_penalised``
+    (lambda = 1, scale = the median estimate 9) the third; a rule's regret is 0 exactly when it deploys the best."""
+    from torchrl_bail.ope import compare_rules, rule_scores, select_by_rule
+
+    means, spreads, gaps, truth = [10.0, 9.0, 8.0], [5.0, 0.5, 0.5], [0.5, 0.9, 0.0], [1.0, 2.0, 3.0]
+    assert rule_scores(means, rule="lower_bound", spreads=spreads) == [5.0, 8.5, 7.5]
+    assert rule_scores(means, rule="gap_penalised", gaps=gaps) == pytest.approx([5.5, 0.9, 8.0])
+    picks = {rule: select_by_rule(means, rule=rule, spreads=spreads, gaps=gaps)
+             for rule in ("mean", "lower_bound", "gap_penalised")}
+    assert picks == {"mean": 0, "lower_bound": 1, "gap_penalised": 2}
+    report = compare_rules(means, {"true": truth, "reversed": truth[::-1]}, spreads=spreads, gaps=gaps, interval=False)
+    assert {rule: report[rule]["true"]["regret"] for rule in picks} == {"mean": 2.0, "lower_bound": 1.0,
+                                                                         "gap_penalised": 0.0}
+    assert report["mean"]["reversed"]["regret"] == 0.0 and report["mean"]["reversed"]["spearman"] == 1.0
+    assert report["mean"]["true"]["spearman"] == -1.0
+    assert {rule: report[rule]["selected"] for rule in picks} == picks
+    missing = compare_rules(means, {"true": truth}, gaps=gaps, interval=False)
+    assert missing["lower_bound"] == {"available": False, "reason": missing["lower_bound"]["reason"]}
+    assert "spread" in missing["lower_bound"]["reason"] and missing["gap_penalised"]["available"]
+    with pytest.raises(ValueError, match="2 fits or more"):
+        rule_scores(means, rule="lower_bound", spreads=[None, None, None])
+
+
+def test_the_rule_chooses_among_a_runs_snapshots_and_a_new_rule_reranks_without_refitting(tiny_run_data_dir, tmp_path,
+                                                                                          monkeypatch, capsys):
+    """A run with 3 snapshots scored with ``--rule gap_penalised --fits 2``: the candidates carry their estimate,
+    spread, action gap and score, and the selection is the highest score. The same command with ``--rule mean``
+    ranks them again from the kept fits (nothing is fitted) and selects the highest estimate."""
+    import torchrl_bail.ope as ope_module
+
+    run_dir = _train_tiny("bc", tiny_run_data_dir, tmp_path / "run", "eval.snapshots=3")
+    args = [str(run_dir), "--seed", "1", *SEVERAL, "--fits", "2"]
+    assert main([*args, "--rule", "gap_penalised", "--rule-lambda", "2"]) == 0
+    record = _ope(run_dir)
+    candidates, selection = record["snapshots"], record["selection"]
+    assert selection["rule"] == "gap_penalised" and selection["rule_lambda"] == 2.0 and selection["num_fits"] == 2
+    scale = sorted(c["fqe_estimate"] for c in candidates)[1]
+    for c in candidates:
+        assert c["fqe_spread"] > 0 and 0 < c["action_gap"] < 2
+        assert c["score"] == pytest.approx(c["fqe_estimate"] - 2.0 * c["action_gap"] * abs(scale))
+    chosen = max(candidates, key=lambda c: c["score"])
+    assert record["fqe_selected"]["path"] == chosen["path"] and chosen["rank"] == 1
+    monkeypatch.setattr(ope_module, "fit_fqe", lambda *a, **k: pytest.fail("a kept fit was fitted again"))
+    assert main([*args, "--rule", "mean"]) == 0
+    again = _ope(run_dir)
+    assert again["selection"]["rule"] == "mean"
+    assert again["fqe_selected"]["path"] == max(again["snapshots"], key=lambda c: c["fqe_estimate"])["path"]
+    assert [c["fqe_estimate"] for c in again["snapshots"]] == [c["fqe_estimate"] for c in candidates]
+    assert "highest estimate" in capsys.readouterr().out

@@ -32,7 +32,7 @@ TINY = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1000", "batch.start_s
 #: 6 iterations of 1000 samples, an evaluation after each
 BC = ["algo=bc", "algo.epochs=0.006", "eval.every_epochs=0.001"]
 #: a fit of seconds (as tests/test_ope.py)
-FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress"]
+FAST = ["--updates", "60", "--log-every", "20", "--hidden", "16,16", "--no-progress", "--fits", "1"]  # one fit a policy
 
 
 class _Kill(BaseException):

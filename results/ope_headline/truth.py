@@ -75,6 +75,78 @@ def replay(policy_entry: dict) -> dict:
             "replay_wall_time_s": time.perf_counter() - start}
 
 
+#: the stopping rules' knobs measured on the kept curves: windows (curve points) and tolerances
+WINDOWS, TOLERANCES = (5, 10, 20, 30), (0.01, 0.02, 0.05)
+
+
+def _previous_window_settled(estimates: list[float], window: int, tol: float) -> bool:
+    """The rule not taken: the mean of the last ``window`` points against the mean of the ``window`` points before
+    them (a fixed look-back, where :func:`torchrl_bail.ope.curve_converged` looks back to half the fit)."""
+    n = len(estimates)
+    if window < 1 or n < 2 * window:
+        return False
+    last, before = sum(estimates[n - window:]) / window, sum(estimates[n - 2 * window:n - window]) / window
+    return abs(last - before) < tol * abs(last)
+
+
+def curve_measurement() -> dict:
+    """The stopping rule and the number of fits, measured on the kept fits' curves (every ``runs/**/ope*.json``:
+    20 final policies and 20 BAIL snapshots, one fit each of 10^5 updates, a point every 1000).
+
+    For each rule, window and tolerance: how many curves it stops before their end, where, and how far the estimate
+    where it stops lies from the curve's last value. And the mini-batch noise of a curve: the standard deviation of
+    its last 20 points around their least-squares line, relative to their mean, from which the default number of
+    fits follows (:data:`torchrl_bail.ope.DEFAULT_FITS`)."""
+    import math
+
+    import numpy as np
+
+    from torchrl_bail.ope import FQESettings, curve_converged
+
+    curves = {}
+    for path in sorted((HERE / "runs").rglob("ope*.json")):
+        record = json.loads(path.read_text())
+        if record.get("curve"):
+            curves[path.relative_to(HERE / "runs").as_posix()] = [p["estimate"] for p in record["curve"]]
+    log_every = 1000
+    rules = {"half_the_fit": curve_converged, "previous_window": _previous_window_settled}
+    measured = []
+    for name, rule in rules.items():
+        for window in WINDOWS:
+            for tol in TOLERANCES:
+                stops = {}
+                for key, curve in curves.items():
+                    n = next((n for n in range(1, len(curve)) if rule(curve[:n], window, tol)), None)
+                    if n is not None:
+                        stops[key] = {"update": n * log_every,
+                                      "from_last": abs(curve[n - 1] - curve[-1]) / abs(curve[-1])}
+                measured.append({"rule": name, "window": window, "tol": tol, "curves": len(curves),
+                                 "stopped": len(stops), "stops": stops,
+                                 "max_from_last": max((s["from_last"] for s in stops.values()), default=None)})
+    noise = []
+    for curve in curves.values():
+        y = np.asarray(curve[-20:])
+        x = np.arange(len(y))
+        residual = y - np.polyval(np.polyfit(x, y, 1), x)
+        noise.append(float(residual.std(ddof=2) / abs(y.mean())))
+    rises = [(curve[-1] - curve[len(curve) // 2 - 1]) / abs(curve[-1]) for curve in curves.values()]
+    tol = FQESettings.stop_tol
+    median_noise = float(np.median(noise))
+    return {"curves": len(curves), "updates": 100_000, "log_every": log_every,
+            "rise_over_the_second_half": {"min": min(rises), "median": float(np.median(rises)), "max": max(rises)},
+            "rules": measured,
+            "noise": {"median": median_noise, "min": min(noise), "max": max(noise)},
+            "fits_for_half_the_tolerance": math.ceil((median_noise / (tol / 2)) ** 2)}
+
+
+def _snapshot_gap(entry: dict, iteration: int) -> float | None:
+    """A snapshot's action gap, from its FQE record (``snapshots/ope_policy_<iteration>.json``; ``None`` for a record
+    fitted before ``ope`` recorded gaps, as BAIL seed 1's: its snapshot weights are not kept to compute it); the last
+    snapshot, the final policy's weights, took the final policy's fit and gap."""
+    path = ROOT / entry["run"] / "snapshots" / f"ope_policy_{iteration}.json"
+    return json.loads(path.read_text()).get("action_gap") if path.is_file() else entry["action_gap"]
+
+
 def _rank(estimates: list[float], truths: list[float], names: list[str]) -> dict:
     from torchrl_bail.ope import ranking_quality, spearman_interval
 
@@ -84,13 +156,74 @@ def _rank(estimates: list[float], truths: list[float], names: list[str]) -> dict
             "best": names[q["best"]], "regret": q["regret"]}
 
 
-def analyse(policies: list[dict]) -> dict:
-    """Rank figures of the single-fit estimates against both truths; filled in by the selection rules below."""
+#: gap_penalised's lambda swept on the 20 final policies (in-sample: the default, 1, is set before looking)
+LAMBDAS = (0.5, 1.0, 2.0, 3.0, 4.0)
+
+
+def _rules(means, gaps, truths: dict, names: list[str], lam: float, interval: bool = True) -> dict:
+    """:func:`torchrl_bail.ope.compare_rules` on single fits (no spread: ``lower_bound`` is unavailable), with the
+    selected policy named and its true values."""
+    from torchrl_bail.ope import compare_rules
+
+    report = compare_rules(means, truths, gaps=gaps, lam=lam, interval=interval)
+    for entry in report.values():
+        if entry["available"]:
+            entry["selected_name"] = names[entry["selected"]]
+            entry.pop("scores")
+            for name, values in truths.items():
+                entry[name]["selected_value"] = values[entry["selected"]]
+                entry[name]["best_name"] = names[entry[name]["best"]]
+    return report
+
+
+def analyse(policies: list[dict], snapshots: list[dict]) -> dict:
+    """Rank figures of the single-fit estimates against both truths, and each selection rule's ranking of the 20
+    final policies and of each BAIL run's snapshots (the rules that single fits allow: ``mean`` and
+    ``gap_penalised``; ``lower_bound`` needs several fits per policy)."""
+    from torchrl_bail.ope import DEFAULT_LAMBDA
+
     names = [p["job"] for p in policies]
     estimates = [p["fqe_estimate"] for p in policies]
+    gaps = [p["action_gap"] for p in policies]
+    truths = {"discounted": [p["true_discounted_return"] for p in policies],
+              "undiscounted": [p["true_return"] for p in policies]}
+    sweep = {str(lam): {rule: {truth: {key: entry[truth][key] for key in ("spearman", "regret")} for truth in truths}
+                        for rule, entry in _rules(estimates, gaps, truths, names, lam, interval=False).items()
+                        if rule == "gap_penalised"}["gap_penalised"] for lam in LAMBDAS}
+    per_run = []
+    for run in snapshots:
+        c = run["candidates"]
+        report = _rules([x["fqe_estimate"] for x in c], [x["action_gap"] for x in c],
+                        {"undiscounted": [x["true_return"] for x in c]}, [str(x["iteration"]) for x in c],
+                        DEFAULT_LAMBDA, interval=False)
+        per_run.append({"job": run["job"], "best_return": max(x["true_return"] for x in c),
+                        "final_return": c[-1]["true_return"],
+                        "rules": {rule: {"selected_iteration": int(entry["selected_name"]),
+                                         "selected_return": entry["undiscounted"]["selected_value"],
+                                         "regret": entry["undiscounted"]["regret"],
+                                         "spearman": entry["undiscounted"]["spearman"]}
+                                  for rule, entry in report.items() if entry["available"]}})
+    def summary(runs: list[dict], rule: str) -> dict:
+        return {"runs": [r["job"] for r in runs],
+                "mean_selected_return": sum(r["rules"][rule]["selected_return"] for r in runs) / len(runs),
+                "mean_regret": sum(r["rules"][rule]["regret"] for r in runs) / len(runs),
+                "mean_spearman": sum(r["rules"][rule]["spearman"] for r in runs) / len(runs),
+                "mean_final_return": sum(r["final_return"] for r in runs) / len(runs),
+                "mean_best_return": sum(r["best_return"] for r in runs) / len(runs)}
+
+    # each rule over the runs where both can score every snapshot; the mean rule also over every run
+    common = [r for r in per_run if {"mean", "gap_penalised"} <= set(r["rules"])]
+    snapshot_summary = {"mean": summary(common, "mean"), "gap_penalised": summary(common, "gap_penalised"),
+                        "mean_every_run": summary(per_run, "mean")}
     return {"single_fit": {
-        "against_discounted": _rank(estimates, [p["true_discounted_return"] for p in policies], names),
-        "against_undiscounted": _rank(estimates, [p["true_return"] for p in policies], names)}}
+                "against_discounted": _rank(estimates, truths["discounted"], names),
+                "against_undiscounted": _rank(estimates, truths["undiscounted"], names)},
+            "rules": {"lambda": DEFAULT_LAMBDA,
+                      "final_policies": _rules(estimates, gaps, truths, names, DEFAULT_LAMBDA),
+                      "gap_penalised_lambda_sweep": sweep,
+                      "snapshots": {"per_run": per_run, "mean_over_runs": snapshot_summary}},
+            "lower_bound": "not computed: it needs several fits per policy (--fits >= 2), and each kept policy has "
+                           "one fit; the refits need the headline batch (10^6 transitions), not on this machine"}
 
 
 def build(force: bool) -> dict:
@@ -121,14 +254,16 @@ def build(force: bool) -> dict:
         if entry.get("snapshots"):
             snapshots.append({"job": entry["job"], "candidates": [
                 {"iteration": c["iteration"], "true_return": c["eval_return"], "true_discounted_return": None,
-                 "fqe_estimate": c["fqe_estimate"]} for c in entry["snapshots"]["candidates"]]})
+                 "fqe_estimate": c["fqe_estimate"], "action_gap": _snapshot_gap(entry, c["iteration"])}
+                for c in entry["snapshots"]["candidates"]]})
     return {"gamma": FQESettings.gamma, "source": "results/ope_headline/ope.json (the kept single FQE fits, action "
             "gaps and recorded returns) and each kept policy.pt, its last evaluation replayed",
             "command": "python results/ope_headline/truth.py",
             "snapshot_note": "the BAIL runs' snapshot weights were not kept (runs/**/snapshots holds their FQE "
                              "records only): each snapshot has its recorded undiscounted evaluation return and no "
                              "discounted truth",
-            "policies": policies, "snapshots": snapshots, "ranking": analyse(policies)}
+            "policies": policies, "snapshots": snapshots, "ranking": analyse(policies, snapshots),
+            "curves": curve_measurement()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -151,6 +286,14 @@ def main(argv: list[str] | None = None) -> int:
     for name, q in single.items():
         print(f"single FQE fit {name.replace('_', ' ')}: rho {q['spearman']:.2f} "
               f"[{q['spearman_ci'][0]:.2f}, {q['spearman_ci'][1]:.2f}], regret {q['regret']:.1f}")
+    for rule, entry in record["ranking"]["rules"]["final_policies"].items():
+        if not entry["available"]:
+            print(f"rule {rule}: not available ({entry['reason']})")
+            continue
+        print(f"rule {rule}: deploys {entry['selected_name']}; " + "; ".join(
+            f"{truth} rho {entry[truth]['spearman']:.2f} [{entry[truth]['spearman_ci'][0]:.2f}, "
+            f"{entry[truth]['spearman_ci'][1]:.2f}] regret {entry[truth]['regret']:.1f}"
+            for truth in ("discounted", "undiscounted")))
     print(f"-> {out}")
     return 0
 

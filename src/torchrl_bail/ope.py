@@ -1,24 +1,29 @@
-"""Score trained policies without the simulator: ``python -m torchrl_bail.ope RUN_DIR... [--updates N] [--seed S]``.
+"""Score trained policies without the simulator: ``python -m torchrl_bail.ope RUN_DIR... [--fits K] [--seed S]``.
 
 For each run directory, Fitted Q Evaluation (:class:`~torchrl_bail.objectives.fqe.FQELoss`, Le et al. 2019; used
 for policy selection by Paine et al. 2020): the run's policy (``policy.pt``; ``--best``: ``policy_best.pt``, loaded
 with :func:`~torchrl_bail.policy.load_policy`) is held fixed and a Q network is fitted on the run's own batch (the
 data cache its ``config.yaml`` names: the generated batch of its ``env`` x ``batch``, or its ``dataset=``; nothing
-is collected here) by :func:`fit_fqe`. The estimate is the mean of ``Q(s_0, pi(s_0))`` over the batch's episode
-starts, a discounted value (``--gamma``) meant for ranking policies trained on the same batch.
+is collected here) by :func:`fit_fqe`, until its curve settles (:func:`curve_converged`: ``--stop-window``,
+``--stop-tol``) or ``--updates``, the cap. ``--fits K`` independent fits (seeds ``S .. S + K - 1``,
+:func:`fit_fqe_fits`) give the estimate, their mean, and its spread, their standard deviation. A fit's estimate is
+the mean of ``Q(s_0, pi(s_0))`` over the batch's episode starts, a discounted value (``--gamma``) meant for ranking
+policies trained on the same batch.
 
-Beside the run it writes ``ope.json`` (``ope_best.json`` with ``--best``), atomically: the estimate, the settings
-and seed, the number of updates, the policy file's SHA-1, the batch, and the fitting curve (the estimate and the
-mean TD loss every ``--log-every`` updates). A finished ``ope.json`` is kept unless ``--force`` (or the run was
-trained again since: its policy file's SHA-1 differs).
+Beside the run it writes ``ope.json`` (``ope_best.json`` with ``--best``), atomically: the estimate and spread, the
+settings and seed, the number of fits and how many settled before the cap, the policy file's SHA-1, the batch, and
+each fit's curve (the estimate and the mean TD loss every ``--log-every`` updates). A finished ``ope.json`` is kept
+unless ``--force`` (or the run was trained again since: its policy file's SHA-1 differs).
 
 A run trained with ``eval.snapshots=N`` kept ``N`` policy snapshots (listed in its ``summary.json``); each is fitted
-too (``snapshots/ope_policy_<iteration>.json``) and :func:`select_snapshot` ranks them by their estimates: the
-ranking and ``fqe_selected`` (the policy it would deploy, with the evaluation return the run recorded for it) go
-into ``ope.json``, and ``fqe_selected`` into ``summary.json``. The fit shows a
-tqdm bar (ETA) and checkpoints into ``ope_checkpoint.pt`` every ``--checkpoint-every-s`` seconds and on Ctrl-C or
-SIGTERM; the same command continues from it, to the same numbers as an uninterrupted fit (the checkpoint is used only
-when its settings, seed, policy and batch are the command's; it is removed once ``ope.json`` is written).
+too (``snapshots/ope_policy_<iteration>.json``) and :func:`select_snapshot` ranks them by a selection rule
+(``--rule``, :func:`rule_scores`: the highest mean estimate by default, or a pessimistic lower bound, or the estimate
+less a penalty for acting far from the batch): the ranking and ``fqe_selected`` (the policy it would deploy, with
+the evaluation return the run recorded for it) go into ``ope.json``, and ``fqe_selected`` into ``summary.json``. Each
+fit shows a tqdm bar (ETA) and checkpoints into ``ope_checkpoint.pt`` (``ope_fit<i>_checkpoint.pt`` for the later
+fits) every ``--checkpoint-every-s`` seconds and on Ctrl-C or SIGTERM; the same command continues from it, to the
+same numbers as an uninterrupted fit, and keeps the fits that had finished (a checkpoint is used only when its
+settings, seed, policy and batch are the command's; they are removed once ``ope.json`` is written).
 
 A bad option stops the command before anything is loaded, with one line (exit status 2). A run that cannot be
 scored (no such directory, no ``config.yaml`` or policy file, a damaged policy file, a batch not in the cache) is
@@ -40,10 +45,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FQESettings", "OPEError", "action_gap", "fit_fqe", "fqe_update", "listed_snapshots", "ranking_quality",
-           "run_batch", "score_run", "select_snapshot", "spearman_interval", "main"]
+__all__ = ["DEFAULT_FITS", "DEFAULT_RULE", "FQESettings", "OPEError", "RULES", "action_gap", "compare_rules",
+           "curve_converged", "fit_fqe", "fit_fqe_fits", "fqe_update", "listed_snapshots", "ranking_quality",
+           "rule_scores", "run_batch", "score_run", "select_by_rule", "select_snapshot", "spearman_interval", "main"]
 
-OPE_FORMAT = 1
+#: 2: a record holds the estimate as the mean of ``num_fits`` fits, their ``spread`` and each fit's curve (``fits``)
+OPE_FORMAT = 2
+#: independent fits per policy (``--fits``): the estimate is their mean and the spread their standard deviation.
+#: 4 is the smallest number whose mean has a standard error, from the mini-batch noise alone that the 40 kept
+#: curves of the OPE study show (the detrended standard deviation of each curve's last 20 points: median 1.92 % of
+#: the estimate), at most half the stopping tolerance: (1.92 / 1.0)^2 = 3.7 (docs/guides/ope.md, "Several fits")
+DEFAULT_FITS = 4
+#: the selection rules (:func:`rule_scores`) and the default one: no other is measured to rank the OPE study's
+#: policies better (docs/guides/ope.md, "Selection rules")
+RULES = ("mean", "lower_bound", "gap_penalised")
+DEFAULT_RULE = "mean"
+#: ``lower_bound``: mean - k x spread; ``gap_penalised``: mean - lambda x gap x the candidates' median |mean|
+DEFAULT_K, DEFAULT_LAMBDA = 1.0, 1.0
 #: the entries of a batch the fit reads
 _KEYS = ("observation", "action", "episode", ("next", "observation"), ("next", "reward"), ("next", "terminated"))
 
@@ -58,7 +76,10 @@ class FQESettings:
     (d3rlpy's ``FQEConfig`` and its off-policy-evaluation reference page).
 
     Attributes:
-        updates: gradient updates. Defaults to ``100_000``.
+        updates: the most gradient updates of a fit (its cap): the stopping rule (``stop_window``, ``stop_tol``,
+            :func:`curve_converged`) ends it earlier once its curve has settled. Defaults to ``500_000``: a cost
+            bound, not a convergence claim; a fit that reaches it is recorded ``converged: false``. (d3rlpy fits
+            ``10^5``; none of the OPE study's 40 kept curves had settled there.)
         batch_size: transitions per mini-batch, drawn uniformly with replacement. Defaults to ``100``.
         lr: Adam's learning rate. Defaults to ``1e-4``.
         hidden: the Q network's hidden sizes (ReLU). Defaults to ``(256, 256)``.
@@ -68,24 +89,29 @@ class FQESettings:
             return (:class:`~torchrl_bail.evaluation.Evaluator`) takes it from here.
         log_every: a point of the fitting curve (estimate, mean TD loss) every this many updates, and at the last.
             Defaults to ``1000``.
+        stop_window: the stopping rule's window, in points of the curve (:func:`curve_converged`); ``0`` turns the
+            rule off (every fit runs ``updates`` updates). Defaults to ``20``.
+        stop_tol: the stopping rule's tolerance, relative to the estimate. Defaults to ``0.02``.
 
     Examples:
         >>> FQESettings()  # doctest: +NORMALIZE_WHITESPACE
-        FQESettings(updates=100000, batch_size=100, lr=0.0001, hidden=(256, 256), target_update_period=100,
-                    gamma=0.99, log_every=1000)
+        FQESettings(updates=500000, batch_size=100, lr=0.0001, hidden=(256, 256), target_update_period=100,
+                    gamma=0.99, log_every=1000, stop_window=20, stop_tol=0.02)
         >>> FQESettings(updates=0).check()
         Traceback (most recent call last):
         ...
         ValueError: updates = 0: expected an integer >= 1
     """
 
-    updates: int = 100_000
+    updates: int = 500_000
     batch_size: int = 100
     lr: float = 1e-4
     hidden: tuple[int, ...] = (256, 256)
     target_update_period: int = 100
     gamma: float = 0.99
     log_every: int = 1000
+    stop_window: int = 20
+    stop_tol: float = 0.02
 
     def check(self) -> FQESettings:
         """Raises :class:`ValueError` naming the first value out of range; returns the settings."""
@@ -97,9 +123,39 @@ class FQESettings:
             raise ValueError(f"lr = {self.lr!r}: expected a positive learning rate")
         if not (isinstance(self.gamma, (int, float)) and 0.0 <= self.gamma <= 1.0):
             raise ValueError(f"gamma = {self.gamma!r}: expected a discount in [0, 1]")
+        if isinstance(self.stop_window, bool) or not isinstance(self.stop_window, int) or self.stop_window < 0:
+            raise ValueError(f"stop_window = {self.stop_window!r}: expected an integer >= 0 (0: no stopping rule)")
+        if not (isinstance(self.stop_tol, (int, float)) and math.isfinite(self.stop_tol) and self.stop_tol >= 0):
+            raise ValueError(f"stop_tol = {self.stop_tol!r}: expected a tolerance >= 0")
         if not self.hidden or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in self.hidden):
             raise ValueError(f"hidden = {self.hidden!r}: expected one or more positive layer sizes")
         return self
+
+
+def curve_converged(estimates: Sequence[float], window: int, tol: float) -> bool:
+    """The stopping rule of a fit: has the curve of estimates settled?
+
+    With ``n`` points so far (one every ``log_every`` updates), the mean of the last ``window`` points and the mean of
+    the ``window`` points ending at point ``n // 2`` (half the updates so far) differ by less than ``tol`` times the
+    first's size. So a fit stops once doubling its updates changed the estimate by less than ``tol``: a curve that
+    approaches its limit exponentially passes within a few time constants, one that keeps rising (linearly, or as a
+    logarithm) does not, and a plateau shorter than half the fit is not taken for the limit. Until ``n // 2 >= window``
+    (and with ``window = 0``) it never stops. The defaults (``window = 20``, ``tol = 0.02``) were measured on the
+    OPE study's kept curves (docs/guides/ope.md, "The stopping rule").
+
+    Examples:
+        >>> settled = [100.0 * (1 - 0.5 ** (k / 4)) for k in range(1, 81)]  # a time constant of 6 points
+        >>> curve_converged(settled[:40], 10, 0.02), curve_converged(settled, 10, 0.02)
+        (False, True)
+        >>> curve_converged([float(k) for k in range(1, 81)], 10, 0.02)  # rising: never
+        False
+    """
+    n = len(estimates)
+    if window < 1 or n // 2 < window:
+        return False
+    last = sum(estimates[n - window:]) / window
+    half = sum(estimates[n // 2 - window:n // 2]) / window
+    return abs(last - half) < tol * abs(last)
 
 
 def _bar(total: int, desc: str, unit: str, progress: bool, **kwargs):
@@ -169,6 +225,10 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
             identity: dict | None = None, desc: str = "fqe") -> dict[str, Any]:
     """Fits FQE for the fixed ``policy`` on ``data`` and returns its estimate and fitting curve.
 
+    The fit runs until its curve settles by the stopping rule (:func:`curve_converged` with ``settings.stop_window``
+    and ``settings.stop_tol``, checked at each point of the curve) or for ``settings.updates`` updates, the cap.
+    :func:`fit_fqe_fits` makes several independent fits of one policy.
+
     Seeded with ``seed``: torch's global generator, seeded with ``seed`` for the fit and restored after it (the
     caller's random stream goes on as if the fit had not run), draws the Q network's initial weights, then the
     policy's actions at every state and next state (computed once:
@@ -197,10 +257,12 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         desc (str): the bar's label.
 
     Returns:
-        ``{"estimate", "updates", "curve", "num_episode_starts", "num_transitions", "wall_time_s",
+        ``{"estimate", "updates", "converged", "curve", "num_episode_starts", "num_transitions", "wall_time_s",
         "resumed_at"}``; ``curve`` is a list of ``{"update", "estimate", "td_loss"}`` (``td_loss``: the mean squared
-        TD error over the updates since the previous point), ``resumed_at`` the update a checkpoint continued from
-        (``0`` when the fit started afresh).
+        TD error over the updates since the previous point), ``updates`` the updates run (the stopping rule's stop,
+        else ``settings.updates``), ``converged`` whether the stopping rule (:func:`curve_converged`) ended the fit,
+        ``resumed_at`` the update a checkpoint continued from (``0`` when the fit started afresh). With a
+        ``checkpoint_path``, a finished fit leaves its result there: the same call returns it without fitting.
 
     Examples:
         >>> import torch
@@ -243,6 +305,9 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
     identity = {**(identity or {}), "settings": dataclasses.asdict(settings), "seed": int(seed),
                 "device": device.type}
     identity["settings"]["hidden"] = list(settings.hidden)
+    state = _read_checkpoint(checkpoint_path, identity)
+    if state is not None and "result" in state:  # this fit had finished (one of several fits of a command)
+        return dict(state["result"])
     data = data.select(*_KEYS).to_tensordict().to(device)
     num = int(data.batch_size[0])
     obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
@@ -251,26 +316,12 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
     # TorchRL's HardUpdate copies on the (interval + 1)-th step(): every target_update_period-th update here
     updater = HardUpdate(loss, value_network_update_interval=settings.target_update_period - 1)
     action_keys = (loss.tensor_keys.policy_action, ("next", loss.tensor_keys.policy_action))
-    state = _read_checkpoint(checkpoint_path, identity)
-    if state is not None and "policy_actions" in state:  # (a checkpoint of an older version has none: drawn again)
-        for key, actions in zip(action_keys, state["policy_actions"], strict=True):
-            data.set(key, actions.to(device))
-    else:
-        with _bar(2 * num, f"{desc}: the policy's actions", "state", progress) as actions_bar:
-            loss.add_policy_actions(data, on_chunk=actions_bar.update)
+    _add_policy_actions(state, loss, data, action_keys, desc=desc, progress=progress)
     starts = data[episode_starts(data["episode"])]
     optimizer = torch.optim.Adam(loss.parameters(), lr=settings.lr)
     generator = torch.Generator(device=device).manual_seed(int(seed))
 
-    done, curve, prior_wall_time = 0, [], 0.0
-    td_sum, td_count = torch.zeros((), dtype=torch.float64, device=device), 0
-    if state is not None:
-        loss.load_state_dict(state["loss"])
-        optimizer.load_state_dict(state["optimizer"])
-        generator.set_state(state["generator"])
-        updater.counter = int(state["target_counter"])
-        done, curve, prior_wall_time = int(state["update"]), list(state["curve"]), float(state["wall_time_s"])
-        td_sum, td_count = state["td_sum"].to(device), int(state["td_count"])
+    done, curve, prior_wall_time, td_sum, td_count = _restore(state, loss, optimizer, generator, updater, device)
     resumed_at = done
     start = time.perf_counter()
 
@@ -287,11 +338,16 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
     if checkpoint_path is not None and state is None:
         save(0)  # the policy's actions first: a stop before the first timed checkpoint never draws them again
 
+    def settled() -> bool:  # the stopping rule, at a point of the curve
+        return curve_converged([point["estimate"] for point in curve], settings.stop_window, settings.stop_tol)
+
+    # a checkpoint taken at the very point the rule stopped at (a signal there) is a finished fit
+    converged = bool(curve) and curve[-1]["update"] == done and settled()
     bar = _bar(settings.updates, desc, "update", progress, initial=done)
     # signals wait for the end of an update (interrupts.safe_points); the bar is closed on every way out
     with interrupts.safe_points(), contextlib.closing(bar):
         last_save = time.monotonic()
-        for update in range(done + 1, settings.updates + 1):
+        for update in range(done + 1, done + 1 if converged else settings.updates + 1):
             index = torch.randint(num, (settings.batch_size,), generator=generator, device=device)
             td_sum += fqe_update(loss, optimizer, updater, data[index])
             td_count += 1
@@ -301,7 +357,10 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
                 td_sum.zero_()
                 td_count = 0
                 bar.set_postfix(estimate=f"{estimate:.2f}", td_loss=f"{curve[-1]['td_loss']:.3g}")
+                converged = settled()
             bar.update(1)
+            if converged:
+                break
             stopping = interrupts.requested() is not None  # Ctrl-C/SIGTERM: the checkpoint at this update, then stop
             saved = None
             if checkpoint_path is not None and (stopping or (
@@ -310,9 +369,107 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
                 last_save = time.monotonic()
             if stopping:
                 interrupts.stop(saved)
-    return {"estimate": curve[-1]["estimate"], "updates": settings.updates, "curve": curve,
-            "num_episode_starts": int(starts.batch_size[0]), "num_transitions": num,
-            "wall_time_s": prior_wall_time + time.perf_counter() - start, "resumed_at": resumed_at}
+        result = {"estimate": curve[-1]["estimate"], "updates": curve[-1]["update"], "converged": converged,
+                  "curve": curve, "num_episode_starts": int(starts.batch_size[0]), "num_transitions": num,
+                  "wall_time_s": prior_wall_time + time.perf_counter() - start, "resumed_at": resumed_at}
+        if checkpoint_path is not None:  # finished: a command stopped in a later fit keeps this one as it is
+            with interrupts.saving():
+                finished = {"format": OPE_FORMAT, "identity": identity, "update": result["updates"],
+                            "result": result}
+                write_atomic(checkpoint_path, lambda f: torch.save(finished, f))
+    return result
+
+
+def _add_policy_actions(state: dict | None, loss, data, action_keys, *, desc: str, progress: bool) -> None:
+    """The policy's actions at every state and next state of ``data``, from the checkpoint ``state`` when it holds
+    them (a checkpoint of an older version has none), else computed (drawn, for a sampling policy)."""
+    if state is not None and "policy_actions" in state:
+        for key, actions in zip(action_keys, state["policy_actions"], strict=True):
+            data.set(key, actions.to(data.device))
+        return
+    with _bar(2 * int(data.batch_size[0]), f"{desc}: the policy's actions", "state", progress) as actions_bar:
+        loss.add_policy_actions(data, on_chunk=actions_bar.update)
+
+
+def _restore(state: dict | None, loss, optimizer, generator, updater, device) -> tuple:
+    """A fit's loop state from its checkpoint (``state``; ``None``: a fresh fit): ``(update, curve, wall time so
+    far, the TD loss sum and count since the last point)``, the networks, optimizer, generator and target counter
+    set as they were."""
+    import torch
+
+    if state is None:
+        return 0, [], 0.0, torch.zeros((), dtype=torch.float64, device=device), 0
+    loss.load_state_dict(state["loss"])
+    optimizer.load_state_dict(state["optimizer"])
+    generator.set_state(state["generator"])
+    updater.counter = int(state["target_counter"])
+    return (int(state["update"]), list(state["curve"]), float(state["wall_time_s"]), state["td_sum"].to(device),
+            int(state["td_count"]))
+
+
+def _fit_checkpoint(path: Path | None, index: int) -> Path | None:
+    """The checkpoint of the ``index``-th of several fits: ``path`` itself for the first, and beside it for the
+    others ``ope_fit<index>_checkpoint.pt`` for ``ope_checkpoint.pt`` (``<stem>_fit<index><suffix>`` for a name
+    without ``_checkpoint``): every fit's checkpoint ends in ``_checkpoint.pt``."""
+    if path is None or index == 0:
+        return path
+    stem = path.stem
+    if stem.endswith("_checkpoint"):
+        return path.with_name(f"{stem[:-len('_checkpoint')]}_fit{index}_checkpoint{path.suffix}")
+    return path.with_name(f"{stem}_fit{index}{path.suffix}")
+
+
+def fit_fqe_fits(policy, data, settings: FQESettings | None = None, *, fits: int = DEFAULT_FITS, seed: int = 0,
+                 device="cpu", progress: bool = False, checkpoint_path: str | Path | None = None,
+                 checkpoint_every_s: float = 300.0, identity: dict | None = None,
+                 desc: str = "fqe") -> dict[str, Any]:
+    """``fits`` independent FQE fits of ``policy`` (:func:`fit_fqe`, seeds ``seed``, ``seed + 1``, ...: each its own Q
+    network initialisation, mini-batches and, for a sampling policy, draws), each until the stopping rule or the
+    cap; the estimate is their mean and the spread their standard deviation.
+
+    Each fit checkpoints into its own file (``checkpoint_path`` for the first, ``ope_fit<i>_checkpoint.pt`` beside
+    ``ope_checkpoint.pt`` for the others), and a finished fit's checkpoint holds its result: a command stopped during
+    the third fit continues that one and keeps the first two as they were. Other arguments as in :func:`fit_fqe`.
+
+    Returns:
+        ``{"estimate", "spread", "fits", "converged_fits", "num_episode_starts", "num_transitions", "wall_time_s",
+        "resumed_at"}``: ``estimate`` the mean of the fits' estimates; ``spread`` their sample standard deviation
+        (``None`` for one fit); ``fits`` one ``{"seed", "estimate", "updates", "converged", "curve", "wall_time_s",
+        "resumed_at"}`` per fit (``converged``: the stopping rule ended it before the cap); ``wall_time_s`` their
+        sum; ``resumed_at`` the update the first continued fit started from (``0``: none was).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor
+        >>> policy = make_deterministic_actor(3, action_spec_from_bounds([-1.0], [1.0]), (8,))
+        >>> n = 20
+        >>> data = TensorDict({"observation": torch.randn(n, 3), "action": torch.rand(n, 1),
+        ...                    "episode": torch.arange(n) // 5,
+        ...                    "next": {"observation": torch.randn(n, 3), "reward": torch.ones(n, 1),
+        ...                             "terminated": torch.zeros(n, 1, dtype=torch.bool)}}, [n])
+        >>> result = fit_fqe_fits(policy, data, FQESettings(updates=20, hidden=(16,), log_every=10), fits=3, seed=5)
+        >>> [fit["seed"] for fit in result["fits"]], result["spread"] > 0
+        ([5, 6, 7], True)
+    """
+    import statistics
+
+    if isinstance(fits, bool) or not isinstance(fits, int) or fits < 1:
+        raise ValueError(f"fits = {fits!r}: expected an integer >= 1")
+    checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
+    results, last = [], None
+    for index in range(fits):
+        last = fit_fqe(policy, data, settings, seed=seed + index, device=device, progress=progress,
+                       checkpoint_path=_fit_checkpoint(checkpoint_path, index), checkpoint_every_s=checkpoint_every_s,
+                       identity=identity, desc=desc if fits == 1 else f"{desc} fit {index + 1}/{fits}")
+        results.append({"seed": seed + index, **{key: last[key] for key in ("estimate", "updates", "converged",
+                                                                            "curve", "wall_time_s", "resumed_at")}})
+    estimates = [fit["estimate"] for fit in results]
+    return {"estimate": sum(estimates) / fits, "spread": statistics.stdev(estimates) if fits > 1 else None,
+            "fits": results, "converged_fits": sum(bool(fit["converged"]) for fit in results),
+            "num_episode_starts": last["num_episode_starts"], "num_transitions": last["num_transitions"],
+            "wall_time_s": sum(fit["wall_time_s"] for fit in results),
+            "resumed_at": next((fit["resumed_at"] for fit in results if fit["resumed_at"]), 0)}
 
 
 # -- a run directory ----------------------------------------------------------------------------------------------
@@ -416,10 +573,11 @@ def _load_policy(path: Path, device):
 
 
 def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, device, progress: bool,
-                checkpoint_every_s: float, desc: str) -> dict[str, Any]:
-    """Fits FQE for ``policy`` (from :func:`~torchrl_bail.policy.load_policy`) on ``batch`` and writes its record to
-    ``out`` atomically, checkpointing beside it (``<out stem>_checkpoint.pt``, removed once ``out`` is written);
-    returns the record."""
+                checkpoint_every_s: float, desc: str, fits: int = DEFAULT_FITS) -> dict[str, Any]:
+    """Fits FQE ``fits`` times for ``policy`` (from :func:`~torchrl_bail.policy.load_policy`) on ``batch``
+    (:func:`fit_fqe_fits`) and writes its record to ``out`` atomically, checkpointing beside it
+    (``<out stem>_checkpoint.pt``, and ``<out stem>_fit<i>_checkpoint.pt`` for the later fits; removed once ``out``
+    is written); returns the record."""
     import torch
 
     from torchrl_bail.data.batch import platform_record
@@ -429,14 +587,18 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
     policy_file = Path(record["path"])
     identity = {"policy_sha1": _sha1(policy_file), "batch": str(batch.path), "num_transitions": batch.num_transitions}
     checkpoint = out.with_name(out.stem + "_checkpoint.pt")
-    result = fit_fqe(policy, batch.data, settings, seed=seed, device=device, progress=progress,
-                     checkpoint_path=checkpoint, checkpoint_every_s=checkpoint_every_s, identity=identity, desc=desc)
+    result = fit_fqe_fits(policy, batch.data, settings, fits=fits, seed=seed, device=device, progress=progress,
+                          checkpoint_path=checkpoint, checkpoint_every_s=checkpoint_every_s, identity=identity,
+                          desc=desc)
     ope = {
         "format": OPE_FORMAT,
         "estimator": "fqe",
         "estimate": result["estimate"],
+        "spread": result["spread"],
+        "num_fits": fits,
+        "converged_fits": result["converged_fits"],
         "gamma": settings.gamma,
-        "updates": result["updates"],
+        "updates": max(fit["updates"] for fit in result["fits"]),
         "seed": int(seed),
         "settings": _settings_record(settings),
         "algo": record["algo"],
@@ -449,12 +611,13 @@ def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, d
         "threads": torch.get_num_threads(),
         "wall_time_s": result["wall_time_s"],
         "resumed_at": result["resumed_at"],
-        "curve": result["curve"],
+        "fits": result["fits"],
         "action_gap": action_gap(policy, batch.data, seed=seed, progress=progress),
         "platform": platform_record(),
     }
     write_json_atomic(out, ope)
-    checkpoint.unlink(missing_ok=True)
+    for index in range(fits):
+        _fit_checkpoint(checkpoint, index).unlink(missing_ok=True)
     return ope
 
 
@@ -519,21 +682,25 @@ def _record_selection(run_dir: Path, selected: dict) -> None:
 
 def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, settings: FQESettings, seed: int = 0,
                     device="cpu", force: bool = False, progress: bool = False, checkpoint_every_s: float = 300.0,
-                    snapshots: list[dict] | None = None) -> dict[str, Any]:
-    """Chooses, among a run's policy snapshots and its final policy, the one FQE estimates best; returns ``ope`` (the
-    final policy's record) with the ranking, after writing it to ``ope.json`` and ``fqe_selected`` to
-    ``summary.json`` (each atomically).
+                    snapshots: list[dict] | None = None, fits: int = DEFAULT_FITS, rule: str = DEFAULT_RULE,
+                    k: float = DEFAULT_K, lam: float = DEFAULT_LAMBDA) -> dict[str, Any]:
+    """Chooses, among a run's policy snapshots and its final policy, the one the selection ``rule`` scores best
+    (:func:`rule_scores`; the default, ``"mean"``: the highest FQE estimate); returns ``ope`` (the final policy's
+    record) with the ranking, after writing it to ``ope.json`` and ``fqe_selected`` to ``summary.json`` (each
+    atomically).
 
     Each snapshot the run's ``summary.json`` lists (``eval.snapshots``, :func:`listed_snapshots`) is fitted on
     ``batch`` (the run's, :func:`run_batch`) with the command's settings and seed (the same Q network initialisation
     and mini-batches for every candidate) into ``snapshots/ope_<snapshot>.json``, checkpointed beside it, and kept
-    for a later command when it scored that file with the same settings, seed, device and batch (unless
-    ``force``). The snapshot with the final policy's weights (the last one) takes the final policy's own fit from
-    ``ope`` when that was made alike; the final policy is a candidate of its own only when no snapshot has its
-    weights. Other arguments as in :func:`fit_fqe`.
+    for a later command when it scored that file with the same settings, seed, number of fits, device and batch
+    (unless ``force``). The snapshot with the final policy's weights (the last one) takes the final policy's own
+    fit from ``ope`` when that was made alike; the final policy is a candidate of its own only when no snapshot has
+    its weights. Other arguments as in :func:`fit_fqe`.
 
-    ``fqe_selected`` = ``{path, iteration, fqe_estimate, online_return}``: the highest estimate (the earliest on a
-    tie) and the evaluation return the run recorded for that policy, what deploying it without a simulator gives.
+    ``fqe_selected`` = ``{path, iteration, fqe_estimate, online_return}``: the candidate of the highest score (the
+    earliest on a tie), its estimate (the mean over its fits) and the evaluation return the run recorded for that
+    policy, what deploying it without a simulator gives. Each candidate of the ranking holds its ``fqe_estimate``,
+    ``fqe_spread``, ``action_gap``, ``score`` and ``rank``; ``selection`` the rule and its ``k`` and ``lambda``.
     """
     import functools
 
@@ -544,10 +711,14 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
     run_dir = Path(run_dir)
     snapshots = listed_snapshots(run_dir) if snapshots is None else snapshots
     fit = functools.partial(_fit_policy, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
-                            checkpoint_every_s=checkpoint_every_s)
-    wanted = {"settings": _settings_record(settings), "seed": int(seed), "device": torch.device(device).type,
-              "batch": str(batch.path)}
-    final_fit_usable = all(ope.get(k) == v for k, v in wanted.items())
+                            checkpoint_every_s=checkpoint_every_s, fits=fits)
+    wanted = {"settings": _settings_record(settings), "seed": int(seed), "num_fits": int(fits),
+              "device": torch.device(device).type, "batch": str(batch.path)}
+
+    def alike(record: dict) -> bool:  # a record fitted as this command fits (one fit: before num_fits was recorded)
+        return all({**record, "num_fits": record.get("num_fits", 1)}.get(key) == value for key, value in wanted.items())
+
+    final_fit_usable = alike(ope)
     candidates, final_seen = [], False
     entries = list(snapshots or [])
     for entry in entries:
@@ -558,37 +729,39 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
         is_final = _same_weights(policy, final_policy)
         final_seen = final_seen or is_final
         if is_final and final_fit_usable:
-            estimate, fitted_in = ope["estimate"], output_path(run_dir).name
+            record, fitted_in = ope, output_path(run_dir).name
         else:
             out = path.with_name(f"ope_{path.stem}.json")
             record = None if force else _read_record(out)
-            if record is None or any(record.get(k) != v for k, v in wanted.items()) or \
-                    record.get("policy_sha1") != _sha1(path):
+            if record is None or not alike(record) or record.get("policy_sha1") != _sha1(path):
                 record = fit(policy, out, desc=f"{run_dir.name} {entry['path']}")
-            estimate, fitted_in = record["estimate"], out.relative_to(run_dir).as_posix()
+            fitted_in = out.relative_to(run_dir).as_posix()
         candidates.append({"path": str(entry["path"]), "iteration": int(entry["iteration"]),
-                           "eval_return": entry["eval_return"], "fqe_estimate": float(estimate),
+                           "eval_return": entry["eval_return"], **_candidate_figures(record),
                            "fitted_in": fitted_in})
     if not final_seen:  # the final policy is a candidate of its own
         info = final_policy.record.get("info", {})
         if final_fit_usable:
-            estimate, fitted_in = ope["estimate"], output_path(run_dir).name
+            record, fitted_in = ope, output_path(run_dir).name
         else:
             out = run_dir / "snapshots" / "ope_final.json"
-            estimate, fitted_in = fit(final_policy, out, desc=f"{run_dir.name} policy.pt")["estimate"], \
+            record, fitted_in = fit(final_policy, out, desc=f"{run_dir.name} policy.pt"), \
                 out.relative_to(run_dir).as_posix()
         candidates.append({"path": Path(final_policy.record["path"]).name, "iteration": info.get("iteration"),
-                           "eval_return": info.get("mean_return"), "fqe_estimate": float(estimate),
+                           "eval_return": info.get("mean_return"), **_candidate_figures(record),
                            "fitted_in": fitted_in})
-    order = sorted(range(len(candidates)), key=lambda i: (-candidates[i]["fqe_estimate"], i))
+    scores = rule_scores([c["fqe_estimate"] for c in candidates], rule=rule,
+                         spreads=[c["fqe_spread"] for c in candidates], gaps=[c["action_gap"] for c in candidates],
+                         k=k, lam=lam)
+    order = sorted(range(len(candidates)), key=lambda i: (-scores[i], i))
     for rank, i in enumerate(order, 1):
-        candidates[i]["rank"] = rank
+        candidates[i]["score"], candidates[i]["rank"] = scores[i], rank
     chosen = candidates[order[0]]
     selected = {"path": chosen["path"], "iteration": chosen["iteration"], "fqe_estimate": chosen["fqe_estimate"],
                 "online_return": chosen["eval_return"]}
     returns = [c["eval_return"] for c in candidates if c["eval_return"] is not None]
     ope = {**ope, "snapshots": candidates, "fqe_selected": selected,
-           "selection": {**wanted, "candidates": len(candidates),
+           "selection": {**wanted, **_rule_record(rule, k, lam), "candidates": len(candidates),
                          "best_online_return": max(returns) if returns else None}}
     write_json_atomic(output_path(run_dir), ope)
     _record_selection(run_dir, selected)  # after ope.json: a command stopped between the two writes it again
@@ -597,14 +770,15 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
 
 def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed: int = 0, device="cpu",
               best: bool = False, data_dir: str | Path | None = None, force: bool = False, progress: bool = False,
-              checkpoint_every_s: float = 300.0) -> tuple[dict[str, Any], bool]:
+              checkpoint_every_s: float = 300.0, fits: int = DEFAULT_FITS, rule: str = DEFAULT_RULE,
+              k: float = DEFAULT_K, lam: float = DEFAULT_LAMBDA) -> tuple[dict[str, Any], bool]:
     """Scores one run directory: ``(record, fitted)``, the record written to :func:`output_path` (or the one
     already there, ``fitted = False``, unless ``force`` or the policy file changed since). Arguments as in
     :func:`fit_fqe` and the command line.
 
     A run with policy snapshots (``eval.snapshots``; not with ``best``) is then ranked by :func:`select_snapshot`,
     which adds the ranking and ``fqe_selected`` to the record and ``fqe_selected`` to ``summary.json``; a kept record
-    without them gets them.
+    without them, or ranked by another rule, gets them (the fits kept).
     """
     import torch
     from omegaconf import OmegaConf
@@ -614,7 +788,9 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
     out = output_path(run_dir, best=best)
     snapshots = None if best else listed_snapshots(run_dir)
     kept = None if force else _kept(out, run_dir / ("policy_best.pt" if best else "policy.pt"))
-    if kept is not None and (not snapshots or "fqe_selected" in kept) and "action_gap" in kept:
+    ranked = "fqe_selected" in (kept or {}) and all(
+        (kept.get("selection") or {}).get(key) == value for key, value in _rule_record(rule, k, lam).items())
+    if kept is not None and (not snapshots or ranked) and "action_gap" in kept:
         if snapshots:
             _record_selection(run_dir, kept["fqe_selected"])  # a command stopped between ope.json and summary.json
         return kept, False
@@ -628,7 +804,7 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
                        f"{batch.act_dim}) where its policy has ({record['obs_dim']}, {record['act_dim']})")
     if kept is None:
         kept = _fit_policy(policy, out, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
-                           checkpoint_every_s=checkpoint_every_s, desc=run_dir.name)
+                           checkpoint_every_s=checkpoint_every_s, desc=run_dir.name, fits=fits)
     elif "action_gap" not in kept:  # a record written before ope recorded it: no new fit, the gap added
         from torchrl_bail.io import write_json_atomic
 
@@ -637,8 +813,122 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
         write_json_atomic(out, kept)
     if snapshots:
         kept = select_snapshot(run_dir, kept, policy, batch, settings=settings, seed=seed, device=device, force=force,
-                               progress=progress, checkpoint_every_s=checkpoint_every_s, snapshots=snapshots)
+                               progress=progress, checkpoint_every_s=checkpoint_every_s, snapshots=snapshots,
+                               fits=fits, rule=rule, k=k, lam=lam)
     return kept, True
+
+
+def _candidate_figures(record: dict) -> dict[str, Any]:
+    """What the selection rules read from a policy's record: its estimate, spread and action gap."""
+    spread = record.get("spread")
+    return {"fqe_estimate": float(record["estimate"]), "fqe_spread": None if spread is None else float(spread),
+            "action_gap": None if record.get("action_gap") is None else float(record["action_gap"])}
+
+
+def _rule_record(rule: str, k: float, lam: float) -> dict[str, Any]:
+    """The rule as ``ope.json``'s ``selection`` records it (only the knob the rule uses)."""
+    return {"rule": rule, "rule_k": float(k) if rule == "lower_bound" else None,
+            "rule_lambda": float(lam) if rule == "gap_penalised" else None}
+
+
+def rule_scores(means: Sequence[float], *, rule: str = DEFAULT_RULE, spreads: Sequence[float | None] | None = None,
+                gaps: Sequence[float | None] | None = None, k: float = DEFAULT_K,
+                lam: float = DEFAULT_LAMBDA) -> list[float]:
+    """Each candidate's score under a selection rule; the rule deploys the highest (:func:`select_by_rule`).
+
+    Rules (Paine et al. 2020 select by the estimate; the other two are this package's answers to FQE's
+    failures on the OPE study, docs/guides/ope.md):
+
+    * ``"mean"``: the estimate, the mean over a policy's fits;
+    * ``"lower_bound"``: ``mean - k * spread``, the spread the standard deviation over the policy's fits
+      (:func:`fit_fqe_fits`): pessimism, a policy whose fits disagree is trusted less. Needs two fits or more;
+    * ``"gap_penalised"``: ``mean - lam * gap * scale``, the gap :func:`action_gap` (0: the batch's own actions,
+      per half action range) and ``scale`` the median ``|mean|`` of the candidates, so ``lam`` is unit-free: the
+      share of a typical estimate a policy forfeits per unit of action gap (``lam = 1``: a policy acting half a
+      half-range from the batch on RMS loses half a typical estimate). The further a policy acts from the batch, the
+      more of its estimate is extrapolation.
+
+    Raises:
+        ValueError: an unknown rule, a negative ``k`` or ``lam``, lengths that differ, or a spread or gap missing
+        where the rule needs it.
+
+    Examples:
+        >>> rule_scores([10.0, 8.0], rule="lower_bound", spreads=[4.0, 1.0], k=1.0)
+        [6.0, 7.0]
+        >>> rule_scores([10.0, 8.0], rule="gap_penalised", gaps=[0.5, 0.1], lam=1.0)
+        [5.5, 7.1]
+    """
+    import statistics
+
+    if rule not in RULES:
+        raise ValueError(f"rule {rule!r}: expected one of {', '.join(RULES)}")
+    if not (math.isfinite(k) and k >= 0 and math.isfinite(lam) and lam >= 0):
+        raise ValueError(f"k = {k!r}, lambda = {lam!r}: expected finite numbers >= 0")
+    means = [float(m) for m in means]
+    if rule == "mean":
+        return means
+    other, name = (spreads, "spread") if rule == "lower_bound" else (gaps, "action gap")
+    if other is None or len(other) != len(means):
+        raise ValueError(f"rule {rule!r} needs one {name} per candidate")
+    if any(value is None or not math.isfinite(value) for value in other):
+        needs = " (a spread needs 2 fits or more: --fits)" if rule == "lower_bound" else ""
+        raise ValueError(f"rule {rule!r} needs every candidate's {name}{needs}")
+    if rule == "lower_bound":
+        return [m - k * float(sd) for m, sd in zip(means, other, strict=True)]
+    scale = statistics.median(abs(m) for m in means)
+    return [m - lam * float(gap) * scale for m, gap in zip(means, other, strict=True)]
+
+
+def select_by_rule(means: Sequence[float], **kwargs) -> int:
+    """The index of the candidate a rule deploys: the highest :func:`rule_scores` (the earliest on a tie).
+
+    >>> select_by_rule([10.0, 8.0]), select_by_rule([10.0, 8.0], rule="lower_bound", spreads=[4.0, 1.0])
+    (0, 1)
+    """
+    scores = rule_scores(means, **kwargs)
+    return max(range(len(scores)), key=lambda i: (scores[i], -i))
+
+
+def compare_rules(means: Sequence[float], truths: dict[str, Sequence[float]], *,
+                  spreads: Sequence[float | None] | None = None, gaps: Sequence[float | None] | None = None,
+                  k: float = DEFAULT_K, lam: float = DEFAULT_LAMBDA, rules: Sequence[str] = RULES,
+                  interval: bool = True) -> dict[str, dict[str, Any]]:
+    """Each selection rule's ranking of policies whose true values are known.
+
+    Args:
+        means, spreads, gaps: each policy's estimate, spread over fits and action gap, as :func:`rule_scores`.
+        truths: named true values, one per policy each (e.g. ``{"discounted": ..., "undiscounted": ...}``).
+
+    Keyword Args:
+        k, lam: the rules' knobs. rules: the rules compared. interval: add :func:`spearman_interval`.
+
+    Returns:
+        ``{rule: {"available": True, "scores", "selected", <truth name>: {"spearman", "spearman_ci", "best",
+        "regret"}, ...}}`` (:func:`ranking_quality`: the regret is the best true value minus that of the policy the
+        rule deploys, ``0`` when it deploys the best); a rule that cannot score these policies (``lower_bound``
+        without spreads) is ``{"available": False, "reason"}``.
+
+    Examples:
+        >>> out = compare_rules([10.0, 8.0, 5.0], {"true": [1.0, 3.0, 2.0]}, spreads=[4.0, 1.0, 1.0],
+        ...                     gaps=[0.1, 0.1, 0.1], interval=False)
+        >>> out["mean"]["selected"], out["mean"]["true"]["regret"], out["lower_bound"]["true"]["regret"]
+        (0, 2.0, 0.0)
+    """
+    report = {}
+    for rule in rules:
+        try:
+            scores = rule_scores(means, rule=rule, spreads=spreads, gaps=gaps, k=k, lam=lam)
+        except ValueError as err:
+            report[rule] = {"available": False, "reason": str(err)}
+            continue
+        entry = {"available": True, "scores": scores, "selected": select_by_rule(scores)}
+        for name, values in truths.items():
+            quality = ranking_quality(scores, values)
+            entry[name] = {"spearman": quality["spearman"], "best": quality["best"], "regret": quality["regret"]}
+            if interval:
+                entry[name]["spearman_ci"] = list(spearman_interval(scores, values))
+        report[rule] = entry
+    return report
 
 
 def ranking_quality(estimates: Sequence[float], returns: Sequence[float]) -> dict[str, Any]:
@@ -735,7 +1025,24 @@ def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="python -m torchrl_bail.ope", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="finished run directories")
     parser.add_argument("--updates", type=int, default=defaults.updates,
-                        help=f"gradient updates of the fit (default {defaults.updates})")
+                        help=f"the most gradient updates of a fit; the stopping rule ends it earlier (default "
+                             f"{defaults.updates})")
+    parser.add_argument("--fits", type=int, default=DEFAULT_FITS,
+                        help=f"independent fits per policy (seeds SEED, SEED+1, ...): the estimate is their mean, the "
+                             f"spread their standard deviation (default {DEFAULT_FITS})")
+    parser.add_argument("--stop-window", type=int, default=defaults.stop_window,
+                        help=f"stopping rule: curve points averaged at the end and at half the fit; 0: no rule, "
+                             f"every fit runs --updates (default {defaults.stop_window})")
+    parser.add_argument("--stop-tol", type=float, default=defaults.stop_tol,
+                        help=f"stopping rule: the fit stops once the two averages differ by less than this share of "
+                             f"the estimate (default {defaults.stop_tol})")
+    parser.add_argument("--rule", choices=RULES, default=DEFAULT_RULE,
+                        help=f"how a run's snapshots are chosen: the highest mean estimate, mean - k x spread, or "
+                             f"mean - lambda x action gap x the candidates' median estimate (default {DEFAULT_RULE})")
+    parser.add_argument("--rule-k", type=float, default=DEFAULT_K,
+                        help=f"lower_bound's k (default {DEFAULT_K})")
+    parser.add_argument("--rule-lambda", type=float, default=DEFAULT_LAMBDA,
+                        help=f"gap_penalised's lambda (default {DEFAULT_LAMBDA})")
     parser.add_argument("--seed", type=int, default=0, help="seed of the Q network, the policy's draws and the "
                         "mini-batches (default 0)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
@@ -775,26 +1082,43 @@ def _check_run_dir(path: Path, best: bool) -> str | None:
     return None
 
 
-def _print_result(run_dir: Path, out: Path, ope: dict, fitted: bool, settings: FQESettings, seed: int) -> None:
+def _describe_fits(ope: dict) -> str:
+    """``± 1.234 (std over 4 fits, 3 converged, 120000-500000 updates)``, or the one fit's updates."""
+    fits = ope.get("fits")
+    if not fits:  # a record of one fit, written before fits were recorded
+        return f"{ope['updates']} updates"
+    updates = sorted(fit["updates"] for fit in fits)
+    span = str(updates[0]) if updates[0] == updates[-1] else f"{updates[0]}-{updates[-1]}"
+    converged = f"{ope['converged_fits']} of {len(fits)} settled before the cap"
+    if len(fits) == 1:
+        return f"{span} updates, {converged}"
+    return f"std {ope['spread']:.3f} over {len(fits)} fits, {span} updates, {converged}"
+
+
+def _print_result(run_dir: Path, out: Path, ope: dict, fitted: bool, settings: FQESettings, seed: int,
+                  fits: int) -> None:
     if fitted:
         print(f"{run_dir}: FQE estimate {ope['estimate']:.3f} (discounted, gamma {ope['gamma']}; "
-              f"{ope['updates']} updates, {ope['num_episode_starts']} episode starts) -> {out}")
+              f"{_describe_fits(ope)}; {ope['num_episode_starts']} episode starts) -> {out}")
     else:
-        same = ope.get("settings") == _settings_record(settings) and ope.get("seed") == seed
-        note = "" if same else " (fitted with other settings or seed: --force refits)"
+        same = ope.get("settings") == _settings_record(settings) and ope.get("seed") == seed and \
+            ope.get("num_fits", 1) == fits
+        note = "" if same else " (fitted with other settings, seed or number of fits: --force refits)"
         print(f"{run_dir}: kept {out}, FQE estimate {ope['estimate']:.3f}{note}")
     selected = ope.get("fqe_selected")
     if selected is not None:
+        rule = (ope.get("selection") or {}).get("rule", "mean")
         print(f"{run_dir}: FQE selects {selected['path']} (iteration {selected['iteration']}, estimate "
-              f"{selected['fqe_estimate']:.3f}, the highest of {len(ope['snapshots'])}); its evaluation return "
-              f"{selected['online_return']} -> {out}, {run_dir / 'summary.json'}")
+              f"{selected['fqe_estimate']:.3f}, the highest {'estimate' if rule == 'mean' else rule + ' score'} of "
+              f"{len(ope['snapshots'])}); its evaluation return {selected['online_return']} -> {out}, "
+              f"{run_dir / 'summary.json'}")
 
 
 def _checked_settings(parser: _Parser, args: argparse.Namespace) -> FQESettings:
     """The fit's settings from the command line; a number out of range stops the command in one line."""
     settings = FQESettings(updates=args.updates, batch_size=args.batch_size, lr=args.lr, hidden=tuple(args.hidden),
                            target_update_period=args.target_update_period, gamma=args.gamma,
-                           log_every=args.log_every)
+                           log_every=args.log_every, stop_window=args.stop_window, stop_tol=args.stop_tol)
     try:
         settings.check()
     except ValueError as err:  # "updates = 0: expected ..." -> "--updates 0: expected ..."
@@ -802,6 +1126,13 @@ def _checked_settings(parser: _Parser, args: argparse.Namespace) -> FQESettings:
         parser.error(f"--{name.replace('_', '-')} {rest}")
     if args.threads < 1:
         parser.error(f"--threads {args.threads}: expected a positive number of threads")
+    if args.fits < 1:
+        parser.error(f"--fits {args.fits}: expected an integer >= 1")
+    if args.rule == "lower_bound" and args.fits < 2:
+        parser.error(f"--rule lower_bound needs a spread, so --fits 2 or more (got --fits {args.fits})")
+    for name, value in (("--rule-k", args.rule_k), ("--rule-lambda", args.rule_lambda)):
+        if not (math.isfinite(value) and value >= 0):
+            parser.error(f"{name} {value}: expected a finite number >= 0")
     if not args.checkpoint_every_s > 0:
         parser.error(f"--checkpoint-every-s {args.checkpoint_every_s}: expected a positive number of seconds")
     return settings
@@ -844,7 +1175,8 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 ope, fitted = score_run(run_dir, settings, seed=args.seed, device=device, best=args.best,
                                         data_dir=args.data_dir, force=args.force, progress=not args.no_progress,
-                                        checkpoint_every_s=args.checkpoint_every_s)
+                                        checkpoint_every_s=args.checkpoint_every_s, fits=args.fits,
+                                        rule=args.rule, k=args.rule_k, lam=args.rule_lambda)
             except Interrupted as err:
                 command = " ".join(["python -m torchrl_bail.ope", *(argv if argv is not None else sys.argv[1:])])
                 print(f"torchrl_bail.ope: {describe_interrupt(err, command)}", file=sys.stderr)
@@ -853,7 +1185,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"torchrl_bail.ope: {err}", file=sys.stderr)
                 failed[run_dir] = str(err)
                 continue
-            _print_result(run_dir, output_path(run_dir, best=args.best), ope, fitted, settings, args.seed)
+            _print_result(run_dir, output_path(run_dir, best=args.best), ope, fitted, settings, args.seed, args.fits)
     if failed and len(run_dirs) > 1:  # after the fits' output: which runs the lines above were about
         names = ", ".join(str(path) for path in run_dirs if path in failed)
         print(f"torchrl_bail.ope: {len(failed)} of {len(run_dirs)} runs could not be scored (see above): {names}",

@@ -81,8 +81,9 @@ class FQELoss(LossModule):
       d3rlpy's FQE (``d3rlpy.ope.FQEConfig``: ``learning_rate=1e-4``, ``batch_size=100``, ``gamma=0.99``,
       ``target_update_interval=100``; its default vector encoder is 256-256 ReLU), which cites Le et al. and whose
       offline-policy-selection tutorial follows Paine et al.
-    * ``10^5`` updates: the number d3rlpy's off-policy-evaluation reference page fits FQE for
-      (``fqe.fit(dataset, n_steps=100000)``).
+    * updates: d3rlpy's off-policy-evaluation reference page fits FQE for ``10^5``
+      (``fqe.fit(dataset, n_steps=100000)``); here a fit stops by a rule on its curve, at most at ``5 x 10^5``
+      (:class:`~torchrl_bail.ope.FQESettings`: none of the OPE study's kept curves had settled at ``10^5``).
     * Not verified here: the appendix of Paine et al. (its network sizes, learning rate, number of updates and
       target period) could not be read when this was written; the values above are d3rlpy's, checked in its source.
 
@@ -98,7 +99,9 @@ class FQELoss(LossModule):
             anyway (BCQ's and BEAR's best-of-N) draws from torch's global generator, one action per state.
 
     Keyword Args:
-        gamma (float): discount, in ``[0, 1]``. Defaults to ``0.99``.
+        gamma (float): discount, in ``[0, 1]``. Defaults to ``0.99``, FQE's default
+            (:attr:`torchrl_bail.ope.FQESettings.gamma`, the one place it is set; a test holds the two equal, as
+            :mod:`torchrl_bail.ope` imports this module and this one cannot import it back).
         reduction (str, optional): ``"none"`` | ``"mean"`` | ``"sum"``. Defaults to ``"mean"``. ``"none"`` gives one
             value per transition (``[B]`` or ``[S, B]``); ``"mean"`` averages over the last batch dimension and then
             over the leading ones.
@@ -201,7 +204,7 @@ class FQELoss(LossModule):
         qvalue_network: TensorDictModule,
         policy_network: TensorDictModule,
         *,
-        gamma: float = 0.99,
+        gamma: float = 0.99,  # = torchrl_bail.ope.FQESettings.gamma (tests/test_fqe.py; ope imports this module)
         reduction: Literal["mean", "sum", "none"] | None = None,
     ) -> None:
         reduction = check_reduction(reduction)
