@@ -297,3 +297,21 @@ def test_the_page_names_every_ratio_below_the_issues_floor():
     flat = " ".join(PAGE.read_text().split())
     assert len(below) == 1 and below[0][0].startswith("FQE update")
     assert f"One ratio lies below the issues' 0.8 now, FQE's update ({below[0][1]:.2f};" in flat
+
+
+def test_the_threads_section_quotes_its_record():
+    """The Threads section's ratios and rates are those of ``bench_threads.json``, and they support the default it
+    states: beside busy processes one thread is faster than two in every workload."""
+    record = json.loads((RECORDS_DIR / "bench_threads.json").read_text())
+    rows = {(row["workload"], row["busy"]): row for row in record["rows"]}
+    flat = " ".join(PAGE.read_text().split())
+    section = flat[flat.index("## Threads on a busy CPU"):flat.index("## Paper scale")]
+    assert f"the campaign's job was paused for its {record['wall_s']:.0f} s" in section
+    ratios = {key: f"{row['ratio']:.2f}×" for key, row in rows.items()}
+    assert (f"a second thread runs the collection at {ratios['collection', 0]} and the envelope fit at "
+            f"{ratios['envelope', 0]} of one thread; beside one busy process at {ratios['collection', 1]} and "
+            f"{ratios['envelope', 1]}, beside two at {ratios['collection', 2]} and {ratios['envelope', 2]}") in section
+    one = {key: row["threads=1"] for key, row in rows.items()}
+    assert (f"({one['collection', 1]:.1f} env steps/s and {one['envelope', 1]:.1f} updates/s against "
+            f"{one['collection', 0]:.1f} and {one['envelope', 0]:.1f} idle)") in section
+    assert all(row["ratio"] < 1 for (_, busy), row in rows.items() if busy), "the default's reason no longer holds"

@@ -45,8 +45,8 @@ def job_threads(cfg, launcher=None) -> int | None:
     the cores), else ``None`` (torch's default, one thread per core).
 
     Why 1 by default: the networks here (256 x 256, mini-batches of 100-1000) gain little from a second thread on a
-    quiet machine and lose everything when one of its threads is descheduled: beside one busy process a collection
-    with torch's default ran 15 times slower than with one thread (``benchmarks/bench_threads.py``; the record is
+    quiet machine and lose most of their pace when one of their threads is descheduled: beside busy processes two
+    threads ran several times slower than one (``benchmarks/bench_threads.py``; the record is
     ``results/benchmarks/bench_threads.json``, the Benchmarks page quotes it)."""
     threads = cfg.get("threads")
     if threads:
