@@ -139,12 +139,20 @@ def curve_measurement() -> dict:
             "fits_for_half_the_tolerance": math.ceil((median_noise / (tol / 2)) ** 2)}
 
 
-def _snapshot_gap(entry: dict, iteration: int) -> float | None:
-    """A snapshot's action gap, from its FQE record (``snapshots/ope_policy_<iteration>.json``; ``None`` for a record
-    fitted before ``ope`` recorded gaps, as BAIL seed 1's: its snapshot weights are not kept to compute it); the last
-    snapshot, the final policy's weights, took the final policy's fit and gap."""
+def _fqe_record(entry: dict, iteration: int | None = None) -> dict:
+    """What the selection rules read from a kept FQE record: ``{fqe_estimate, fqe_spread, num_fits, action_gap}``.
+
+    The final policy's is its run's ``ope.json``; a snapshot's its ``snapshots/ope_policy_<iteration>.json``, except
+    the last snapshot's, the final policy's weights, which took the final policy's fit. The spread is ``None`` for a
+    record of one fit (every kept record so far; a refit with ``--fits`` of 2 or more records it), the gap ``None``
+    for a record fitted before ``ope`` recorded gaps (BAIL seed 1's snapshots: their weights are not kept to compute
+    it)."""
     path = ROOT / entry["run"] / "snapshots" / f"ope_policy_{iteration}.json"
-    return json.loads(path.read_text()).get("action_gap") if path.is_file() else entry["action_gap"]
+    if iteration is None or not path.is_file():
+        path = ROOT / entry["run"] / "ope.json"
+    record = json.loads(path.read_text())
+    return {"fqe_estimate": record["estimate"], "fqe_spread": record.get("spread"),
+            "num_fits": record.get("num_fits", 1), "action_gap": record.get("action_gap")}
 
 
 def _rank(estimates: list[float], truths: list[float], names: list[str]) -> dict:
@@ -160,12 +168,12 @@ def _rank(estimates: list[float], truths: list[float], names: list[str]) -> dict
 LAMBDAS = (0.5, 1.0, 2.0, 3.0, 4.0)
 
 
-def _rules(means, gaps, truths: dict, names: list[str], lam: float, interval: bool = True) -> dict:
-    """:func:`torchrl_bail.ope.compare_rules` on single fits (no spread: ``lower_bound`` is unavailable), with the
-    selected policy named and its true values."""
+def _rules(means, gaps, truths: dict, names: list[str], lam: float, interval: bool = True, spreads=None) -> dict:
+    """:func:`torchrl_bail.ope.compare_rules` (``lower_bound`` is unavailable without every spread: single fits),
+    with the selected policy named and its true values."""
     from torchrl_bail.ope import compare_rules
 
-    report = compare_rules(means, truths, gaps=gaps, lam=lam, interval=interval)
+    report = compare_rules(means, truths, spreads=spreads, gaps=gaps, lam=lam, interval=interval)
     for entry in report.values():
         if entry["available"]:
             entry["selected_name"] = names[entry["selected"]]
@@ -184,6 +192,7 @@ def analyse(policies: list[dict], snapshots: list[dict]) -> dict:
 
     names = [p["job"] for p in policies]
     estimates = [p["fqe_estimate"] for p in policies]
+    spreads = [p["fqe_spread"] for p in policies]
     gaps = [p["action_gap"] for p in policies]
     truths = {"discounted": [p["true_discounted_return"] for p in policies],
               "undiscounted": [p["true_return"] for p in policies]}
@@ -195,7 +204,7 @@ def analyse(policies: list[dict], snapshots: list[dict]) -> dict:
         c = run["candidates"]
         report = _rules([x["fqe_estimate"] for x in c], [x["action_gap"] for x in c],
                         {"undiscounted": [x["true_return"] for x in c]}, [str(x["iteration"]) for x in c],
-                        DEFAULT_LAMBDA, interval=False)
+                        DEFAULT_LAMBDA, interval=False, spreads=[x["fqe_spread"] for x in c])
         per_run.append({"job": run["job"], "best_return": max(x["true_return"] for x in c),
                         "final_return": c[-1]["true_return"],
                         "rules": {rule: {"selected_iteration": int(entry["selected_name"]),
@@ -219,11 +228,13 @@ def analyse(policies: list[dict], snapshots: list[dict]) -> dict:
                 "against_discounted": _rank(estimates, truths["discounted"], names),
                 "against_undiscounted": _rank(estimates, truths["undiscounted"], names)},
             "rules": {"lambda": DEFAULT_LAMBDA,
-                      "final_policies": _rules(estimates, gaps, truths, names, DEFAULT_LAMBDA),
+                      "final_policies": _rules(estimates, gaps, truths, names, DEFAULT_LAMBDA, spreads=spreads),
                       "gap_penalised_lambda_sweep": sweep,
                       "snapshots": {"per_run": per_run, "mean_over_runs": snapshot_summary}},
-            "lower_bound": "not computed: it needs several fits per policy (--fits >= 2), and each kept policy has "
-                           "one fit; the refits need the headline batch (10^6 transitions), not on this machine"}
+            "fits_per_policy": sorted({p["num_fits"] for p in policies}),
+            **({} if all(s is not None for s in spreads) else {
+                "lower_bound": "not computed: it needs several fits per policy (--fits >= 2), and a kept policy has "
+                               "one fit; the refits need the headline batch (10^6 transitions), not on this machine"})}
 
 
 def build(force: bool) -> dict:
@@ -245,19 +256,19 @@ def build(force: bool) -> dict:
                   f"{'same' if rep['same_to_the_digit'] else 'a fresh draw'}), discounted "
                   f"{rep['replayed_discounted_return']:.2f} [{rep['replay_wall_time_s']:.0f} s]", flush=True)
         truth_discounted = rep["replayed_discounted_return"]
+        fqe = _fqe_record(entry)
         policies.append({
             "job": entry["job"], "algo": entry["algo"], "seed": entry["seed"], "run": entry["run"],
-            "true_return": rep["recorded_return"], "true_discounted_return": truth_discounted,
-            "fqe_estimate": entry["estimate"], "action_gap": entry["action_gap"],
-            "estimate_over_discounted_truth": entry["estimate"] / truth_discounted - 1.0,
+            "true_return": rep["recorded_return"], "true_discounted_return": truth_discounted, **fqe,
+            "estimate_over_discounted_truth": fqe["fqe_estimate"] / truth_discounted - 1.0,
             "replay": rep})
         if entry.get("snapshots"):
             snapshots.append({"job": entry["job"], "candidates": [
                 {"iteration": c["iteration"], "true_return": c["eval_return"], "true_discounted_return": None,
-                 "fqe_estimate": c["fqe_estimate"], "action_gap": _snapshot_gap(entry, c["iteration"])}
-                for c in entry["snapshots"]["candidates"]]})
-    return {"gamma": FQESettings.gamma, "source": "results/ope_headline/ope.json (the kept single FQE fits, action "
-            "gaps and recorded returns) and each kept policy.pt, its last evaluation replayed",
+                 **_fqe_record(entry, c["iteration"])} for c in entry["snapshots"]["candidates"]]})
+    return {"gamma": FQESettings.gamma, "source": "results/ope_headline/ope.json (the policies, their recorded "
+            "returns and snapshots), each run's FQE records under runs/ (estimate, spread, action gap) and each kept "
+            "policy.pt, its last evaluation replayed",
             "command": "python results/ope_headline/truth.py",
             "snapshot_note": "the BAIL runs' snapshot weights were not kept (runs/**/snapshots holds their FQE "
                              "records only): each snapshot has its recorded undiscounted evaluation return and no "
