@@ -440,3 +440,42 @@ def test_the_rule_chooses_among_a_runs_snapshots_and_a_new_rule_reranks_without_
     assert again["fqe_selected"]["path"] == max(again["snapshots"], key=lambda c: c["fqe_estimate"])["path"]
     assert [c["fqe_estimate"] for c in again["snapshots"]] == [c["fqe_estimate"] for c in candidates]
     assert "highest estimate" in capsys.readouterr().out
+
+
+def test_the_guide_quotes_the_truth_record_and_the_defaults_are_its_measurement():
+    """The OPE guide's figures on both truths, the selection rules and the stopping rule are
+    ``results/ope_headline/truth.json``'s, and the command's defaults (4 fits, window 20, tolerance 0.02) are the
+    ones that record measures; ``truth.py --check`` finds the record to be what the kept files give."""
+    from torchrl_bail.ope import DEFAULT_FITS, FQESettings
+
+    root = Path(__file__).resolve().parents[1]
+    truth = json.loads((root / "results" / "ope_headline" / "truth.json").read_text())
+    page = " ".join((root / "docs" / "guides" / "ope.md").read_text().split())
+
+    def interval(q):
+        return f"{q['spearman']:.2f} [{q['spearman_ci'][0]:.2f}, {q['spearman_ci'][1]:.2f}]"
+
+    single = truth["ranking"]["single_fit"]
+    assert f"| discounted, `γ = 0.99` | {interval(single['against_discounted'])} |" in page
+    assert f"| undiscounted | {interval(single['against_undiscounted'])} |" in page
+    rules = truth["ranking"]["rules"]["final_policies"]
+    for rule in ("mean", "gap_penalised"):
+        disc, und = rules[rule]["discounted"], rules[rule]["undiscounted"]
+        assert (f"| {interval(disc)} | {disc['regret']:.2f} | {interval(und)} | {und['regret']:.1f} |") in page, rule
+    assert not rules["lower_bound"]["available"] and "`lower_bound` | not computed" in page
+    snaps = truth["ranking"]["rules"]["snapshots"]["mean_over_runs"]
+    for quoted in (f"mean return of {snaps['mean']['mean_selected_return']:.1f}",
+                   f"final policy's mean is {snaps['mean']['mean_final_return']:.1f}",
+                   f"mean regret is {snaps['mean']['mean_regret']:.1f}",
+                   f"`mean` gives {snaps['mean_every_run']['mean_selected_return']:.1f} on average"):
+        assert quoted in page, quoted
+    curves = truth["curves"]
+    assert curves["fits_for_half_the_tolerance"] == DEFAULT_FITS
+    assert f"{100 * curves['noise']['median']:.2f} % of the estimate" in page
+    assert (FQESettings.stop_window, FQESettings.stop_tol) == (20, 0.02)
+    default = next(r for r in curves["rules"] if (r["rule"], r["window"], r["tol"]) == ("half_the_fit", 20, 0.02))
+    (stop,) = default["stops"].values()
+    assert f"1 of 40, BEAR's at {stop['update'] / 1e4:.1f} × 10^4 | {100 * stop['from_last']:.1f} % |" in page
+    proc = subprocess.run([sys.executable, str(root / "results" / "ope_headline" / "truth.py"), "--check"],
+                          capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
