@@ -850,7 +850,7 @@ def rule_scores(means: Sequence[float], *, rule: str = DEFAULT_RULE, spreads: Se
 
     Raises:
         ValueError: an unknown rule, a negative ``k`` or ``lam``, lengths that differ, or a spread or gap missing
-        where the rule needs it.
+            where the rule needs it.
 
     Examples:
         >>> rule_scores([10.0, 8.0], rule="lower_bound", spreads=[4.0, 1.0], k=1.0)
@@ -896,11 +896,14 @@ def compare_rules(means: Sequence[float], truths: dict[str, Sequence[float]], *,
     """Each selection rule's ranking of policies whose true values are known.
 
     Args:
-        means, spreads, gaps: each policy's estimate, spread over fits and action gap, as :func:`rule_scores`.
+        means: each policy's estimate (the mean over its fits), as :func:`rule_scores`.
         truths: named true values, one per policy each (e.g. ``{"discounted": ..., "undiscounted": ...}``).
-
-    Keyword Args:
-        k, lam: the rules' knobs. rules: the rules compared. interval: add :func:`spearman_interval`.
+        spreads: each policy's spread over its fits (``lower_bound``).
+        gaps: each policy's action gap (``gap_penalised``).
+        k: the lower bound's multiple of the spread.
+        lam: the gap penalty's weight.
+        rules: the rules compared.
+        interval: add :func:`spearman_interval`.
 
     Returns:
         ``{rule: {"available": True, "scores", "selected", <truth name>: {"spearman", "spearman_ci", "best",
