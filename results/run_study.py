@@ -77,7 +77,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
-from torchrl_bail.ope import ranking_quality  # loads no torch
+from torchrl_bail.ope import ranking_quality, spearman_interval  # loads no torch
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
@@ -1544,6 +1544,15 @@ def _iqm_cell(cell: dict | None) -> str:
     return text + (f" ({seeds} of {scheduled} seeds)" if seeds < scheduled else "")
 
 
+def _iqm_table(batches: list[dict], algos: list[str], names: list[str] | None = None) -> list[str]:
+    """A report's table of each batch's per-algorithm IQM interval (:func:`_iqm_cell`), headed by ``names`` (default:
+    the algorithms' own), and its caption."""
+    return ["| batch | " + " | ".join(names or algos) + " |", "|---|" + "---|" * len(algos),
+            *(f"| {b['batch']} | " + " | ".join(_iqm_cell(b["cells"].get(a)) for a in algos) + " |" for b in batches),
+            "", f"Interquartile mean of the final return over seeds [95 % stratified-bootstrap interval] (rliable, "
+            f"{CROSS_BATCH_REPS} replications); pending below {MIN_SEEDS_FOR_VERDICT} seeds."]
+
+
 def _bootstrap_sentence(n_batches: int) -> str:
     """What every interval over batches is, for the reports' text."""
     return (f"Intervals: 95 %, {HIERARCHICAL_BOOTSTRAP} ({CROSS_BATCH_REPS} replications, numpy seed "
@@ -1685,11 +1694,7 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
               "Published BAIL: the authors' figures, mean ± std over seeds, on gym's -v2 "
               "envs — for the three added batches from their repository's README table, for hopper_ddpg05_b1 the "
               "paper's Table 1. These runs use Gymnasium's -v5 (simulator and rewards changed), so the levels "
-              "differ and the ordering of the algorithms is what compares.", "",
-              "| batch | " + " | ".join(algos) + " |", "|---|" + "---|" * len(algos)]
-    lines += [f"| {b['batch']} | " + " | ".join(_iqm_cell(b["cells"].get(a)) for a in algos) + " |" for b in batches]
-    lines += ["", f"Interquartile mean of the final return over seeds [95 % stratified-bootstrap interval] (rliable, "
-              f"{CROSS_BATCH_REPS} replications); pending below {MIN_SEEDS_FOR_VERDICT} seeds.", "",
+              "differ and the ordering of the algorithms is what compares.", "", *_iqm_table(batches, algos), "",
               "| batch | " + " | ".join(c[0] for c in CROSS_BATCH_CLAIMS) + " |",
               "|---|" + "---|" * len(CROSS_BATCH_CLAIMS)]
     lines += [f"| {b['batch']} | " + " | ".join(c["verdict"] for c in b["claims"]) + " |" for b in batches]
@@ -2098,12 +2103,8 @@ def exec_table_report(results: Path) -> dict:
               "ballpark and the ordering of the algorithms is what compares. Data: the batch's mean episode "
               "return; behaviour policy's return: the frozen SAC policy an execution batch runs, as the SAC run "
               "evaluated it (`behaviour_return`), or for a SAC training batch the run's final evaluation (the batch "
-              "is the whole run); both from the batch's kept metadata.json.", "",
-              "| batch | " + " | ".join(names) + " |", "|---|" + "---|" * len(algos)]
-    lines += [f"| {b['batch']} | " + " | ".join(_iqm_cell(b["cells"].get(a)) for a in algos) + " |" for b in batches]
-    lines += ["", f"Interquartile mean of the final return over seeds [95 % stratified-bootstrap interval] (rliable, "
-              f"{CROSS_BATCH_REPS} replications); pending below {MIN_SEEDS_FOR_VERDICT} seeds.", "",
-              "| batch | claim | verdict | first side's IQM against the second's |", "|---|---|---|---|"]
+              "is the whole run); both from the batch's kept metadata.json.", "", *_iqm_table(batches, algos, names),
+              "", "| batch | claim | verdict | first side's IQM against the second's |", "|---|---|---|---|"]
     lines += [f"| {c['batch']} | {c['claim']} | {c['verdict']} | "
               + ("" if c["gap"] is None else f"{c['gap']:+.1f} %") + " |" for c in claims]
     lines += ["", f"A verdict needs {MIN_SEEDS_FOR_VERDICT} seeds a side (the paper cell's rule): 'above' and 'below' "
@@ -2266,22 +2267,6 @@ def _gap_overrating(scored: list[dict]) -> dict | None:
     return {"n": len(with_gap), "spearman": None if np.isnan(rho) else float(rho)}
 
 
-def _spearman_interval(estimates: list[float], returns: list[float]) -> tuple[float | None, float | None]:
-    """A 95 % percentile-bootstrap interval of Spearman's correlation, the policies drawn with replacement
-    (:data:`OPE_REPS` replications, numpy seed :data:`OPE_SEED`; draws where either side is constant are left out)."""
-    rng = np.random.default_rng(OPE_SEED)
-    e, r, values = np.asarray(estimates), np.asarray(returns), []
-    for _ in range(OPE_REPS):
-        idx = rng.integers(0, len(e), len(e))
-        rho = ranking_quality(e[idx], r[idx])["spearman"]
-        if rho is not None:
-            values.append(rho)
-    if not values:
-        return None, None
-    low, high = np.percentile(values, [2.5, 97.5])
-    return float(low), float(high)
-
-
 def plot_ope(policies: list[dict], path: Path) -> Path:
     """``ope.png``: left, each scored final policy's FQE estimate against its true return, one marker per algorithm;
     right, each BAIL run's snapshots (estimate against evaluation return, one colour per seed, each labelled with its
@@ -2347,7 +2332,8 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     ranking = None
     if len(scored) >= 2:
         q = ranking_quality([p["estimate"] for p in scored], [p["true_return"] for p in scored])
-        low, high = _spearman_interval([p["estimate"] for p in scored], [p["true_return"] for p in scored])
+        low, high = spearman_interval([p["estimate"] for p in scored], [p["true_return"] for p in scored],
+                                      reps=OPE_REPS, seed=OPE_SEED)
         ranking = {**q, "spearman_ci": [low, high], "selected": scored[q["selected"]]["job"],
                    "best": scored[q["best"]]["job"], "selected_return": scored[q["selected"]]["true_return"],
                    "best_return": scored[q["best"]]["true_return"],
