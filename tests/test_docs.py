@@ -664,6 +664,20 @@ def test_the_ope_guide_reads_the_study_in_its_own_words_once_every_policy_is_sco
         assert report["status"].endswith("are scored.") and "**Over the" not in section
 
 
+def test_the_readme_quotes_the_ope_rules_against_the_discounted_truth():
+    """The README's reading of FQE against the discounted truth is ``results/ope_headline/truth.json``'s."""
+    rules = json.loads((ROOT / "results" / "ope_headline" / "truth.json").read_text())["ranking"]["rules"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+
+    def rho(rule):
+        quality = rules["final_policies"][rule]["discounted"]
+        low, high = quality["spearman_ci"]
+        return f"{quality['spearman']:.2f} [{low:.2f}, {high:.2f}]"
+
+    assert f"rho is {rho('mean')} and penalising a policy's action gap gives {rho('gap_penalised')}" in readme
+    assert not rules["final_policies"]["lower_bound"]["available"], "the README says the pessimistic rule waits"
+
+
 def _pm(group: dict) -> str:
     return f"{group['final_return_mean']:.0f} ± {group['final_return_std']:.0f}"
 
