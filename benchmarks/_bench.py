@@ -32,7 +32,7 @@ os.environ.setdefault("RL_WARNINGS", "0")
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from torchrl_bail.io import write_json_atomic  # noqa: E402
+from torchrl_bail.core.io import write_json_atomic  # noqa: E402
 
 __all__ = ["rate", "compare", "summarise", "bare_mlp", "machine", "print_columns", "print_table", "write_json",
            "Record", "RECORDS", "PACKAGES", "add_record_argument", "derive_table"]

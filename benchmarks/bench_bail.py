@@ -6,10 +6,11 @@ mini-batch, same optimizer) in the same process.
 
 The library side is exactly what a run executes per iteration:
 
-* envelope: the body of :func:`torchrl_bail.envelope.train_one_epoch` (index a mini-batch of 800 from the
-  training split, :func:`~torchrl_bail.envelope.envelope_step`: :class:`UpperEnvelopeLoss`, Adam with coupled weight
+* envelope: the body of :func:`torchrl_bail.training.envelope.train_one_epoch` (index a mini-batch of 800 from the
+  training split, :func:`~torchrl_bail.training.envelope.envelope_step`: :class:`UpperEnvelopeLoss`, Adam with coupled
+  weight
   decay);
-* policy: :func:`torchrl_bail.trainer.train`'s iteration (``TensorDictReplayBuffer.sample()`` of 1000 with
+* policy: :func:`torchrl_bail.training.trainer.train`'s iteration (``TensorDictReplayBuffer.sample()`` of 1000 with
   replacement, then :meth:`BehaviourCloning.update`: TorchRL ``BCLoss`` + Adam);
 * Progressive BAIL: the same sample, then :meth:`ProgressiveBAIL.update` (envelope step on the non-validation
   rows, selection of the top 25 % inside the mini-batch under the selection envelope, imitation step).
@@ -28,11 +29,11 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.data import monte_carlo_returns
-from torchrl_bail.envelope import envelope_step
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+from torchrl_bail.training.envelope import envelope_step
 
 OBS, ACT = 11, 3  # Hopper-v5
 

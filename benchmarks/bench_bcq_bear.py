@@ -6,7 +6,7 @@
 Paper sizes (supp. C.2, BCQ, 8.4): VAE 750-750 (latent 2 |A|), actor and critics 400-300, batch 100, Hopper shapes
 (obs 11, act 3), 10 next-state samples, BEAR with 5 MMD samples and its warm start over (the full objective).
 
-The library side is exactly what a run executes per iteration (:func:`torchrl_bail.trainer.train`):
+The library side is exactly what a run executes per iteration (:func:`torchrl_bail.training.trainer.train`):
 ``TensorDictReplayBuffer.sample()`` of 100 with replacement, then :meth:`BCQ.update` / :meth:`BEAR.update`
 (:class:`~torchrl_bail.objectives.BCQLoss` / :class:`~torchrl_bail.objectives.BEARLoss` sub-losses, four or
 five Adam steps, the fused :class:`~torchrl.objectives.SoftUpdate`). The bare side indexes the same tensors and
@@ -31,7 +31,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT, BATCH, N_TARGET, N_MATCH = 11, 3, 100, 10, 5

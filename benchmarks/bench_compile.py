@@ -29,9 +29,9 @@ from _bench import Record, add_record_argument, summarise
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
-from torchrl_bail.algo_schemas import envelope_algorithm
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.algo_schemas import envelope_algorithm
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT, ROWS = 11, 3, 20_000

@@ -8,7 +8,7 @@ Usage (d3rlpy 2.8.1 pins an older gymnasium, so it lives in its own virtual envi
     OMP_NUM_THREADS=1 python benchmarks/bench_d3rlpy.py --python .d3venv/bin/python
 
 Both sides time one training iteration as each library's training loop runs it: torchrl_bail's
-``algorithm.update(buffer.sample())`` (the trainer's loop, :mod:`torchrl_bail.trainer`), d3rlpy's
+``algorithm.update(buffer.sample())`` (the trainer's loop, :mod:`torchrl_bail.training.trainer`), d3rlpy's
 ``algo.update(dataset.sample_transition_batch(batch_size))`` (what ``fit`` runs per step). The d3rlpy side is a
 long-lived subprocess (``_d3rlpy_worker.py`` under ``--python``); rounds alternate between the two sides so a
 noisy neighbour hits both, and the table reports the medians and ``ratio = torchrl_bail / d3rlpy``.
@@ -73,7 +73,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage  #
 from torchrl_bail.algorithms.bc import BehaviourCloning  # noqa: E402
 from torchrl_bail.algorithms.bcq import BCQ  # noqa: E402
 from torchrl_bail.algorithms.bear import BEAR  # noqa: E402
-from torchrl_bail.config_builders import algo_config  # noqa: E402
+from torchrl_bail.configuration.config_builders import algo_config  # noqa: E402
 from torchrl_bail.modules import action_spec_from_bounds  # noqa: E402
 
 BC_BATCH = 1000

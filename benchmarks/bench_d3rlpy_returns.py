@@ -72,7 +72,7 @@ from tensordict import TensorDict  # noqa: E402
 from torchrl_bail import config_dir  # noqa: E402
 from torchrl_bail.datasets import resolve_batch  # noqa: E402
 from torchrl_bail.evaluation import Evaluator  # noqa: E402
-from torchrl_bail.plots import read_eval_curve  # noqa: E402
+from torchrl_bail.reports.plots import read_eval_curve  # noqa: E402
 from torchrl_bail.train import run  # noqa: E402
 
 ALGOS = ("bc", "bcq", "bear")
@@ -126,7 +126,8 @@ def matched_constants(cfg) -> dict:
 
 
 def schedule(cfg) -> tuple[int, int]:
-    """``(updates, evaluation interval)`` as :func:`torchrl_bail.trainer.train` counts them for these algorithms
+    """``(updates, evaluation interval)`` as :func:`torchrl_bail.training.trainer.train` counts them for these
+    algorithms
     (one mini-batch of ``batch_size`` samples per update); checked against our run's ``summary.json``."""
     per_update = cfg.algo.batch_size
     updates = max(1, math.ceil(cfg.algo.epochs * cfg.samples_per_epoch / per_update))

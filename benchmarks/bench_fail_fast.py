@@ -3,10 +3,12 @@
     python benchmarks/bench_fail_fast.py [--repeats 5] [--json PATH]
 
 A command line is checked against the typed schemas before torch, tensordict and torchrl load
-(:mod:`torchrl_bail.schema_reader`), so that a typo costs about a second rather than the several seconds of those
+(:mod:`torchrl_bail.configuration.schema_reader`), so that a typo costs about a second rather than the several seconds
+of those
 imports. Each round runs, in fresh processes and one after the other (so a noisy neighbour hits every case):
 
-* ``schemas``: ``python -c "import torchrl_bail.algo_schemas, torchrl_bail.batch_schemas"``, the registries, read
+* ``schemas``: ``python -c "import torchrl_bail.configuration.algo_schemas, torchrl_bail.configuration.batch_schemas"``,
+the registries, read
   from every algorithm's and recipe's file without importing it;
 * ``algorithm module``: ``python -c "import torchrl_bail.algorithms.iql"``, one algorithm's module, which imports
   torch, tensordict and torchrl (what every command line would pay without the schema reader);
@@ -29,7 +31,8 @@ import time
 from _bench import Record, add_record_argument, summarise
 
 CASES = {
-    "schemas": [sys.executable, "-c", "import torchrl_bail.algo_schemas, torchrl_bail.batch_schemas"],
+    "schemas": [sys.executable, "-c",
+                "import torchrl_bail.configuration.algo_schemas, torchrl_bail.configuration.batch_schemas"],
     "algorithm module": [sys.executable, "-c", "import torchrl_bail.algorithms.iql"],
     "bad command line": [sys.executable, "-m", "torchrl_bail.train", "+exp=hopper_ddpg05", "algo=iql",
                          "algo.batch_size=0"],

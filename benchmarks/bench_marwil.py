@@ -9,7 +9,8 @@ value 128-128, mini-batch 1000, beta, c^2, ...), the library side built by the r
 * ``update``: :meth:`torchrl_bail.algorithms.marwil.MARWIL.update` (one :class:`MARWILLoss` call with its
   diagnostics, one backward, an Adam step per network) on pre-drawn mini-batches, against the bare twin on the
   very same tensors;
-* ``iteration``: what :func:`torchrl_bail.trainer.train` runs per iteration, ``TensorDictReplayBuffer.sample()``
+* ``iteration``: what :func:`torchrl_bail.training.trainer.train` runs per iteration,
+``TensorDictReplayBuffer.sample()``
   (with replacement) from the data :meth:`MARWIL.prepare` returns, then the update; the bare side indexes with
   ``torch.randint``.
 
@@ -29,7 +30,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.marwil import MARWIL
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 OBS, ACT = 11, 3  # Hopper-v5

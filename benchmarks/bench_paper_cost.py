@@ -30,10 +30,11 @@ from pathlib import Path
 
 from _bench import Record, add_record_argument, summarise
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, envelope_algorithm
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, blocks_with, envelope_algorithm
+from torchrl_bail.configuration.config_builders import algo_config
 
-#: the probe's short number of epochs per cost class (the registry's ``cost``, :mod:`torchrl_bail.algo_schemas`):
+#: the probe's short number of epochs per cost class (the registry's ``cost``,
+# :mod:`torchrl_bail.configuration.algo_schemas`):
 #: 2000 updates at batch 1000, 2000 at batch 100
 SHORT_EPOCHS = {"imitation": 2, "offline_rl": 0.2}
 

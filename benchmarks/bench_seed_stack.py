@@ -1,4 +1,5 @@
-"""Many seeds in one process: 5 seeds stacked (torchrl_bail.stacking) against 5 single-seed runs doing the same work.
+"""Many seeds in one process: 5 seeds stacked (torchrl_bail.core.stacking) against 5 single-seed runs doing the same
+work.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_seed_stack.py [--seeds 5] [--algos bc bail bcq bear ...]
                                                             [--repeats 15] [--device cpu|cuda] [--json PATH]
@@ -6,10 +7,11 @@
 For each algorithm of the registry, with its paper configuration (``conf/algo/<name>.yaml``) at Hopper sizes
 (obs 11, act 3) on a synthetic batch of 20 000 transitions, the same process alternates, round by round:
 
-* ``stacked``: one training iteration of the :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds: a ``[S, B]``
-  mini-batch from :class:`~torchrl_bail.stacking.SeedBatchSampler` and one update step;
+* ``stacked``: one training iteration of the :class:`~torchrl_bail.core.stacking.SeedStack` of ``S`` seeds: a ``[S, B]``
+  mini-batch from :class:`~torchrl_bail.core.stacking.SeedBatchSampler` and one update step;
 * ``sequential``: the same iteration of the ``S`` single-seed algorithms one after the other (each samples its
-  mini-batch as :func:`~torchrl_bail.trainer.train` does and takes its update step): what ``S`` separate runs compute.
+  mini-batch as :func:`~torchrl_bail.training.trainer.train` does and takes its update step): what ``S`` separate runs
+  compute.
 
 ``speedup`` = stacked iterations/s / sequential rounds/s: the wall time of ``S`` sequential seeds over that of the
 stacked run (>= 1: the stack is no slower per seed; on a GPU the stacked run should cost <= 1.5x one seed, i.e.
@@ -28,12 +30,12 @@ from _bench import Record, add_record_argument, machine, print_columns, summaris
 from tensordict import TensorDict
 from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
 
-from torchrl_bail.algo_schemas import blocks_with, envelope_algorithm
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config_builders import algo_config
-from torchrl_bail.envelope import fit_upper_envelope
+from torchrl_bail.configuration.algo_schemas import blocks_with, envelope_algorithm
+from torchrl_bail.configuration.config_builders import algo_config
+from torchrl_bail.core.stacking import SeedBatchSampler, SeedStack, prepare_seeds
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
-from torchrl_bail.stacking import SeedBatchSampler, SeedStack, prepare_seeds
+from torchrl_bail.training.envelope import fit_upper_envelope
 
 OBS, ACT, N = 11, 3, 20_000
 SPEC = action_spec_from_bounds([-1.0] * ACT, [1.0] * ACT)

@@ -11,7 +11,7 @@ Each case runs in a fresh child process, unpinned, with ``threads=1`` or ``threa
   each episode's end, as the real collection), in a temporary data dir; its rate is env steps per second of the
   whole command, start-up included;
 * envelope: ``--updates`` steps of BAIL's upper envelope as a run makes them (:class:`UpperEnvelopeLoss`,
-  :func:`~torchrl_bail.envelope.envelope_step`, mini-batches of 800 from a Hopper-sized training split).
+  :func:`~torchrl_bail.training.envelope.envelope_step`, mini-batches of 800 from a Hopper-sized training split).
 
 A busy process is a pure-Python spin loop (one core's worth of work, as another job's single thread), started
 before the case and killed after it. The ratio row of each (workload, busy) pair is the rate with 2 threads over the
@@ -42,9 +42,9 @@ def envelope_rate(updates: int) -> float:
     import torch
     from tensordict import TensorDict
 
-    from torchrl_bail.envelope import envelope_step
     from torchrl_bail.modules import make_value_network
     from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
+    from torchrl_bail.training.envelope import envelope_step
 
     n, batch = 200_000, 800
     g = torch.Generator().manual_seed(1)

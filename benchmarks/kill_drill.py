@@ -74,7 +74,7 @@ def _checkout(module: str):
 
 def _drill(algo: str) -> list[str]:
     """An algorithm's overrides for the drilled run: its tiny run (its registry entry's, the contract suite's,
-    :func:`torchrl_bail.config_builders.tiny_run_overrides`) at the drill's length."""
+    :func:`torchrl_bail.configuration.config_builders.tiny_run_overrides`) at the drill's length."""
     return _checkout("config_builders").tiny_run_overrides(algo, DRILL_UPDATES, DRILL_HIDDEN,
                                                            evaluations=DRILL_EVALUATIONS)
 

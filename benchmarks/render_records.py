@@ -26,7 +26,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from torchrl_bail.io import write_text_atomic
+from torchrl_bail.core.io import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "results" / "benchmarks"

@@ -1,7 +1,8 @@
 """Generates the table of the Algorithms page (``docs/guides/algorithms.md``) from the algorithm registry at every
 build, so that it cannot drift from the registry or the yaml files.
 
-One row per registered algorithm, in the registry's order (:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`):
+One row per registered algorithm, in the registry's order
+(:data:`torchrl_bail.configuration.algo_schemas.ALGO_SCHEMAS`):
 
 * ``what`` and ``loss modules``: its registry entry (the schema's ``description``, whose ``{key}`` fields are filled
   with the paper preset's values, and ``losses``);
@@ -43,8 +44,8 @@ def _count(n: int) -> str:
 def _length(name: str, cfg) -> str:
     """``batch · epochs (updates)``, then each block with a schedule of its own (BAIL's envelope: passes over the data
     it is fitted on)."""
-    from torchrl_bail.algo_schemas import blocks_with
     from torchrl_bail.algorithms import ALGORITHMS
+    from torchrl_bail.configuration.algo_schemas import blocks_with
     from torchrl_bail.modules import action_spec_from_bounds
 
     algo = ALGORITHMS[name](11, action_spec_from_bounds([-1.0] * 3, [1.0] * 3), cfg.algo)
@@ -68,8 +69,8 @@ def table() -> str:
     """The table's markdown; raises :class:`MissingEntry` naming every registry entry that lacks its data."""
     from hydra import compose, initialize_config_dir
 
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS, entry_gaps
-    from torchrl_bail.hydra_setup import config_dir
+    from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, entry_gaps
+    from torchrl_bail.configuration.hydra_setup import config_dir
 
     gaps = [gap for name in ALGO_SCHEMAS for gap in entry_gaps(name)]
     if gaps:

@@ -1,7 +1,8 @@
 """Generates the configuration reference (``docs/reference/configuration.md`` of the site) from the typed schemas and
 the yaml files, so that it cannot drift from either.
 
-* **type and allowed range** come from the schemas, the dataclasses of :mod:`torchrl_bail.config` and its schema
+* **type and allowed range** come from the schemas, the dataclasses of :mod:`torchrl_bail.configuration.config` and its
+schema
   modules, read through :func:`dataclasses.fields`: a field's annotation is its type, its ``metadata["expected"]``
   the allowed range;
 * **default and one-line meaning** come from ``conf/``: every group option is composed by Hydra exactly as the
@@ -165,7 +166,7 @@ def _allowed(f: dataclasses.Field, schema: type) -> str:
     """The allowed cell's text (markdown, code spans for values): a field's choices each in code, the name of
     ``schema`` in the registry a key names (``algo.name``), else its rule's ``expected`` text; a key naming its group
     option is filled in by :func:`collect`, which knows the options."""
-    from torchrl_bail import algo_schemas, batch_schemas
+    from torchrl_bail.configuration import algo_schemas, batch_schemas
 
     if f.metadata.get("registry"):
         module = next(m for m in (algo_schemas, batch_schemas) if hasattr(m, f.metadata["registry"]))
@@ -217,7 +218,7 @@ def collect(conf: Path | None = None) -> list[Section]:
     """Every section of the reference: the top level, then one per (group, schema), rows in schema order."""
     from hydra import compose, initialize_config_dir
 
-    from torchrl_bail.hydra_setup import config_dir
+    from torchrl_bail.configuration.hydra_setup import config_dir
 
     conf = Path(conf) if conf is not None else config_dir()
     config_dir()  # registers the schemas with Hydra's ConfigStore
@@ -391,7 +392,8 @@ _INTRO = """\
 # Configuration reference
 
 Every key of every config group: its **type** and **allowed range** from the typed schemas (the dataclasses of
-`torchrl_bail.config`, checked before a run starts), its **default** and **meaning** from the yaml file under `conf/`
+`torchrl_bail.configuration.config`, checked before a run starts), its **default** and **meaning** from the yaml file
+under `conf/`
 that sets it. This page is generated from both at every build by `docs/gen_config_reference.py`; a schema field
 without a comment in the yaml fails the build. Defaults are those of the paper preset (`preset=paper`); where
 `preset=quick` or `preset=study` sets another value, it is listed under the default. The groups themselves and how

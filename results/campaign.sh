@@ -27,7 +27,7 @@ keep_costs() {
   PYTHONPATH="$root/src" python - "$2/tree/results/$1/timings.json" "$root/results/$1/timings.json" <<'PY'
 import json, sys
 from pathlib import Path
-from torchrl_bail.io import write_text_atomic
+from torchrl_bail.core.io import write_text_atomic
 ran, kept = map(Path, sys.argv[1:])
 old = json.loads(kept.read_text()) if kept.is_file() else {}
 new = {k: v for k, v in (json.loads(ran.read_text()) if ran.is_file() else {}).items() if k not in old}

@@ -22,7 +22,8 @@ at its start and end; older entries hold the wall seconds alone) and the two rep
 over the second half of training (:func:`curve_check`).
 
 The study (supp. C and E, arXiv:1910.12179): Hopper-v5 and Walker2d-v5; batches ddpg01, ddpg05, sac, med_stoch,
-opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`: BAIL,
+opt_det (B1, 50k transitions); every registered algorithm (:data:`torchrl_bail.configuration.algo_schemas.ALGO_SCHEMAS`:
+BAIL,
 Progressive BAIL, BC, MARWIL, ...) with seeds 1-3 on each (BAIL and BC on Hopper's DDPG batches,
 :data:`FIVE_SEED_CELLS`: seeds 1-5), except BCQ and BEAR (:data:`DDPG_ONLY`), with seeds 1-3 on
 the two DDPG batches of each env; on Hopper ddpg05 the ablations D.1 (BAIL with oracle vs augmented
@@ -76,14 +77,15 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, study_algorithms
 from torchrl_bail.ope import ranking_quality, spearman_interval  # loads no torch
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (1, 2, 3)
 ENVS = ("hopper", "walker")
 KINDS = ("ddpg01", "ddpg05", "sac", "med_stoch", "opt_det")
-#: the study's cost rule, read from the registry (each schema's ``study`` line, :mod:`torchrl_bail.algo_schemas`): a
+#: the study's cost rule, read from the registry (each schema's ``study`` line,
+# :mod:`torchrl_bail.configuration.algo_schemas`): a
 #: BCQ or BEAR run costs ~10x an imitation run on a 2-core CPU, so these run on the two DDPG batches of each env only;
 #: the algorithms registered for every batch run on every batch, and the others not at all
 DDPG_ONLY = tuple(study_algorithms("ddpg"))
@@ -172,7 +174,7 @@ def paper_schedule(algo: str) -> list[str]:
 @functools.cache
 def _paper_schedule(algo: str, cost: str) -> tuple[str, ...]:
     """:func:`paper_schedule`, computed once per algorithm (composing its yaml takes most of a second)."""
-    from torchrl_bail.config_builders import run_length_overrides
+    from torchrl_bail.configuration.config_builders import run_length_overrides
 
     if cost == "imitation":
         return ()
@@ -735,7 +737,7 @@ def _record_remake(path: Path, remade: dict, same: tuple[str, ...]) -> bool:
     """Adds ``remade`` (a remaking's metadata fields that differ from the kept batch's) to the ``remakes`` of the
     JSON file at ``path``, beside ``same`` (the statistics found equal), unless it is already there or empty;
     returns whether the file changed."""
-    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.core.io import write_json_atomic
 
     record = json.loads(path.read_text()) if path.is_file() else {"same": list(same), "remakes": []}
     if not remade or remade in record["remakes"]:
@@ -842,8 +844,8 @@ def curve_check(results: Path) -> list[dict]:
     improving as the cap stopped it. Written to ``results/curves.{md,json}``."""
     import numpy as np
 
-    from torchrl_bail.io import write_json_atomic, write_text_atomic
-    from torchrl_bail.plots import read_eval_curve
+    from torchrl_bail.core.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.reports.plots import read_eval_curve
 
     groups: dict[tuple[str, str, str], list] = {}
     envelopes: dict[tuple[str, str, str], list] = {}
@@ -932,7 +934,7 @@ def cell_label(row: dict) -> str:
     (the paper preset's). The report names a key for every group of an algorithm once one group overrides it, so
     the faithful MARWIL beside the one with V fitted first is ``marwil``, not ``marwil (value_warmup_updates=0)``
     (which left the claim "MARWIL above BC" without its group)."""
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.configuration.config_builders import algo_config
 
     yaml = OmegaConf.create({"algo": algo_config(row["algo"])})
     extra = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in sorted(row["overrides"].items())
@@ -1081,7 +1083,7 @@ def paper_cell_report(results: Path, jobs: list[Job]) -> str:
     with its 95 % bootstrap interval, best evaluation) beside :data:`PAPER_ANCHORS`, a verdict per claim of
     :data:`PAPER_CLAIMS` (:func:`claim_verdict`), and the cost of every kept run (:func:`cost_rows`). Reads the
     report's ``study.json``; returns the markdown."""
-    from torchrl_bail.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.core.io import write_json_atomic, write_text_atomic
 
     study = json.loads((results / "study.json").read_text()) if (results / "study.json").is_file() else {"groups": []}
     rows = {cell_label(row): row for row in study["groups"]}
@@ -1267,7 +1269,7 @@ def _windowed_curve(run: Path):
     """``(window ends, mean evaluation return per window)`` of a kept run, windows of :data:`CURVE_WINDOW_UPDATES`
     updates (the trainer logs each evaluation at its update count: the step of ``eval/return.csv``); ``None``
     without CSV evaluation logs."""
-    from torchrl_bail.plots import _read_scalar_csv, read_eval_curve
+    from torchrl_bail.reports.plots import _read_scalar_csv, read_eval_curve
 
     if read_eval_curve(run) is None:
         return None
@@ -1286,7 +1288,7 @@ def plot_batch_curves(label: str, cells: dict[str, dict], metadata: dict | None,
     each seed averaged per :data:`CURVE_WINDOW_UPDATES` updates; the mean over seeds as a line, the lowest to the
     highest seed as a band; the batch's mean episode return dashed. ``algos``: the algorithms, in the order that
     gives each its colour (default: the cross-batch report's)."""
-    from torchrl_bail.plots import new_figure, read_eval_curve, save_figure
+    from torchrl_bail.reports.plots import new_figure, read_eval_curve, save_figure
 
     lines = []
     for i, algo in enumerate(CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA if algos is None else algos):
@@ -1456,7 +1458,7 @@ BATCH_MARKERS = ("o", "s", "^", "D")
 def plot_cross_batch_aggregate(batches: list[dict], aggregate: dict, path: Path) -> Path | None:
     """Saves :func:`cross_batch_aggregate_figure` to ``path``; ``None`` (nothing written) while it has nothing to
     show."""
-    from torchrl_bail.plots import save_figure
+    from torchrl_bail.reports.plots import save_figure
 
     fig = cross_batch_aggregate_figure(batches, aggregate)
     return None if fig is None else save_figure(fig, path)
@@ -1471,7 +1473,7 @@ def cross_batch_aggregate_figure(batches: list[dict], aggregate: dict):
     seeds: :func:`hierarchical_interval`) widens with it. ``None`` while no algorithm has entered a batch."""
     from rliable import metrics
 
-    from torchrl_bail.plots import new_figure
+    from torchrl_bail.reports.plots import new_figure
 
     algos = [a for a in CROSS_BATCH_CENTRAL + CROSS_BATCH_EXTRA if a in aggregate["iqm"]]
     pairs = [p for p in aggregate["probability_of_improvement"] if p["p"] is not None]
@@ -1617,7 +1619,7 @@ def cross_batch_report(results: Path, headline: Path | None = None) -> dict:
     :data:`CROSS_BATCH_CLAIMS` per batch (:func:`claim_verdict`); over all batches :func:`cross_batch_aggregate`.
     Reads kept runs only (no workdir, no batch); a cell without runs, a batch without metadata, reads "pending".
     Returns the JSON written."""
-    from torchrl_bail.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.core.io import write_json_atomic, write_text_atomic
 
     headline = headline if headline is not None else HERE / "paper_hopper"
     sources = {"paper_hopper": (headline, paper_hopper_jobs()), "paper_batches": (results, paper_batches_jobs())}
@@ -2002,7 +2004,7 @@ def plot_sac_runs(runs: list[dict], path: Path) -> Path | None:
     its mediocre threshold as a dashed line and the evaluation that crossed it marked; ``None`` without a run."""
     if not runs:
         return None
-    from torchrl_bail.plots import new_figure, save_figure
+    from torchrl_bail.reports.plots import new_figure, save_figure
 
     fig = new_figure(figsize=(7.0, 4.2), layout="constrained")
     ax = fig.subplots()
@@ -2051,7 +2053,7 @@ def exec_table_report(results: Path) -> dict:
     orders the algorithms against the paper's (:func:`exec_rankings`). A cell without its seeds, a batch without
     metadata, reads "pending"; reads kept files only, so ``--report-only`` rebuilds it at any stage. Returns the JSON
     written."""
-    from torchrl_bail.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.core.io import write_json_atomic, write_text_atomic
 
     jobs = paper_exec_jobs()
     batches, sac_runs = [], []
@@ -2182,7 +2184,7 @@ OPE_REPS, OPE_SEED = 2_000, 0
 def _last_evaluation(run: Path) -> float | None:
     """The return of a run's final policy (``policy.pt``) as training measured it: its last evaluation's mean return
     (``logs/scalars/eval/return.csv``, the value ``policy.pt`` records)."""
-    from torchrl_bail.plots import _read_scalar_csv
+    from torchrl_bail.reports.plots import _read_scalar_csv
 
     csv = run / "logs" / "scalars" / "eval" / "return.csv"
     if not csv.is_file():
@@ -2272,7 +2274,7 @@ def plot_ope(policies: list[dict], path: Path) -> Path:
     right, each BAIL run's snapshots (estimate against evaluation return, one colour per seed, each labelled with its
     iteration), FQE's choice circled. Before any policy is scored, both panels say so (the docs show the file at every
     stage)."""
-    from torchrl_bail.plots import new_figure, save_figure
+    from torchrl_bail.reports.plots import new_figure, save_figure
 
     scored = [p for p in policies if p["estimate"] is not None and p["true_return"] is not None]
     fig = new_figure(figsize=(11.0, 4.6), layout="constrained")
@@ -2321,7 +2323,7 @@ def ope_headline_report(results: Path, headline: Path | None = None) -> dict:
     FQE's top policy (:func:`torchrl_bail.ope.ranking_quality`); per algorithm, the same on the algorithms' means; per
     BAIL run, the online return of the snapshot FQE selects beside ``final_return`` and ``best_return``. Returns the
     JSON written."""
-    from torchrl_bail.io import write_json_atomic, write_text_atomic
+    from torchrl_bail.core.io import write_json_atomic, write_text_atomic
 
     headline = headline if headline is not None else HERE / "paper_hopper"
     trains = [j for j in ope_headline_jobs() if j.module == "torchrl_bail.train"]
@@ -2514,7 +2516,7 @@ def run_queue(jobs: list[Job], workdir: Path, data_dir: Path | None, results: Pa
 def record_job_end(future: Future, job: Job, counter: str, workdir: Path, results: Path) -> bool:
     """Prints how ``job`` (``future``'s :func:`run_job`) ended and records its cost in ``results/timings.json``;
     whether it did not fail."""
-    from torchrl_bail.io import write_text_atomic
+    from torchrl_bail.core.io import write_text_atomic
 
     try:
         _, rc, seconds, record = future.result()

@@ -28,10 +28,10 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import EnsembleModule
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
 from torchrl_bail.algorithms import ALGORITHMS
 from torchrl_bail.algorithms.bc import make_bc_loss
-from torchrl_bail.config_builders import algo_config, tiny_run_overrides
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, blocks_with
+from torchrl_bail.configuration.config_builders import algo_config, tiny_run_overrides
 from torchrl_bail.modules import make_deterministic_actor, make_qvalue_network, make_value_network
 from torchrl_bail.objectives import FQELoss, MARWILLoss, UpperEnvelopeLoss, VAELoss
 from torchrl_bail.transforms import BestActionFilter
@@ -162,7 +162,8 @@ class AlgoCase:
 
     Attributes:
         name: the registry name (``algo.name``).
-        overrides: :func:`~torchrl_bail.config_builders.algo_config` overrides for tiny networks (:meth:`build` adds
+        overrides: :func:`~torchrl_bail.configuration.config_builders.algo_config` overrides for tiny networks
+        (:meth:`build` adds
             mini-batches of :data:`ALGO_BATCH`).
         cli: the config overrides that make a run through the config and ``run`` take seconds.
         not_updated: modules outside the optimizers of :meth:`update` (BAIL's envelope is fitted in ``prepare``,
@@ -200,10 +201,11 @@ NOT_UPDATED = {"bail": frozenset({"envelope"}), "pbail": frozenset({"selection_e
 
 
 def algo_case(name: str) -> AlgoCase:
-    """The contract case of a registered algorithm, from its registry entry (:mod:`torchrl_bail.algo_schemas`): its
+    """The contract case of a registered algorithm, from its registry entry
+    (:mod:`torchrl_bail.configuration.algo_schemas`): its
     ``tiny`` overrides, every network of its schema :data:`HIDDEN` wide, every block's mini-batch :data:`ALGO_BATCH`,
     then :data:`CONTRACT_OVERRIDES`; its tiny run through the config is
-    :func:`~torchrl_bail.config_builders.tiny_run_overrides` at :data:`TINY_UPDATES`."""
+    :func:`~torchrl_bail.configuration.config_builders.tiny_run_overrides` at :data:`TINY_UPDATES`."""
     overrides = OmegaConf.from_dotlist(list(ALGO_SCHEMAS[name].tiny))
     for key, value in [*((f"{block}.hidden", list(HIDDEN)) for block in blocks_with(name, "hidden")),
                        *((f"{block}.batch_size", ALGO_BATCH) for block in blocks_with(name, "batch_size")),

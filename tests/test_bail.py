@@ -15,9 +15,9 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail.algorithms import BAIL, BehaviourCloning, PrepareContext, ProgressiveBAIL
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.training.trainer import make_trainee, train
 from torchrl_bail.transforms.best_action import best_action_mask
 
 SPEC = action_spec_from_bounds([-1.0, -1.0], [1.0, 1.0])

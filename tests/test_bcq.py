@@ -21,9 +21,9 @@ from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bcq import BCQ
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.objectives.common import soft_clipped_double_q_target
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.training.trainer import make_trainee, train
 
 
 def test_soft_update_moves_targets_by_exactly_tau():

@@ -21,7 +21,7 @@ from _batch_rl_testing import (
 from torchrl.objectives import SoftUpdate
 
 from torchrl_bail.algorithms.bear import BEAR
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.objectives.bear import laplacian_mmd
 
 
@@ -175,7 +175,7 @@ def test_state_written_with_the_old_spelling_still_loads(tmp_path):
     """Checkpoints and BEAR policy files from before the one spelling (``mmd_stabiliser``) load, and the config of
     such a run still compares equal for resume and groups alike in the report."""
     from torchrl_bail.report import _read_config
-    from torchrl_bail.resume import _comparable
+    from torchrl_bail.training.resume import _comparable
 
     algo = _algo()
     state = algo.state_dict()

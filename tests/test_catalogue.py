@@ -17,8 +17,8 @@ from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
 from torchrl_bail.behaviour import ensure_batch
-from torchrl_bail.config import ConfigError
-from torchrl_bail.config_builders import collection_config
+from torchrl_bail.configuration.config import ConfigError
+from torchrl_bail.configuration.config_builders import collection_config
 from torchrl_bail.data.cache import batch_name, batch_path
 from torchrl_bail.data.listing import list_batches
 from torchrl_bail.data.locks import SCRATCH, clean_stale, owned_name

@@ -146,8 +146,9 @@ def test_unreadable_dataset_is_one_line(tmp_path):
 
 def test_entry_points_do_not_import_torch_before_the_config_is_checked():
     """What keeps a bad command line at about a second: the entry modules and the schemas load without torch."""
-    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.cli, torchrl_bail.config, "
-            "torchrl_bail.algo_schemas; "
+    code = ("import sys, torchrl_bail.train, torchrl_bail.collect, torchrl_bail.cli, "
+            "torchrl_bail.configuration.config, "
+            "torchrl_bail.configuration.algo_schemas; "
             "print(sorted(m for m in ('torch', 'torchrl', 'tensordict', 'numpy') if m in sys.modules))")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
@@ -162,7 +163,7 @@ def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
     from omegaconf import OmegaConf
 
     from torchrl_bail.cli import describe_error
-    from torchrl_bail.config import ConfigError
+    from torchrl_bail.configuration.config import ConfigError
     from torchrl_bail.train import training_data
 
     cfg = OmegaConf.create({"env": {"name": "walker", "id": "Walker2d-v5"}})
@@ -177,8 +178,8 @@ def test_a_batch_that_does_not_fit_the_env_is_one_config_error():
 
 def test_help_lists_each_groups_real_options(tmp_path):
     """``--help`` names the options of conf/'s groups, not the schemas or included parts Hydra's ConfigStore holds."""
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-    from torchrl_bail.hydra_setup import group_options
+    from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.configuration.hydra_setup import group_options
 
     proc = _run("torchrl_bail.train", ["--help"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -195,7 +196,7 @@ def test_help_opens_with_the_commands_a_user_types(tmp_path, command):
     choose, then Hydra's help; not Hydra's bare "train is powered by Hydra."; every option its examples name exists."""
     import re
 
-    from torchrl_bail.hydra_setup import group_options
+    from torchrl_bail.configuration.hydra_setup import group_options
 
     proc = _run(f"torchrl_bail.{command}", ["--help"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -17,8 +17,8 @@ from torchrl_bail import config_dir
 from torchrl_bail.behaviour import catalogue
 from torchrl_bail.behaviour.catalogue import ensure_batch
 from torchrl_bail.behaviour.ddpg import DDPGAgent, collect_ddpg
-from torchrl_bail.config import ConfigError
-from torchrl_bail.config_builders import collection_config
+from torchrl_bail.configuration.config import ConfigError
+from torchrl_bail.configuration.config_builders import collection_config
 from torchrl_bail.data.cache import batch_name, batch_path, behaviour_seed
 
 #: short enough that a random or barely trained Hopper outlives it now and then

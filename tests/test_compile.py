@@ -34,7 +34,7 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.modules import make_deterministic_actor
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.training.trainer import make_trainee, train
 
 #: the device under test, with its index (``cuda:0``): the device a tensor made there reports
 DEVICE = torch.empty(0, device=os.environ.get("TORCHRL_BAIL_TEST_DEVICE", "cpu")).device
@@ -151,8 +151,8 @@ def test_compile_key_is_checked_and_names_its_own_run():
     from hydra import compose, initialize_config_dir
 
     from torchrl_bail import config_dir
-    from torchrl_bail.config import ConfigError, validate_config
-    from torchrl_bail.resume import RUN_ONLY_KEYS, comparable_config, diff_configs
+    from torchrl_bail.configuration.config import ConfigError, validate_config
+    from torchrl_bail.training.resume import RUN_ONLY_KEYS, comparable_config, diff_configs
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=hopper_ddpg05", "compile=true"], return_hydra_config=True)

@@ -7,8 +7,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from torchrl_bail import config_dir
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-from torchrl_bail.config import ConfigError, validate_config
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.configuration.config import ConfigError, validate_config
 
 ALGOS = list(ALGO_SCHEMAS)
 
@@ -125,9 +125,9 @@ def test_library_defaults_are_the_yaml_defaults():
 
     from omegaconf import OmegaConf
 
-    from torchrl_bail.config_builders import algo_config
-    from torchrl_bail.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
+    from torchrl_bail.configuration.config_builders import algo_config
     from torchrl_bail.modules import make_deterministic_actor, make_value_network
+    from torchrl_bail.training.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
     from torchrl_bail.transforms import BestActionFilter
 
     def defaults(fn) -> dict:
@@ -152,8 +152,9 @@ def test_one_run_only_mark_feeds_resume_the_report_and_the_run_directory_names()
     """The schema's ``run_only`` marks are the one list: resume compares configs without them, the report never
     separates runs by them, and ``conf/config.yaml``'s ``exclude_keys`` (which run directory names leave out) is
     exactly the keys under them plus those already in the path."""
-    from torchrl_bail import report, resume
-    from torchrl_bail.run_dirs import RUN_DIR_KEYS, RUN_ONLY_KEYS, run_dir_excluded_keys
+    from torchrl_bail import report
+    from torchrl_bail.configuration.run_dirs import RUN_DIR_KEYS, RUN_ONLY_KEYS, run_dir_excluded_keys
+    from torchrl_bail.training import resume
 
     assert RUN_ONLY_KEYS == ("device", "data_dir", "progress", "resume", "threads", "logger", "checkpoint")
     assert resume.RUN_ONLY_KEYS is RUN_ONLY_KEYS

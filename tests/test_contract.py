@@ -47,12 +47,12 @@ from torchrl.objectives import BCLoss, LossModule
 
 import torchrl_bail.objectives
 from torchrl_bail import config_dir
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with, entry_gaps
 from torchrl_bail.algorithms import ALGORITHMS, Algorithm, PrepareContext
-from torchrl_bail.config import ConfigError, validate_config
-from torchrl_bail.config_builders import algo_config, tiny_run_overrides
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, blocks_with, entry_gaps
+from torchrl_bail.configuration.config import ConfigError, validate_config
+from torchrl_bail.configuration.config_builders import algo_config, tiny_run_overrides
+from torchrl_bail.evaluation.policy import load_policy
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.policy import load_policy
 
 REDUCTIONS = ("none", "mean", "sum")
 loss_cases = pytest.mark.parametrize("case", LOSS_CASES, ids=repr)

@@ -49,9 +49,9 @@ def test_every_schema_field_has_a_one_line_doc(sections):
     assert gen.missing_docs(sections) == []
     documented = {(s.group, r.key) for s in sections for r in s.rows}
     # every schema of both registries appears, with all of its fields
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-    from torchrl_bail.batch_schemas import BATCH_SCHEMAS
-    from torchrl_bail.config import Config
+    from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.configuration.batch_schemas import BATCH_SCHEMAS
+    from torchrl_bail.configuration.config import Config
     schemas = {s.schema for s in sections}
     assert set(ALGO_SCHEMAS.values()) | set(BATCH_SCHEMAS.values()) | {Config} <= schemas
     assert ("algo", "envelope.early_stopping") in documented and ("batch", "sac.log_prob_on") in documented
@@ -116,8 +116,8 @@ def test_the_page_shows_underscores_and_asterisks_as_written(sections):
 
 
 def test_enumerated_strings_show_their_values(sections):
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-    from torchrl_bail.config import RESUME_MODES
+    from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.configuration.config import RESUME_MODES
 
     resume = _row(sections, None, "resume")
     assert resume.type == "enum or path"
@@ -345,7 +345,7 @@ def test_readme_links_point_to_files_that_exist():
 
 def test_readme_names_every_registered_algorithm_in_the_registrys_order():
     """The README's Algorithms paragraph is written by hand; the registry decides what it must name."""
-    from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+    from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
 
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("## Algorithms"):readme.index("\n## ", readme.index("## Algorithms") + 1)]

@@ -10,12 +10,12 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_bail import envelope as envelope_module
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
-from torchrl_bail.config_builders import algo_config
-from torchrl_bail.envelope import BestWeights, EarlyStoppingTracker, envelope_split, fit_upper_envelope
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds, make_value_network
+from torchrl_bail.training import envelope as envelope_module
+from torchrl_bail.training.envelope import BestWeights, EarlyStoppingTracker, envelope_split, fit_upper_envelope
 
 
 def _weights(module: torch.nn.Module) -> dict[str, torch.Tensor]:

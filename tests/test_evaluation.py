@@ -13,7 +13,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import DoubleToFloat, GymEnv, GymWrapper, TransformedEnv
 
 from torchrl_bail.evaluation import EvalResult, Evaluator, episode_seed
-from torchrl_bail.simulator import SimulatorGuard, make_guarded_env
+from torchrl_bail.evaluation.simulator import SimulatorGuard, make_guarded_env
 
 
 def _policy(hook=None):

@@ -3,7 +3,7 @@
 Each fault of a tiny BC run (in process, on the session's tiny batch) ends in one line naming the file and the
 remedy with exit status 2, or recovers where that is safe: a damaged checkpoint is set aside and the run starts
 over, a damaged summary of a finished run is set aside and written again from the finished checkpoint. A full disk
-is a patched ``open`` in :mod:`torchrl_bail.io` whose writes stop, with ``ENOSPC``, once the disk's free bytes are
+is a patched ``open`` in :mod:`torchrl_bail.core.io` whose writes stop, with ``ENOSPC``, once the disk's free bytes are
 spent: it never leaves a checkpoint or a summary that loads but is not whole, and a rerun once space is free ends
 where an undisturbed run ends.
 """
@@ -24,12 +24,12 @@ from _contract import ALGO_CASES, TINY_RUN
 from _summaries import comparable
 from hydra import compose, initialize_config_dir
 
-import torchrl_bail.io as io_module
-import torchrl_bail.trainer as trainer_module
+import torchrl_bail.core.io as io_module
+import torchrl_bail.training.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.cli import exit_on_config_error
-from torchrl_bail.resume import ResumeError
 from torchrl_bail.train import run as train_run
+from torchrl_bail.training.resume import ResumeError
 
 REPO = Path(__file__).resolve().parents[1]
 def run(cfg, run_dir: Path) -> dict:
@@ -133,7 +133,7 @@ def test_a_run_directory_that_cannot_be_made_is_one_line(tiny_run_data_dir, tmp_
 
 # -- a disk that fills -----------------------------------------------------------------------------------------
 class _Disk:
-    """The free bytes of the disk every file written through :mod:`torchrl_bail.io` lands on: the write that
+    """The free bytes of the disk every file written through :mod:`torchrl_bail.core.io` lands on: the write that
     exceeds them writes what fits, then fails with ``ENOSPC`` (as a full disk does). Records what was written."""
 
     def __init__(self, free: float) -> None:

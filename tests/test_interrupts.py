@@ -5,7 +5,7 @@ interrupted with SIGINT and SIGTERM: each writes its checkpoint at the interrupt
 one line on stderr naming what it saved and the command that continues, and that command makes the same batch (every
 data file, byte for byte) or the same ``summary.json`` and scalar logs as a run that was never interrupted. The
 children get SIGINT's default handler back (``preexec_fn``): a suite started in the background hands them SIGINT
-ignored, and an ignored SIGINT stays ignored by design. The unit part checks :mod:`torchrl_bail.interrupts` itself.
+ignored, and an ignored SIGINT stays ignored by design. The unit part checks :mod:`torchrl_bail.core.interrupts` itself.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 from _summaries import comparable
 
-from torchrl_bail import interrupts
 from torchrl_bail.cli import checkpoint_before_requeue, continue_command
+from torchrl_bail.core import interrupts
 from torchrl_bail.data.locks import PARTIAL, SCRATCH
 
 

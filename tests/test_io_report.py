@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from torchrl_bail.io import atomic_path, write_json_atomic
+from torchrl_bail.core.io import atomic_path, write_json_atomic
 
 
 def test_interrupted_write_leaves_the_old_file_untouched(tmp_path):

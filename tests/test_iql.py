@@ -23,9 +23,9 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.iql import IQL, episode_returns
-from torchrl_bail.config import ConfigError
-from torchrl_bail.config_builders import algo_config
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.configuration.config import ConfigError
+from torchrl_bail.configuration.config_builders import algo_config
+from torchrl_bail.training.trainer import make_trainee, train
 
 SMALL = {"actor": {"hidden": [8]}, "critic": {"hidden": [8]}, "value": {"hidden": [8]}, "batch_size": 16}
 LR = 3e-4
@@ -245,7 +245,7 @@ def test_a_tiny_run_from_the_command_line_and_its_export(tiny_run_data_dir, tmp_
     proc = subprocess.run([sys.executable, "-m", "torchrl_bail.evaluate", str(run_dir), "--export", "pt2",
                            "--out", str(out)], capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    from torchrl_bail.policy import load_policy, policy_actions
+    from torchrl_bail.evaluation.policy import load_policy, policy_actions
 
     policy = load_policy(run_dir)
     obs = torch.randn(5, policy.record["obs_dim"])

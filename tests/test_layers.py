@@ -19,7 +19,7 @@ ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.repo
                 "torchrl_bail.ope"}
 # the atomic writes, the one-line error classes and the interrupt requests: part of the bottom layer, they import
 # nothing from the package
-BOTTOM = {"torchrl_bail.io", "torchrl_bail.errors", "torchrl_bail.interrupts"}
+BOTTOM = {"torchrl_bail.core.io", "torchrl_bail.core.errors", "torchrl_bail.core.interrupts"}
 
 
 def _module_name(path: Path) -> str:
@@ -89,8 +89,9 @@ def _in(module: str, package: str) -> bool:
 
 
 def test_the_scan_sees_the_package():
-    assert {"torchrl_bail.data.batch", "torchrl_bail.behaviour.catalogue", "torchrl_bail.envelope"} <= MODULES
-    assert any(i.source == "torchrl_bail.algorithms.bail" and i.target == "torchrl_bail.envelope" for i in IMPORTS)
+    assert {"torchrl_bail.data.batch", "torchrl_bail.behaviour.catalogue", "torchrl_bail.training.envelope"} <= MODULES
+    assert any(i.source == "torchrl_bail.algorithms.bail" and i.target == "torchrl_bail.training.envelope" for i in
+        IMPORTS)
 
 
 def test_no_import_cycle():
@@ -136,11 +137,11 @@ def test_only_entry_points_reach_the_behaviour_package():
     ("torchrl_bail.modules", "torchrl_bail.algorithms"),
     ("torchrl_bail.objectives", "torchrl_bail.algorithms"),
     ("torchrl_bail.transforms", "torchrl_bail.algorithms"),
-    ("torchrl_bail.envelope", "torchrl_bail.algorithms"),
-    ("torchrl_bail.algorithms", "torchrl_bail.trainer"),
+    ("torchrl_bail.training.envelope", "torchrl_bail.algorithms"),
+    ("torchrl_bail.algorithms", "torchrl_bail.training.trainer"),
     ("torchrl_bail.behaviour", "torchrl_bail.algorithms"),
     ("torchrl_bail.behaviour", "torchrl_bail.objectives"),
-    ("torchrl_bail.behaviour", "torchrl_bail.trainer"),
+    ("torchrl_bail.behaviour", "torchrl_bail.training.trainer"),
 ])
 def test_no_upward_import(lower, upper):
     bad = [i for i in IMPORTS if _in(i.source, lower) and _in(i.target, upper)]
@@ -171,13 +172,14 @@ def test_no_private_name_crosses_a_module():
 
 def test_the_loss_layer_loads_no_config_no_resume_and_no_behaviour():
     """``import torchrl_bail.objectives`` (what a user of the losses alone imports) loads neither Hydra, OmegaConf,
-    the schemas, :mod:`torchrl_bail.resume` nor the behaviour agents."""
+    the schemas, :mod:`torchrl_bail.training.resume` nor the behaviour agents."""
     import subprocess
     import sys
 
     code = ("import sys, torchrl_bail.objectives; print(sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('hydra', 'omegaconf') or m in ('torchrl_bail.config', 'torchrl_bail.algo_schemas', "
-            "'torchrl_bail.batch_schemas', 'torchrl_bail.resume') or "
+            "('hydra', 'omegaconf') or m in ('torchrl_bail.configuration.config', "
+            "'torchrl_bail.configuration.algo_schemas', "
+            "'torchrl_bail.configuration.batch_schemas', 'torchrl_bail.training.resume') or "
             "m.startswith('torchrl_bail.behaviour')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**__import__("os").environ, "PYTHONPATH": str(PACKAGE.parent)})

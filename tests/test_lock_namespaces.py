@@ -391,10 +391,11 @@ def test_file_lock_yields_its_token_and_the_fence_follows_the_thread(tmp_path):
 
 
 def test_a_fenced_training_run_cannot_overwrite_its_successors_checkpoint(tmp_path):
-    """A training run's checkpoint (:func:`torchrl_bail.trainer.save_checkpoint`) is fenced as a collection's is: once
+    """A training run's checkpoint (:func:`torchrl_bail.training.trainer.save_checkpoint`) is fenced as a collection's
+    is: once
     the run directory's lock carries another job's token, the save raises ``LockLost`` before its rename, the
     successor's ``checkpoint.pt`` is untouched and no temporary file is left."""
-    from torchrl_bail.trainer import save_checkpoint
+    from torchrl_bail.training.trainer import save_checkpoint
 
     lock, target = tmp_path / "run.lock", tmp_path / "checkpoint.pt"
     with file_lock(lock, heartbeat_every_s=100.0) as held:

@@ -428,7 +428,7 @@ class _Stress:
         from hydra import compose, initialize_config_dir
 
         from torchrl_bail import config_dir
-        from torchrl_bail.config_builders import collection_config
+        from torchrl_bail.configuration.config_builders import collection_config
         from torchrl_bail.data.cache import batch_path
 
         self.root, self.data, self.logs, self.journal = root, root / "data", root / "logs", root / "journal"

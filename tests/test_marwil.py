@@ -16,7 +16,7 @@ from tensordict.nn import TensorDictModule
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, MARWIL, BehaviourCloning, build_algorithm
 from torchrl_bail.algorithms.bc import make_bc_loss
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds, make_deterministic_actor, make_value_network
 from torchrl_bail.objectives import MARWILLoss
 

@@ -15,7 +15,8 @@ from _batch_rl_testing import one_thread  # noqa: F401 (autouse fixture)
 from _contract import ALGO_CASES, TINY_RUN
 from hydra import compose, initialize_config_dir
 
-from torchrl_bail import config_dir, interrupts
+from torchrl_bail import config_dir
+from torchrl_bail.core import interrupts
 from torchrl_bail.ope import main
 
 #: a fit of seconds: 60 updates of a 16-16 network, a curve point every 20 (too few for the stopping rule), one fit
@@ -93,7 +94,7 @@ def test_the_action_gap_is_recorded_and_added_to_an_older_record_without_a_new_f
     written before ope recorded it gets it on the next call, from the policy and batch alone: no fit runs again."""
     import torchrl_bail.ope as ope_module
     from torchrl_bail.data.cache import load_cached_batch
-    from torchrl_bail.policy import load_policy
+    from torchrl_bail.evaluation.policy import load_policy
 
     assert main([str(tiny_run), "--seed", "3", "--force", *FAST]) == 0
     fitted = _ope(tiny_run)
@@ -318,8 +319,8 @@ def test_the_fit_leaves_the_callers_random_stream_as_it_was(tiny_run):
     import torch
 
     from torchrl_bail.data.cache import load_cached_batch
+    from torchrl_bail.evaluation.policy import load_policy
     from torchrl_bail.ope import FQESettings, action_gap, fit_fqe
-    from torchrl_bail.policy import load_policy
 
     main([str(tiny_run), "--seed", "3", *FAST])
     data = load_cached_batch(Path(_ope(tiny_run)["batch"]), remedy="").data

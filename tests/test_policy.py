@@ -15,7 +15,7 @@ from test_cli import ALGO_TINY, _summary, _train
 
 from torchrl_bail import load_policy
 from torchrl_bail.evaluate import main as evaluate_main
-from torchrl_bail.policy import export_policy, policy_actions, save_policy
+from torchrl_bail.evaluation.policy import export_policy, policy_actions, save_policy
 
 ENV = {**os.environ, "RL_WARNINGS": "0"}
 
@@ -128,7 +128,7 @@ def test_export_runs_without_this_package(bc_run, tmp_path, fmt):
 
 def _tiny_bc(tmp_path):
     from torchrl_bail.algorithms.bc import BehaviourCloning
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.configuration.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)
@@ -151,7 +151,7 @@ def test_onnx_export_is_one_file_and_reexports_leave_nothing_behind(tmp_path, ca
 def test_onnx_weights_too_large_to_embed_go_beside_the_file_under_its_name(tmp_path, capsys, monkeypatch):
     pytest.importorskip("onnxscript")
     onnxruntime = pytest.importorskip("onnxruntime")
-    import torchrl_bail.policy as policy_module
+    import torchrl_bail.evaluation.policy as policy_module
 
     path = _tiny_bc(tmp_path)
     monkeypatch.setattr(policy_module, "ONNX_EMBED_LIMIT", 0)  # every model is "too large"
@@ -185,7 +185,7 @@ def _tiny_bcq(tmp_path):
     from omegaconf import OmegaConf
 
     from torchrl_bail.algorithms.bcq import BCQ
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.configuration.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     spec = action_spec_from_bounds([-1.0] * 3, [1.0] * 3)

@@ -11,14 +11,14 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from torchrl_bail import config_dir
-from torchrl_bail.batch_schemas import BATCH_SCHEMAS
 from torchrl_bail.behaviour import ddpg, execution, sac_run
 from torchrl_bail.behaviour.catalogue import ensure_batch
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
 from torchrl_bail.behaviour.recipes import RECIPES, Recipe, recipe_of, register_recipe
+from torchrl_bail.configuration.batch_schemas import BATCH_SCHEMAS
+from torchrl_bail.core.errors import ConfigError
 from torchrl_bail.data.cache import batch_path, recipe_hash
 from torchrl_bail.data.formats import transitions
-from torchrl_bail.errors import ConfigError
 
 TINY = ["+exp=hopper_ddpg05", "batch.steps=400", "batch.start_steps=100", "env.max_episode_steps=20",
         "batch.agent.actor_hidden=[32,32]", "batch.agent.critic_hidden=[32,32]", "batch.agent.batch_size=16"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from torchrl_bail.io import write_json_atomic
+from torchrl_bail.core.io import write_json_atomic
 from torchrl_bail.report import find_runs, group_runs, main
 
 rliable = pytest.importorskip("rliable", reason="the report needs the 'report' extra")

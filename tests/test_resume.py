@@ -25,16 +25,16 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 import torchrl_bail.algorithms as algorithms_module
-import torchrl_bail.envelope as envelope_module
-import torchrl_bail.resume as resume_module
-import torchrl_bail.trainer as trainer_module
+import torchrl_bail.training.envelope as envelope_module
+import torchrl_bail.training.resume as resume_module
+import torchrl_bail.training.trainer as trainer_module
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import BehaviourCloning, PrepareContext
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.data.locks import host_name, process_table_identity
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.resume import RUN_LOCK, ResumeError, Resumption
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.training.resume import RUN_LOCK, ResumeError, Resumption
+from torchrl_bail.training.trainer import make_trainee, train
 
 SPEC = action_spec_from_bounds([-1.0, -0.5], [1.0, 0.5])
 POLICY = {"policy": {"hidden": [16]}, "batch_size": 16, "epochs": 1}
@@ -268,7 +268,7 @@ def test_checkpoints_written_before_a_key_existed_still_resume(tmp_path, data_di
     """``compile`` and ``seeds`` came after runs were made: an older checkpoint lacks them (and one of the first
     ``seeds`` version stored ``seeds: None``); at their defaults both resume, another value is refused."""
     from torchrl_bail import train as train_module
-    from torchrl_bail.resume import ADDED_KEYS
+    from torchrl_bail.training.resume import ADDED_KEYS
 
     run_dir = tmp_path / "run"
     cfg = _cfg(data_dir, "algo=bc", "algo.epochs=0.002", "eval.every_epochs=0.001")
@@ -397,7 +397,7 @@ def test_run_dirs_are_derived_from_the_config_and_slurm_requeues():
 def test_a_dataset_run_records_and_groups_by_its_dataset_not_the_unread_batch(tmp_path):
     from omegaconf import OmegaConf
 
-    from torchrl_bail.resume import _comparable, comparable_config, diff_configs, record_config
+    from torchrl_bail.training.resume import _comparable, comparable_config, diff_configs, record_config
 
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         generated = compose("config", overrides=["+exp=hopper_ddpg05"])

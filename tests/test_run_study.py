@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, study_algorithms
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, study_algorithms
 
 SCRIPT = Path(__file__).resolve().parents[1] / "results" / "run_study.py"
 
@@ -144,7 +144,7 @@ def test_every_actor_critic_of_the_paper_cell_gets_10_5_updates_and_20_evaluatio
     trainer's own arithmetic turns it into 10^5 updates with an evaluation every 5000."""
     import math
 
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.configuration.config_builders import algo_config
 
     overrides = dict(arg.split("=") for arg in run_study.paper_schedule(algo))
     batch_size = algo_config(algo).batch_size

@@ -1,6 +1,6 @@
 """The registries read from the code's own files: an algorithm's schema sits in ``algorithms/<name>.py`` beside its
 class, a recipe's in its ``behaviour/`` module beside its collection; each is read there without importing the file,
-and importing the file gives back the same classes (:mod:`torchrl_bail.schema_reader`)."""
+and importing the file gives back the same classes (:mod:`torchrl_bail.configuration.schema_reader`)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import typing
 
 import pytest
 
-from torchrl_bail import algo_schemas, schema_reader
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-from torchrl_bail.batch_schemas import BATCH_SCHEMAS
-from torchrl_bail.config import ConfigError
-from torchrl_bail.schema_reader import SchemaReadError, read_schemas
+from torchrl_bail.configuration import algo_schemas, schema_reader
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.configuration.batch_schemas import BATCH_SCHEMAS
+from torchrl_bail.configuration.config import ConfigError
+from torchrl_bail.configuration.schema_reader import SchemaReadError, read_schemas
 
 
 def _blocks(schema: type) -> list[type]:
@@ -81,8 +81,8 @@ HEAD = """\
     import torch
     from omegaconf import MISSING
 
-    from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema, schema_block
-    from torchrl_bail.config import discount
+    from torchrl_bail.configuration.algo_schemas import AlgoConfig, NetConfig, algo_schema, schema_block
+    from torchrl_bail.configuration.config import discount
 """
 
 
@@ -137,7 +137,7 @@ def test_a_method_or_rule_using_what_the_reader_does_not_define_is_refused_when_
     """A method or a rule's lambda keeps the reader's namespace as its globals: a name missing there would fail
     only when a config is checked, as a NameError; it is refused when the schema is read."""
     folder = _package(tmp_path, bad=HEAD + """
-    from torchrl_bail.config import rule
+    from torchrl_bail.configuration.config import rule
 
     LIMIT = 1.0
 
@@ -158,7 +158,7 @@ def test_relative_sibling_imports_attribute_decorators_and_the_package_init(tmp_
     """, rel="""\
     from __future__ import annotations
 
-    import torchrl_bail.algo_schemas as registry
+    import torchrl_bail.configuration.algo_schemas as registry
 
     from .shared import SharedConfig
 
@@ -176,10 +176,11 @@ def test_a_sweeps_configs_travel_to_other_processes_as_the_registered_schemas(tm
     the command line imports the modules first (cli.import_schema_modules)."""
     cloudpickle = pytest.importorskip("cloudpickle")
     blob = tmp_path / "config.pkl"
-    send = ("import sys, cloudpickle; from torchrl_bail.config_builders import algo_config; "
+    send = ("import sys, cloudpickle; from torchrl_bail.configuration.config_builders import algo_config; "
             "from torchrl_bail.cli import import_schema_modules; import_schema_modules(); "
             f"open({str(blob)!r}, 'wb').write(cloudpickle.dumps(algo_config('bail')))")
-    receive = ("import pickle; from omegaconf import OmegaConf; from torchrl_bail.algo_schemas import ALGO_SCHEMAS; "
+    receive = ("import pickle; from omegaconf import OmegaConf; "
+               "from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS; "
                f"cfg = pickle.load(open({str(blob)!r}, 'rb')); obj = OmegaConf.to_object(cfg); "
                "print(type(obj) is ALGO_SCHEMAS['bail'], type(obj).__module__)")
     for code in (send, receive):
@@ -213,7 +214,7 @@ def test_the_registry_is_in_column_order():
 
 
 def test_an_unstated_entry_is_pointed_to_in_its_algorithms_own_file(monkeypatch):
-    from torchrl_bail.config_builders import tiny_run_overrides
+    from torchrl_bail.configuration.config_builders import tiny_run_overrides
 
     monkeypatch.setattr(ALGO_SCHEMAS["iql"], "tiny", None)
     with pytest.raises(ValueError, match=r"IQLConfig\.tiny is not stated: .*state it on the schema in "

@@ -1,4 +1,5 @@
-"""Many seeds in one process (torchrl_bail.stacking): seed s of a stacked run is the single-seed run with seed s, and a
+"""Many seeds in one process (torchrl_bail.core.stacking): seed s of a stacked run is the single-seed run with seed s,
+and a
 list of one seed is the single-seed run to every digit."""
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ from tensordict import TensorDict
 
 from torchrl_bail import config_dir
 from torchrl_bail.algorithms import ALGORITHMS, PrepareContext
-from torchrl_bail.config_builders import algo_config
-from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
-from torchrl_bail.trainer import make_trainee, train
+from torchrl_bail.configuration.config_builders import algo_config
+from torchrl_bail.core.stacking import SeedBatchSampler, SeedStack, StackedTrainee, prepare_seeds
+from torchrl_bail.training.trainer import make_trainee, train
 
 SEEDS = (3, 7, 11)
 #: the stacked run computes each seed's numbers with batched matrix products: equal up to float rounding
@@ -267,7 +268,7 @@ def test_stacked_envelope_fit_is_each_seeds_own_fit(early_stopping):
     fit of one network only what rounding cannot move is compared: a batched and a plain product round differently,
     and 14 epochs at this learning rate amplify that beyond any fixed tolerance (1.2e-3 relative on an AVX-512 CPU).
     """
-    from torchrl_bail.envelope import fit_upper_envelope
+    from torchrl_bail.training.envelope import fit_upper_envelope
 
     observations, returns = _envelope_problem()
     kwargs = dict(epochs=14, patience=2, batch_size=32, lr=0.05, early_stopping=early_stopping, progress=False)
@@ -305,8 +306,8 @@ def test_a_one_seed_envelope_fit_is_the_plain_fit_to_every_digit():
     fit as it was before seeds could be stacked): no seed dimension, TorchRL's mean reduction, the epoch's loss
     divided in Python's float. The same losses, reverts and weights bit for bit (a seed dimension of size 1 would
     send every layer through a batched matrix product and round differently)."""
-    from torchrl_bail.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
     from torchrl_bail.objectives import UpperEnvelopeLoss
+    from torchrl_bail.training.envelope import EarlyStoppingTracker, envelope_split, fit_upper_envelope
 
     observations, returns = _envelope_problem()
     epochs, batch_size, lr = 8, 32, 0.05
@@ -425,7 +426,7 @@ def test_killed_stacked_run_resumes_from_its_per_seed_checkpoints(tmp_path, name
 
 @pytest.mark.parametrize("seeds", ["[1,1]", "0", "[]", "[-1]", "abc"])
 def test_bad_seeds_are_refused_naming_the_key(seeds):
-    from torchrl_bail.config import ConfigError, validate_config
+    from torchrl_bail.configuration.config import ConfigError, validate_config
 
     with pytest.raises(ConfigError, match=r"config key seeds = .*expected null, a count S >= 1"):
         validate_config(_tiny_config(f"seeds={seeds}"))
@@ -435,7 +436,7 @@ def test_compiled_stack_updates_like_the_eager_stack():
     """``seeds=`` with ``compile``: the host's one update is compiled (aot_eager here: the same Dynamo capture as
     inductor, cheap on CPU), the per-seed gradient hooks included; weights agree with the eager stack's."""
     from torchrl_bail.algorithms.bc import BehaviourCloning
-    from torchrl_bail.config_builders import algo_config
+    from torchrl_bail.configuration.config_builders import algo_config
     from torchrl_bail.modules import action_spec_from_bounds
 
     config = algo_config("bc", batch_size=8, policy={"hidden": [16]})

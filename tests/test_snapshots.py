@@ -19,11 +19,11 @@ from _summaries import comparable
 from hydra import compose, initialize_config_dir
 
 import torchrl_bail.algorithms as algorithms_module
-import torchrl_bail.trainer as trainer_module
+import torchrl_bail.training.trainer as trainer_module
 from torchrl_bail import config_dir
-from torchrl_bail.config import ConfigError, validate_config
-from torchrl_bail.resume import comparable_config, diff_configs
-from torchrl_bail.trainer import evaluation_count, snapshot_indices
+from torchrl_bail.configuration.config import ConfigError, validate_config
+from torchrl_bail.training.resume import comparable_config, diff_configs
+from torchrl_bail.training.trainer import evaluation_count, snapshot_indices
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["+exp=hopper_ddpg05", "preset=quick", "batch.steps=1000", "batch.start_steps=200",
@@ -86,7 +86,7 @@ def test_eval_snapshots_is_checked_and_a_run_of_its_own(data_dir):
 
 
 def test_a_run_keeps_its_snapshots_and_lists_them_in_its_summary(snapshot_run):
-    from torchrl_bail.policy import load_policy
+    from torchrl_bail.evaluation.policy import load_policy
 
     summary = _summary(snapshot_run)
     assert summary["iterations"] == 6 and len(summary["snapshots"]) == 3
@@ -214,7 +214,7 @@ def test_a_killed_selection_continues_to_the_same_choice(snapshot_run, tmp_path,
     import signal
 
     import torchrl_bail.ope as ope_module
-    from torchrl_bail import interrupts
+    from torchrl_bail.core import interrupts
 
     reference, run_dir = tmp_path / "reference", tmp_path / "run"
     shutil.copytree(snapshot_run, reference)
@@ -245,7 +245,7 @@ def test_a_killed_selection_continues_to_the_same_choice(snapshot_run, tmp_path,
 
 
 def test_stacked_seeds_keep_each_seeds_snapshots(data_dir, tmp_path):
-    from torchrl_bail.policy import load_policy
+    from torchrl_bail.evaluation.policy import load_policy
     from torchrl_bail.train import run
 
     summaries = run(_cfg(data_dir, *BC, "eval.snapshots=2", "seeds=[1,2]"), tmp_path / "seed1")

@@ -20,7 +20,7 @@ from tensordict import TensorDict
 
 from torchrl_bail.algorithms import PrepareContext
 from torchrl_bail.algorithms.td3bc import TD3BC
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
 
 #: bounds +-2: the target policy's noise is 0.2 * 2 with a clip of 0.5 * 2
@@ -133,7 +133,7 @@ def test_policy_file_and_its_exports_carry_the_standardisation(tmp_path, fmt):
     from omegaconf import OmegaConf
 
     from torchrl_bail.evaluate import main as evaluate_main
-    from torchrl_bail.policy import load_policy, policy_actions, save_policy
+    from torchrl_bail.evaluation.policy import load_policy, policy_actions, save_policy
 
     if fmt == "onnx":
         pytest.importorskip("onnxruntime")

@@ -7,9 +7,9 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail.algorithms.bc import BehaviourCloning
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.trainer import AlgorithmTrainee, EvalPoint, TrainHistory, make_trainee, train
+from torchrl_bail.training.trainer import AlgorithmTrainee, EvalPoint, TrainHistory, make_trainee, train
 
 
 def _bc(epochs: float, batch_size: int = 10) -> BehaviourCloning:
@@ -102,7 +102,7 @@ def test_empty_data_is_a_clear_error():
 
 def test_checkpoints_before_the_first_update_and_on_a_clock(tmp_path, monkeypatch):
     """A kill before the first evaluation keeps what prepare produced; the time cadence adds checkpoints."""
-    from torchrl_bail import trainer
+    from torchrl_bail.training import trainer
 
     saved = []
     monkeypatch.setattr(trainer, "save_checkpoint", lambda path, state: saved.append(state["iteration"]))

@@ -18,7 +18,7 @@ from _batch_rl_testing import (
 
 from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
-from torchrl_bail.config_builders import algo_config
+from torchrl_bail.configuration.config_builders import algo_config
 
 
 def _critic_values_and_grads(loss, data, plain: bool):

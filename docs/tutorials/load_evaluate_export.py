@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_bail import load_policy
-from torchrl_bail.policy import export_policy, read_policy_file
+from torchrl_bail.evaluation.policy import export_policy, read_policy_file
 
 
 def sh(*args: str) -> None:

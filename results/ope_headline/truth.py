@@ -51,7 +51,7 @@ def replay(policy_entry: dict) -> dict:
 
     from torchrl_bail.algorithms import ALGORITHMS
     from torchrl_bail.evaluate import replay_evaluation
-    from torchrl_bail.policy import load_policy
+    from torchrl_bail.evaluation.policy import load_policy
 
     path = ROOT / policy_entry["run"] / "policy.pt"
     policy = load_policy(path)

@@ -1,15 +1,16 @@
 """The command-line front of ``train`` and ``collect``: every job's config composed and checked before anything
 is written or imported, and a bad command line, config or batch reported in one line (exit status 2).
 
-This module loads Hydra, OmegaConf and the schemas (:mod:`torchrl_bail.config`, :mod:`torchrl_bail.algo_schemas`,
+This module loads Hydra, OmegaConf and the schemas (:mod:`torchrl_bail.configuration.config`,
+:mod:`torchrl_bail.configuration.algo_schemas`,
 ...) only, so a bad command line ends in about a second, before torch loads. What it reports in one line: the
-errors of :mod:`torchrl_bail.errors`
-(:data:`~torchrl_bail.errors.USER_ERRORS`) and Hydra's and OmegaConf's own; anything else keeps its traceback.
+errors of :mod:`torchrl_bail.core.errors`
+(:data:`~torchrl_bail.core.errors.USER_ERRORS`) and Hydra's and OmegaConf's own; anything else keeps its traceback.
 
 ``--help`` lists the options of each config group as the files of ``conf/`` name them
-(:func:`torchrl_bail.hydra_setup.group_options`).
+(:func:`torchrl_bail.configuration.hydra_setup.group_options`).
 
-Ctrl-C and SIGTERM (:mod:`torchrl_bail.interrupts`, installed here for the whole command): the running loop writes
+Ctrl-C and SIGTERM (:mod:`torchrl_bail.core.interrupts`, installed here for the whole command): the running loop writes
 its checkpoint at its next safe point, and the command ends with one line on stderr naming what was saved and the
 command that continues (:func:`continue_command`), exit status 130 (SIGINT) or 143 (SIGTERM).
 """
@@ -27,11 +28,11 @@ import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from torchrl_bail.config import validate_config
-from torchrl_bail.errors import USER_ERRORS, CommandLineError
-from torchrl_bail.hydra_setup import config_dir, group_options
-from torchrl_bail.interrupts import Interrupted, handled, signal_name
-from torchrl_bail.io import describe_file_error
+from torchrl_bail.configuration.config import validate_config
+from torchrl_bail.configuration.hydra_setup import config_dir, group_options
+from torchrl_bail.core.errors import USER_ERRORS, CommandLineError
+from torchrl_bail.core.interrupts import Interrupted, handled, signal_name
+from torchrl_bail.core.io import describe_file_error
 
 __all__ = ["checkpoint_before_requeue", "continue_command", "describe_error", "describe_interrupt",
            "exit_on_config_error", "job_threads", "run_cli", "use_job_threads"]
@@ -144,7 +145,8 @@ def import_schema_modules() -> None:
     """Imports the modules that define the registries' schemas (every algorithm, every behaviour recipe): torch with
     them, once, before a sweep's jobs are launched, after every job's config was checked.
 
-    The registries read the schemas without importing their modules (:mod:`torchrl_bail.schema_reader`). A launcher
+    The registries read the schemas without importing their modules (:mod:`torchrl_bail.configuration.schema_reader`). A
+    launcher
     that sends the jobs' configs to other processes (joblib, submitit) pickles them with cloudpickle, which copies a
     class by value when its module is not imported; the worker's copy would be no registered schema, and the job
     would fail. Imported, the classes pickle by reference, as the modules' own."""
@@ -154,7 +156,7 @@ def import_schema_modules() -> None:
 
 @contextlib.contextmanager
 def exit_on_config_error() -> Iterator[None]:
-    """A configuration or dataset error, or a file-system fault (:func:`~torchrl_bail.io.describe_file_error`),
+    """A configuration or dataset error, or a file-system fault (:func:`~torchrl_bail.core.io.describe_file_error`),
     inside the body ends the process: ONE line on stderr, exit code 2.
 
     Used around the whole command line (:func:`run_cli`) and inside each Hydra job, where it stops a sweep at
@@ -213,7 +215,8 @@ def _do_nothing(signum: int, frame: Any) -> None:
 @contextlib.contextmanager
 def checkpoint_before_requeue() -> Iterator[None]:
     """In a Slurm job (hydra-submitit launcher), both ways Slurm stops a job save the work first: the running loop
-    writes its checkpoint at its next safe point (:mod:`torchrl_bail.interrupts`: within one update, or one episode of
+    writes its checkpoint at its next safe point (:mod:`torchrl_bail.core.interrupts`: within one update, or one episode
+    of
     a collection), then
 
     - on submitit's signal (USR2, ``signal_delay_s`` before the **time limit**): submitit's own handler requeues the
@@ -232,7 +235,7 @@ def checkpoint_before_requeue() -> Iterator[None]:
 
     Once the body is done, the time-limit signal is ignored (a finished job that Slurm signals in its last minute
     still ends COMPLETED). No named semaphore is left for Python's resource tracker, which Slurm's requeue kills with
-    the job step (:mod:`torchrl_bail.data.local_buffer`, :mod:`torchrl_bail.progress`).
+    the job step (:mod:`torchrl_bail.data.local_buffer`, :mod:`torchrl_bail.core.progress`).
 
     Elsewhere a no-op (the entry point's :func:`run_cli` handles SIGINT and SIGTERM)."""
     sig = _preemption_signal()

@@ -40,9 +40,9 @@ from omegaconf import DictConfig
 
 from torchrl_bail import config_dir
 from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli, use_job_threads
-from torchrl_bail.config import validate_config
-from torchrl_bail.config_builders import collection_config
-from torchrl_bail.errors import CommandLineError
+from torchrl_bail.configuration.config import validate_config
+from torchrl_bail.configuration.config_builders import collection_config
+from torchrl_bail.core.errors import CommandLineError
 
 __all__ = ["collect", "export_main", "format_listing", "import_main", "install_main", "main"]
 

@@ -33,12 +33,12 @@ from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import TensorStorage
 from torchrl.data.replay_buffers.writers import ImmutableDatasetWriter, Writer
 
-from torchrl_bail.config import validate_config
-from torchrl_bail.config_builders import collection_config
+from torchrl_bail.configuration.config import validate_config
+from torchrl_bail.configuration.config_builders import collection_config
+from torchrl_bail.configuration.hydra_setup import config_dir
 from torchrl_bail.data.batch import OfflineBatch
 from torchrl_bail.data.cache import batch_path, load_cached_batch
 from torchrl_bail.data.importers import import_dataset
-from torchrl_bail.hydra_setup import config_dir
 
 __all__ = ["SOURCE", "BailExperienceReplay", "resolve_batch"]
 

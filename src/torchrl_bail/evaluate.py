@@ -1,6 +1,7 @@
 """Run a trained policy: ``python -m torchrl_bail.evaluate RUN_DIR --episodes 10 [--seed S] [--video DIR]``.
 
-Loads the run's ``policy.pt`` (``--best``: ``policy_best.pt``) with :func:`torchrl_bail.policy.load_policy` and
+Loads the run's ``policy.pt`` (``--best``: ``policy_best.pt``) with :func:`torchrl_bail.evaluation.policy.load_policy`
+and
 plays ``--episodes`` deterministic episodes with the training run's :class:`~torchrl_bail.evaluation.Evaluator`
 (same env id, time limit and step budget as the run), printing ``mean ± std`` of the returns, then of the discounted
 returns at FQE's gamma (``sum_t gamma^t r_t`` from each episode's start: the scale of ``python -m torchrl_bail.ope``'s
@@ -16,7 +17,7 @@ not the logged one.
 ``--video DIR`` records one more episode per ``--episodes`` with gymnasium's ``RecordVideo`` (needs moviepy:
 ``pip install "torchrl_bail[video]"``; headless machines render through EGL, ``MUJOCO_GL=egl``).
 ``--export pt2|onnx|torchscript [--out FILE]`` writes a standalone policy file instead (see
-:mod:`torchrl_bail.policy` for which format supports which algorithm).
+:mod:`torchrl_bail.evaluation.policy` for which format supports which algorithm).
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ def evaluate_policy(policy, *, episodes: int, seed: int, max_steps: int, max_epi
 
 
 def replay_evaluation(policy):
-    """The evaluation that scored a saved ``policy`` (from :func:`~torchrl_bail.policy.load_policy`), replayed: the
+    """The evaluation that scored a saved ``policy`` (from :func:`~torchrl_bail.evaluation.policy.load_policy`),
+    replayed: the
     run's env, seed, episode count and step budget (its recorded config) and the evaluation index its file records
     (``info["evaluation"]``; ``0`` when absent). Returns the :class:`~torchrl_bail.evaluation.EvalResult`: for a
     deterministic policy (BAIL, Progressive BAIL, BC, MARWIL, TD3+BC) its ``mean_return`` is the ``mean_return`` the
@@ -82,7 +84,7 @@ def record_video(policy, directory: Path, *, episodes: int, seed: int, env_id: s
     import torch
     from gymnasium.wrappers import RecordVideo
 
-    from torchrl_bail.policy import policy_actions
+    from torchrl_bail.evaluation.policy import policy_actions
 
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
     env = RecordVideo(gym.make(env_id, render_mode="rgb_array", **kwargs), str(directory),
@@ -119,7 +121,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="the exported file (default: beside the policy file)")
     args = parser.parse_args(argv)
 
-    from torchrl_bail.policy import EXPORT_FORMATS, PolicyFileError, export_policy, load_policy, onnx_external_data
+    from torchrl_bail.evaluation.policy import (
+        EXPORT_FORMATS,
+        PolicyFileError,
+        export_policy,
+        load_policy,
+        onnx_external_data,
+    )
 
     try:
         policy = load_policy(args.source, best=args.best)

@@ -34,7 +34,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate
 
-from torchrl_bail.stacking import linear
+from torchrl_bail.core.stacking import linear
 
 __all__ = [
     "fast_tensordict_outputs",

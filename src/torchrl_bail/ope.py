@@ -2,7 +2,8 @@
 
 For each run directory, Fitted Q Evaluation (:class:`~torchrl_bail.objectives.fqe.FQELoss`, Le et al. 2019; used
 for policy selection by Paine et al. 2020): the run's policy (``policy.pt``; ``--best``: ``policy_best.pt``, loaded
-with :func:`~torchrl_bail.policy.load_policy`) is held fixed and a Q network is fitted on the run's own batch (the
+with :func:`~torchrl_bail.evaluation.policy.load_policy`) is held fixed and a Q network is fitted on the run's own batch
+(the
 data cache its ``config.yaml`` names: the generated batch of its ``env`` x ``batch``, or its ``dataset=``; nothing
 is collected here) by :func:`fit_fqe`, until its curve settles (:func:`curve_converged`: ``--stop-window``,
 ``--stop-tol``) or ``--updates``, the cap. ``--fits K`` independent fits (seeds ``S .. S + K - 1``,
@@ -161,7 +162,7 @@ def curve_converged(estimates: Sequence[float], window: int, tol: float) -> bool
 def _bar(total: int, desc: str, unit: str, progress: bool, **kwargs):
     """A tqdm bar of this command (ETA; off without ``progress``): the fit's, and the policy's passes over the
     batch, which take minutes for a sampling policy at 10^6 transitions."""
-    from torchrl_bail.progress import tqdm
+    from torchrl_bail.core.progress import tqdm
 
     return tqdm(total=total, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True, mininterval=0.5,
                 **kwargs)
@@ -250,7 +251,7 @@ def fit_fqe(policy, data, settings: FQESettings | None = None, *, seed: int = 0,
         progress (bool): a tqdm bar (ETA, the current estimate and TD loss). Defaults to ``False``.
         checkpoint_path (str | Path, optional): where the fit checkpoints (once the policy's actions are computed,
             every ``checkpoint_every_s`` seconds and when Ctrl-C or SIGTERM arrives through
-            :mod:`torchrl_bail.interrupts`) and what it continues from
+            :mod:`torchrl_bail.core.interrupts`) and what it continues from
             when that file holds a checkpoint of the same ``identity``.
         checkpoint_every_s (float): seconds between checkpoints. Defaults to ``300``.
         identity (dict, optional): what a checkpoint must match to be continued (settings and seed are added).
@@ -294,8 +295,8 @@ def _fit_fqe(policy, data, settings: FQESettings | None, *, seed: int, device, p
     import torch
     from torchrl.objectives import HardUpdate
 
-    from torchrl_bail import interrupts
-    from torchrl_bail.io import write_atomic
+    from torchrl_bail.core import interrupts
+    from torchrl_bail.core.io import write_atomic
     from torchrl_bail.modules import make_qvalue_network
     from torchrl_bail.objectives.fqe import FQELoss, episode_starts
 
@@ -487,7 +488,7 @@ def run_batch(run_dir: str | Path, cfg=None, data_dir: str | Path | None = None)
     ``$TORCHRL_BAIL_DATA_DIR`` or ``~/.cache/torchrl_bail``), or its ``dataset=``; never collected here. ``cfg``: the
     run's config, read from its ``config.yaml`` when not given. Raises :class:`OPEError` when the batch is not in the
     cache."""
-    from torchrl_bail.config_builders import collection_config
+    from torchrl_bail.configuration.config_builders import collection_config
     from torchrl_bail.data.cache import batch_path, load_cached_batch
 
     run_dir = Path(run_dir)
@@ -545,7 +546,7 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
     """
     import torch
 
-    from torchrl_bail.policy import policy_actions
+    from torchrl_bail.evaluation.policy import policy_actions
 
     low = torch.as_tensor(policy.record["action_low"], dtype=torch.float64)
     high = torch.as_tensor(policy.record["action_high"], dtype=torch.float64)
@@ -564,24 +565,25 @@ def action_gap(policy, data, *, seed: int = 0, chunk: int = 65536, progress: boo
 
 
 def _load_policy(path: Path, device):
-    """:func:`~torchrl_bail.policy.load_policy` of the policy file ``path``; a damaged file raises
-    :class:`~torchrl_bail.policy.PolicyFileError` calling it corrupt or truncated (the policy-file reader checks
-    the zip archive ``torch.save`` writes, :func:`~torchrl_bail.policy.read_policy_file`)."""
-    from torchrl_bail.policy import load_policy
+    """:func:`~torchrl_bail.evaluation.policy.load_policy` of the policy file ``path``; a damaged file raises
+    :class:`~torchrl_bail.evaluation.policy.PolicyFileError` calling it corrupt or truncated (the policy-file reader
+    checks
+    the zip archive ``torch.save`` writes, :func:`~torchrl_bail.evaluation.policy.read_policy_file`)."""
+    from torchrl_bail.evaluation.policy import load_policy
 
     return load_policy(path, device=device)
 
 
 def _fit_policy(policy, out: Path, *, batch, settings: FQESettings, seed: int, device, progress: bool,
                 checkpoint_every_s: float, desc: str, fits: int = DEFAULT_FITS) -> dict[str, Any]:
-    """Fits FQE ``fits`` times for ``policy`` (from :func:`~torchrl_bail.policy.load_policy`) on ``batch``
+    """Fits FQE ``fits`` times for ``policy`` (from :func:`~torchrl_bail.evaluation.policy.load_policy`) on ``batch``
     (:func:`fit_fqe_fits`) and writes its record to ``out`` atomically, checkpointing beside it
     (``<out stem>_checkpoint.pt``, and ``<out stem>_fit<i>_checkpoint.pt`` for the later fits; removed once ``out``
     is written); returns the record."""
     import torch
 
+    from torchrl_bail.core.io import write_json_atomic
     from torchrl_bail.data.batch import platform_record
-    from torchrl_bail.io import write_json_atomic
 
     record = policy.record
     policy_file = Path(record["path"])
@@ -670,7 +672,7 @@ def _same_weights(a, b) -> bool:
 
 def _record_selection(run_dir: Path, selected: dict) -> None:
     """Writes ``fqe_selected`` into the run's ``summary.json`` (atomically; nothing when it already holds it)."""
-    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.core.io import write_json_atomic
 
     path = run_dir / "summary.json"
     summary = _read_record(path)
@@ -706,7 +708,7 @@ def select_snapshot(run_dir: str | Path, ope: dict, final_policy, batch, *, sett
 
     import torch
 
-    from torchrl_bail.io import write_json_atomic
+    from torchrl_bail.core.io import write_json_atomic
 
     run_dir = Path(run_dir)
     snapshots = listed_snapshots(run_dir) if snapshots is None else snapshots
@@ -806,7 +808,7 @@ def score_run(run_dir: str | Path, settings: FQESettings | None = None, *, seed:
         kept = _fit_policy(policy, out, batch=batch, settings=settings, seed=seed, device=device, progress=progress,
                            checkpoint_every_s=checkpoint_every_s, desc=run_dir.name, fits=fits)
     elif "action_gap" not in kept:  # a record written before ope recorded it: no new fit, the gap added
-        from torchrl_bail.io import write_json_atomic
+        from torchrl_bail.core.io import write_json_atomic
 
         kept = {**kept, "action_gap": action_gap(policy, batch.data, seed=int(kept.get("seed", seed)),
                                                  progress=progress)}
@@ -1159,10 +1161,10 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from torchrl_bail.cli import describe_interrupt
-    from torchrl_bail.errors import USER_ERRORS
-    from torchrl_bail.interrupts import Interrupted, handled
-    from torchrl_bail.io import FileSystemError
-    from torchrl_bail.policy import PolicyFileError
+    from torchrl_bail.core.errors import USER_ERRORS
+    from torchrl_bail.core.interrupts import Interrupted, handled
+    from torchrl_bail.core.io import FileSystemError
+    from torchrl_bail.evaluation.policy import PolicyFileError
 
     device = args.device
     if device == "auto":

@@ -8,7 +8,8 @@ Finds every ``summary.json`` below the given directories and groups the runs by
 * every **override that separates runs**: the run's resolved ``config.yaml`` files are compared key by key and
   any key whose value differs between runs of one (batch, algorithm) cell is a separating key (an ablation such
   as ``algo.selection.by=return``), except seeds and keys that only change how a run is executed
-  (:data:`~torchrl_bail.run_dirs.RUN_ONLY_KEYS`: ``progress``, ``logger.*``, ``device``, ``data_dir``, ``resume``...),
+  (:data:`~torchrl_bail.configuration.run_dirs.RUN_ONLY_KEYS`: ``progress``, ``logger.*``, ``device``, ``data_dir``,
+  ``resume``...),
   ``hydra.*`` and ``env.*``/``batch.*``/``dataset`` (the batch identity already covers them); together
   :data:`NON_SEPARATING_KEYS`.
 
@@ -56,11 +57,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-from torchrl_bail.io import write_json_atomic, write_text_atomic
-from torchrl_bail.plots import mean_curve, new_figure, read_eval_curve, save_figure
-from torchrl_bail.resume import ADDED_KEYS, RENAMED_KEYS
-from torchrl_bail.run_dirs import RUN_ONLY_KEYS
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.configuration.run_dirs import RUN_ONLY_KEYS
+from torchrl_bail.core.io import write_json_atomic, write_text_atomic
+from torchrl_bail.reports.plots import mean_curve, new_figure, read_eval_curve, save_figure
+from torchrl_bail.training.resume import ADDED_KEYS, RENAMED_KEYS
 
 __all__ = ["Run", "Group", "ReportError", "find_runs", "group_runs", "separating_keys", "stats", "iqm_interval",
            "summarise", "format_markdown", "fqe_selected_return", "numpy_seed", "main", "NON_SEPARATING_KEYS",

@@ -7,7 +7,7 @@ The run directory receives the resolved ``config.yaml``, CSV scalars (``logs/``)
 best-evaluated one; :func:`torchrl_bail.load_policy` rebuilds either), with ``eval.snapshots=N`` the policies of
 ``N`` evaluations spread over training (``snapshots/policy_<iteration>.pt``, :func:`snapshot_path`), and
 ``summary.json``. Re-running the same command continues a killed run from its checkpoint
-(:mod:`torchrl_bail.resume`).
+(:mod:`torchrl_bail.training.resume`).
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from torchrl_bail import config_dir
 from torchrl_bail.cli import checkpoint_before_requeue, exit_on_config_error, run_cli, use_job_threads
-from torchrl_bail.config import ConfigError, validate_config
+from torchrl_bail.configuration.config import ConfigError, validate_config
 
 if TYPE_CHECKING:  # resume loads the lock module, and with it torch: imported where a run starts
-    from torchrl_bail.resume import Resumption
+    from torchrl_bail.training.resume import Resumption
 
 # torch, torchrl and the algorithms are imported inside the functions below: a bad command line is reported
 # (torchrl_bail.cli.run_cli) in about a second, before they load.
@@ -146,10 +146,10 @@ def finish_run(cfg: DictConfig, run_dir: Path, batch, algorithm, history, action
     curve of one seed's run; returns the summary."""
     import torch
 
+    from torchrl_bail.core.io import write_json_atomic
     from torchrl_bail.data.batch import platform_record
-    from torchrl_bail.io import write_json_atomic
-    from torchrl_bail.plots import plot_learning_curve
-    from torchrl_bail.policy import save_policy
+    from torchrl_bail.evaluation.policy import save_policy
+    from torchrl_bail.reports.plots import plot_learning_curve
 
     last = history.evaluations[-1] if history.evaluations else None
     save_policy(run_dir / "policy.pt", algorithm, cfg, obs_dim=obs_dim, action_spec=action_spec,
@@ -242,8 +242,8 @@ def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     single-seed run ``seed=<s>`` (``seeds`` null) in that run's directory (:func:`seed_run_dir`): the same
     ``config.yaml``, logs, ``checkpoint.pt``, ``policy.pt``, ``policy_best.pt`` and ``summary.json``. With
     ``resume=auto`` (default) a checkpoint is continued and a seed whose directory already holds a finished run is
-    reported, not trained again (:mod:`torchrl_bail.resume`); the others train together (:func:`_train_seeds`:
-    their networks stacked when there are several, :mod:`torchrl_bail.stacking`; one seed trains its algorithm
+    reported, not trained again (:mod:`torchrl_bail.training.resume`); the others train together (:func:`_train_seeds`:
+    their networks stacked when there are several, :mod:`torchrl_bail.core.stacking`; one seed trains its algorithm
     unstacked, as it always has). The checkpoints are single-seed checkpoints: a killed stacked run continues from
     them when rerun (all its unfinished seeds stopped at the same iteration), and each can also be continued alone
     (``seed=<s>``).
@@ -252,7 +252,7 @@ def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
 
     validate_config(cfg)  # before the heavy imports: in a multirun this is each job's first look at its config
     from torchrl_bail.algorithms import ALGORITHMS
-    from torchrl_bail.resume import ResumeError
+    from torchrl_bail.training.resume import ResumeError
 
     seeds = seed_list(cfg)
     refusal = ALGORITHMS[cfg.algo.name].seed_stack_refusal
@@ -268,7 +268,7 @@ def run(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
                 seed_cfg.seed, seed_cfg.seeds = seed, None
             configs.append(seed_cfg)
             dirs.append(seed_run_dir(run_dir, int(cfg.seed), seed))
-    from torchrl_bail.resume import Resumption
+    from torchrl_bail.training.resume import Resumption
 
     summaries: dict[int, dict[str, Any]] = {}
     with contextlib.ExitStack() as stack:
@@ -297,18 +297,19 @@ def _train_seeds(configs: list[DictConfig], dirs: list[Path], resumptions: list[
     Every step runs once for the list of seeds, whatever its length: configs, device, batch, evaluator, training
     data, loggers, then per seed the seeding, the algorithm and its prepared data (or what its checkpoint restores),
     the trainee and its compile, the best-policy callbacks, the training loop and the finish. Whether the seeds'
-    networks are stacked is decided by the list-taking pieces themselves (:func:`~torchrl_bail.trainer.make_trainee`,
-    :func:`~torchrl_bail.stacking.prepare_seeds`, the :class:`~torchrl_bail.evaluation.Evaluator` of the seeds): a
+    networks are stacked is decided by the list-taking pieces themselves
+    (:func:`~torchrl_bail.training.trainer.make_trainee`,
+    :func:`~torchrl_bail.core.stacking.prepare_seeds`, the :class:`~torchrl_bail.evaluation.Evaluator` of the seeds): a
     list of one trains its algorithm unstacked, on the batch as TorchRL's replay buffer samples it (the single-seed
-    run, to every digit); several train as one :class:`~torchrl_bail.stacking.SeedStack`, each seed drawing its
+    run, to every digit); several train as one :class:`~torchrl_bail.core.stacking.SeedStack`, each seed drawing its
     single-seed run's mini-batch stream.
     """
     from torchrl_bail.algorithms import PrepareContext, build_algorithm
+    from torchrl_bail.core.stacking import prepare_seeds
     from torchrl_bail.evaluation import Evaluator
-    from torchrl_bail.policy import save_policy
-    from torchrl_bail.resume import record_config
-    from torchrl_bail.stacking import prepare_seeds
-    from torchrl_bail.trainer import make_trainee, train
+    from torchrl_bail.evaluation.policy import save_policy
+    from torchrl_bail.training.resume import record_config
+    from torchrl_bail.training.trainer import make_trainee, train
 
     start = time.perf_counter()
     cfg = configs[0]
@@ -406,10 +407,11 @@ def snapshot_path(iteration: int) -> str:
 
 def _snapshots(history, count: int, run_dir: Path) -> list[dict[str, Any]]:
     """The policy snapshots of ``eval.snapshots=count``, read from the history
-    (:func:`~torchrl_bail.trainer.snapshot_indices`), so that a resumed run lists the same ones as an uninterrupted
+    (:func:`~torchrl_bail.training.trainer.snapshot_indices`), so that a resumed run lists the same ones as an
+    uninterrupted
     run: each with its path, iteration, epoch, evaluation index and evaluation return (``eval_return``, the mean test
     return the run measured for that policy)."""
-    from torchrl_bail.trainer import snapshot_indices
+    from torchrl_bail.training.trainer import snapshot_indices
 
     snapshots = []
     for index in snapshot_indices(len(history.evaluations), count):

@@ -3,7 +3,7 @@
 An algorithm is registered where it is defined: a class that sets ``name`` enters
 :data:`~torchrl_bail.algorithms.base.REGISTRY`, and importing this package imports every module in it, so a new
 ``algorithms/<name>.py`` needs no line here. :data:`ALGORITHMS` lists them in the order of their schemas
-(:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`, the order of the report's columns).
+(:data:`torchrl_bail.configuration.algo_schemas.ALGO_SCHEMAS`, the order of the report's columns).
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
 from torchrl_bail.algorithms.bail import BAIL
 from torchrl_bail.algorithms.base import REGISTRY, Algorithm, PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
@@ -19,6 +18,7 @@ from torchrl_bail.algorithms.bcq import BCQ
 from torchrl_bail.algorithms.bear import BEAR
 from torchrl_bail.algorithms.marwil import MARWIL
 from torchrl_bail.algorithms.pbail import ProgressiveBAIL
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
 
 __all__ = ["ALGORITHMS", "Algorithm", "BAIL", "BCQ", "BEAR", "BehaviourCloning", "MARWIL", "PrepareContext",
            "ProgressiveBAIL", "build_algorithm"]

@@ -1,7 +1,7 @@
 """BAIL (static, supp. Alg. 1, B.2): upper envelope -> best-action selection -> behaviour cloning.
 
 :meth:`BAIL.prepare` fits the upper envelope ``V`` to the returns ``G`` with
-:func:`~torchrl_bail.envelope.fit_upper_envelope`, then a
+:func:`~torchrl_bail.training.envelope.fit_upper_envelope`, then a
 :class:`~torchrl_bail.transforms.BestActionFilter` keeps the pairs whose ``G / V`` ratio is in the top
 ``percentile``; the imitation that follows is :class:`~torchrl_bail.algorithms.bc.BehaviourCloning` on that
 selected set (uniform mini-batches with replacement, as the paper does).
@@ -20,20 +20,27 @@ from omegaconf import MISSING, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorSpec
 
-from torchrl_bail.algo_schemas import AlgoConfig, EnvelopeConfig, NetConfig, SelectionConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import BehaviourCloning
-from torchrl_bail.config import at_least, one_of
+from torchrl_bail.configuration.algo_schemas import (
+    AlgoConfig,
+    EnvelopeConfig,
+    NetConfig,
+    SelectionConfig,
+    algo_schema,
+    schema_block,
+)
+from torchrl_bail.configuration.config import at_least, one_of
 from torchrl_bail.data.local_buffer import local_replay_buffer
-from torchrl_bail.envelope import envelope_values, fit_upper_envelope, fraction_below
 from torchrl_bail.modules import make_value_network
-from torchrl_bail.plots import plot_envelope
+from torchrl_bail.reports.plots import plot_envelope
+from torchrl_bail.training.envelope import envelope_values, fit_upper_envelope, fraction_below
 from torchrl_bail.transforms.best_action import BestActionFilter
 
 __all__ = ["BAIL"]
 
 
-# -- the schema (conf/algo/bail.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/bail.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @schema_block
@@ -69,7 +76,7 @@ class BAIL(BehaviourCloning):
     :class:`~torchrl_bail.algorithms.base.Algorithm`).
 
     The config's ``envelope`` block is the envelope network (``hidden``, ``head_scale``) and the keyword arguments
-    of :func:`~torchrl_bail.envelope.fit_upper_envelope`; ``selection`` sets the
+    of :func:`~torchrl_bail.training.envelope.fit_upper_envelope`; ``selection`` sets the
     :class:`~torchrl_bail.transforms.BestActionFilter` (``percentile``, ``nonpositive_value``) and what ranks
     (``by``: ``"envelope"``, the ratio ``G / V``, or ``"return"``, top-p by ``G`` with no envelope); ``policy``
     is the imitating actor.
@@ -106,8 +113,9 @@ class BAIL(BehaviourCloning):
     @staticmethod
     def prepare_seeds(algorithms: list[BAIL], data: TensorDictBase,
                       contexts: list[PrepareContext]) -> list[TensorDictBase]:
-        """The prepared data of ``S >= 1`` seeds' BAIL (:func:`torchrl_bail.stacking.prepare_seeds`): their envelopes
-        are fitted by one :func:`~torchrl_bail.envelope.fit_upper_envelope` of the ``S`` networks (stacked when
+        """The prepared data of ``S >= 1`` seeds' BAIL (:func:`torchrl_bail.core.stacking.prepare_seeds`): their
+        envelopes
+        are fitted by one :func:`~torchrl_bail.training.envelope.fit_upper_envelope` of the ``S`` networks (stacked when
         ``S > 1``), each seed with its own split, shuffles, early stopping and best weights; then each seed selects
         its best actions under its envelope. Ranking by return (``selection.by="return"``) fits nothing."""
         first = algorithms[0]

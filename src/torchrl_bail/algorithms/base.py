@@ -1,11 +1,12 @@
 """What the one training loop needs from an algorithm.
 
 An algorithm owns its networks, losses and optimizers and contributes three things to
-:func:`torchrl_bail.trainer.train`: a :meth:`~Algorithm.prepare` stage that turns the batch (with its returns)
+:func:`torchrl_bail.training.trainer.train`: a :meth:`~Algorithm.prepare` stage that turns the batch (with its returns)
 into the data the loop samples from (BAIL fits its envelope and keeps the best actions there), an
 :meth:`~Algorithm.update` step on one mini-batch, and a deterministic :attr:`~Algorithm.policy` to evaluate.
 Every algorithm is built from its config group, ``Algorithm(obs_dim, action_spec, config, device)``: ``config``
-is the ``algo`` node of the command line, :func:`torchrl_bail.config_builders.algo_config` (the defaults of
+is the ``algo`` node of the command line, :func:`torchrl_bail.configuration.config_builders.algo_config` (the defaults
+of
 ``conf/algo/<name>.yaml`` with overrides) or a plain nested mapping (the keys it leaves out take the yaml's
 values). The yaml files are the one place an algorithm's default values live; the constructors hold none. The
 schedule (mini-batch size and length in epochs of 10^6 samples) comes from the config too.
@@ -24,8 +25,8 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import TensorSpec
 
-from torchrl_bail.config import COMPILE_MODES, is_compile_setting
-from torchrl_bail.config_builders import checked_algo_config
+from torchrl_bail.configuration.config import COMPILE_MODES, is_compile_setting
+from torchrl_bail.configuration.config_builders import checked_algo_config
 
 __all__ = ["REGISTRY", "Algorithm", "PrepareContext"]
 
@@ -69,16 +70,16 @@ class Algorithm(ABC):
         obs_dim (int): observation size.
         action_spec (TensorSpec): the bounded action spec.
         config (DictConfig | Mapping): the algorithm's config group (see the module docstring); checked against its
-            schema (:data:`torchrl_bail.algo_schemas.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
+            schema (:data:`torchrl_bail.configuration.algo_schemas.ALGO_SCHEMAS`) and kept, typed, as :attr:`config`.
         device: training device. Defaults to ``"cpu"``.
     """
 
     name: str = "algorithm"
-    #: why ``seeds=`` cannot train this algorithm's seeds stacked (:mod:`torchrl_bail.stacking`), in a few words;
+    #: why ``seeds=`` cannot train this algorithm's seeds stacked (:mod:`torchrl_bail.core.stacking`), in a few words;
     #: ``None`` when it can
     seed_stack_refusal: str | None = None
     #: whether the evaluation policy draws random numbers (BCQ's and BEAR's best-of-N candidates): TorchScript
-    #: tracing cannot carry them (:func:`torchrl_bail.policy.export_policy`)
+    #: tracing cannot carry them (:func:`torchrl_bail.evaluation.policy.export_policy`)
     policy_samples: bool = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -88,8 +89,10 @@ class Algorithm(ABC):
 
     @classmethod
     def rebuild_policy(cls, record: dict[str, Any], action_spec: TensorSpec, device) -> nn.Module:
-        """The evaluation policy of a ``policy.pt`` record (:func:`torchrl_bail.policy.read_policy_file`), with
-        fresh weights (:func:`~torchrl_bail.policy.load_policy` loads the file's): the algorithm built from the
+        """The evaluation policy of a ``policy.pt`` record (:func:`torchrl_bail.evaluation.policy.read_policy_file`),
+        with
+        fresh weights (:func:`~torchrl_bail.evaluation.policy.load_policy` loads the file's): the algorithm built from
+        the
         record's config, its :attr:`policy` (a subclass whose policy needs less overrides this)."""
         return cls(record["obs_dim"], action_spec, record["config"]["algo"], device).policy
 
@@ -150,7 +153,8 @@ class Algorithm(ABC):
 
         Args:
             mode: ``False`` (nothing to do), ``True`` (inductor's default mode) or a :func:`torch.compile` mode
-                (:data:`torchrl_bail.config.COMPILE_MODES`); ``"reduce-overhead"`` replays CUDA graphs of the
+                (:data:`torchrl_bail.configuration.config.COMPILE_MODES`); ``"reduce-overhead"`` replays CUDA graphs of
+                the
                 compiled pieces on a GPU.
             backend (str): the :func:`torch.compile` backend (``mode`` is inductor's only). Defaults to
                 ``"inductor"``.
@@ -160,7 +164,7 @@ class Algorithm(ABC):
 
         Examples:
             >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-            >>> from torchrl_bail.config_builders import algo_config
+            >>> from torchrl_bail.configuration.config_builders import algo_config
             >>> from torchrl_bail.modules import action_spec_from_bounds
             >>> config = algo_config("bc", policy={"hidden": [8]})
             >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
@@ -243,7 +247,7 @@ class Algorithm(ABC):
             >>> import copy
             >>> from tensordict import TensorDict
             >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-            >>> from torchrl_bail.config_builders import algo_config
+            >>> from torchrl_bail.configuration.config_builders import algo_config
             >>> from torchrl_bail.modules import action_spec_from_bounds
             >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]),
             ...                         algo_config("bc", batch_size=8, policy={"hidden": [8]}))

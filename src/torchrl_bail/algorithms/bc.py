@@ -6,7 +6,7 @@ It is also BAIL's imitation step: :class:`~torchrl_bail.algorithms.bail.BAIL` is
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config_builders import algo_config
+    >>> from torchrl_bail.configuration.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> algo = BehaviourCloning(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2),
     ...                         algo_config("bc", batch_size=8, epochs=1, policy={"hidden": [16]}))
@@ -25,14 +25,14 @@ from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.objectives import BCLoss
 
-from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import Algorithm
+from torchrl_bail.configuration.algo_schemas import AlgoConfig, NetConfig, algo_schema
 from torchrl_bail.modules import make_deterministic_actor
 
 __all__ = ["BehaviourCloning", "DeterministicActorAlgorithm", "make_bc_loss"]
 
 
-# -- the schema (conf/algo/bc.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/bc.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @algo_schema("bc")

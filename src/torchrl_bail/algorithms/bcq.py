@@ -6,7 +6,7 @@ plays the one the first critic values most. With batch 100, one epoch (10^6 samp
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config_builders import algo_config
+    >>> from torchrl_bail.configuration.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> small = {"hidden": [16, 16]}
     >>> config = algo_config("bcq", vae=small, actor=small, critic=small, batch_size=8)
@@ -26,16 +26,16 @@ import torch
 from omegaconf import MISSING
 from tensordict import TensorDictBase
 
-from torchrl_bail.algo_schemas import NetConfig, algo_schema
 from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, TwinCriticVAEConfig
-from torchrl_bail.config import non_negative
+from torchrl_bail.configuration.algo_schemas import NetConfig, algo_schema
+from torchrl_bail.configuration.config import non_negative
 from torchrl_bail.modules import make_perturbation_actor
 from torchrl_bail.objectives.bcq import BCQLoss
 
 __all__ = ["BCQ"]
 
 
-# -- the schema (conf/algo/bcq.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/bcq.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @algo_schema("bcq")

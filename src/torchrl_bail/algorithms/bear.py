@@ -29,16 +29,16 @@ from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algo_schemas import NetConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.twin_critic_vae import TwinCriticVAEAlgorithm, TwinCriticVAEConfig, adam
-from torchrl_bail.config import at_least, learning_rate, non_negative, positive
+from torchrl_bail.configuration.algo_schemas import NetConfig, algo_schema, schema_block
+from torchrl_bail.configuration.config import at_least, learning_rate, non_negative, positive
 from torchrl_bail.modules import make_sac_actor
 from torchrl_bail.objectives.bear import BEARLoss
 
 __all__ = ["BEAR"]
 
 
-# -- the schema (conf/algo/bear.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/bear.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @schema_block

@@ -63,17 +63,17 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives import IQLLoss, ValueEstimators
 
-from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import Algorithm, PrepareContext
 from torchrl_bail.algorithms.twin_critic_vae import use_vmap
-from torchrl_bail.config import discount, non_negative, one_of, rule
+from torchrl_bail.configuration.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema, schema_block
+from torchrl_bail.configuration.config import discount, non_negative, one_of, rule
 from torchrl_bail.data.returns import EPISODE_KEYS
 from torchrl_bail.modules import fused_soft_update, make_qvalue_network, mlp
 
 __all__ = ["IQL", "GaussianActorParams", "MeanAction", "episode_returns", "locomotion_reward_factor"]
 
 
-# -- the schema (conf/algo/iql.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/iql.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @schema_block

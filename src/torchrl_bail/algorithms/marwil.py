@@ -9,7 +9,7 @@ default init x 0.1, bias 0); the running normaliser ``c^2`` is saved in :meth:`M
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
-    >>> from torchrl_bail.config_builders import algo_config
+    >>> from torchrl_bail.configuration.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("marwil", batch_size=8, policy={"hidden": [16]}, value={"hidden": [16]})
     >>> algo = MARWIL(4, action_spec_from_bounds([-1.0] * 2, [1.0] * 2), config)
@@ -29,17 +29,18 @@ from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algo_schemas import AlgoConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import DeterministicActorAlgorithm
-from torchrl_bail.config import at_least, fraction, non_negative, positive
+from torchrl_bail.configuration.algo_schemas import AlgoConfig, NetConfig, algo_schema
+from torchrl_bail.configuration.config import at_least, fraction, non_negative, positive
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.marwil import MARWILLoss
 
 __all__ = ["MARWIL"]
 
 
-# -- the schema (conf/algo/marwil.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/marwil.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module
+# --
 
 
 @algo_schema("marwil")

@@ -10,7 +10,7 @@ Switches where the authors' code and the paper differ (where the paper and the a
 
 * ``best_envelope="paper"`` (the yaml's default): ``phi'`` is a real copy of the lowest-validation weights, and the
   training envelope reverts to it after ``patience`` non-improving validations (the count then restarts: the rule
-  of :class:`~torchrl_bail.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
+  of :class:`~torchrl_bail.training.envelope.EarlyStoppingTracker`, the same tracker static BAIL uses).
   ``"as_coded"``: the released code's aliasing: ``phi'`` is the live weights, no revert.
 * ``selection_envelope="best"`` (the yaml's default): the separate selection network selects; it receives ``phi'``
   whenever ``phi'`` changes (``best_envelope="paper"``: a real copy at every improvement), or, with
@@ -36,20 +36,27 @@ from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algo_schemas import AlgoConfig, EnvelopeConfig, NetConfig, SelectionConfig, algo_schema, schema_block
 from torchrl_bail.algorithms.base import PrepareContext
 from torchrl_bail.algorithms.bc import DeterministicActorAlgorithm, make_bc_loss
-from torchrl_bail.config import at_least, one_of
-from torchrl_bail.envelope import EarlyStoppingTracker, validation_loss
+from torchrl_bail.configuration.algo_schemas import (
+    AlgoConfig,
+    EnvelopeConfig,
+    NetConfig,
+    SelectionConfig,
+    algo_schema,
+    schema_block,
+)
+from torchrl_bail.configuration.config import at_least, one_of
+from torchrl_bail.core.stacking import SeedSlice
 from torchrl_bail.modules import make_value_network
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.stacking import SeedSlice
+from torchrl_bail.training.envelope import EarlyStoppingTracker, validation_loss
 from torchrl_bail.transforms.best_action import best_action_mask
 
 __all__ = ["ProgressiveBAIL"]
 
 
-# -- the schema (conf/algo/pbail.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/pbail.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @schema_block
@@ -189,7 +196,8 @@ class ProgressiveBAIL(DeterministicActorAlgorithm):
         return {"loss_envelope": loss_envelope.detach(), "loss_bc": loss_bc.detach(),
                 "selected_fraction": selected.float().mean(-1)}
 
-    # -- several seeds in one process (torchrl_bail.stacking.SeedStack) --------------------------------------------
+    # -- several seeds in one process (torchrl_bail.core.stacking.SeedStack)
+    # --------------------------------------------
     def stack_attributes(self, algorithms: list[ProgressiveBAIL]) -> None:
         """On the stack's host: the seeds' validation sets ``[S, n_val]``, update clock and early-stopping states;
         each seed's tracker and selection network act on its slice of the stacked envelopes."""

@@ -42,16 +42,16 @@ from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3BCLoss, ValueEstimators
 
-from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema
 from torchrl_bail.algorithms.base import Algorithm, PrepareContext
 from torchrl_bail.algorithms.twin_critic_vae import adam, use_vmap
-from torchrl_bail.config import at_least, discount, non_negative, positive, rule
+from torchrl_bail.configuration.algo_schemas import AlgoConfig, CriticConfig, NetConfig, algo_schema
+from torchrl_bail.configuration.config import at_least, discount, non_negative, positive, rule
 from torchrl_bail.modules import fused_soft_update, make_deterministic_actor, make_qvalue_network
 
 __all__ = ["TD3BC", "Standardize", "StandardizedPolicy"]
 
 
-# -- the schema (conf/algo/td3bc.yaml), read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema (conf/algo/td3bc.yaml), read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @algo_schema("td3bc")

@@ -16,16 +16,16 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import TensorSpec
 
-from torchrl_bail.algo_schemas import AlgoConfig, CriticConfig, NetConfig, schema_block
 from torchrl_bail.algorithms.base import Algorithm
-from torchrl_bail.config import at_least, discount, non_negative, positive, rule
+from torchrl_bail.configuration.algo_schemas import AlgoConfig, CriticConfig, NetConfig, schema_block
+from torchrl_bail.configuration.config import at_least, discount, non_negative, positive, rule
 from torchrl_bail.modules import fused_soft_update, make_qvalue_network, make_vae
 from torchrl_bail.objectives.common import BestOfNPolicy, TwinCriticVAELoss
 
 __all__ = ["TwinCriticVAEAlgorithm", "adam", "build_vae_and_critics", "use_vmap"]
 
 
-# -- the schema BCQ's and BEAR's share, read by torchrl_bail.algo_schemas without importing this module --
+# -- the schema BCQ's and BEAR's share, read by torchrl_bail.configuration.algo_schemas without importing this module --
 
 
 @schema_block

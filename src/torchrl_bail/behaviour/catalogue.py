@@ -14,10 +14,10 @@ import os
 import time
 from pathlib import Path
 
-from torchrl_bail import interrupts
 from torchrl_bail.behaviour import ddpg, execution, sac_run  # noqa: F401  (each registers its recipe)
 from torchrl_bail.behaviour.recipes import recipe_of
-from torchrl_bail.config_builders import collection_config
+from torchrl_bail.configuration.config_builders import collection_config
+from torchrl_bail.core import interrupts
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import batch_metadata, batch_name, batch_path, load_cached_batch
 from torchrl_bail.data.locks import HEARTBEAT, LOCKS, clean_stale, file_lock, liveness_settings, scratch_directory
@@ -31,7 +31,7 @@ def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | No
     """Loads the cached batch for ``cfg.env`` x ``cfg.batch``, collecting it first when it is not there yet.
 
     ``cfg``: a composed config (or its ``env``/``batch``/``data_dir``), typed and checked first
-    (:func:`~torchrl_bail.config_builders.collection_config`).
+    (:func:`~torchrl_bail.configuration.config_builders.collection_config`).
 
     Returns:
         the :class:`~torchrl_bail.data.batch.OfflineBatch`.

@@ -11,7 +11,7 @@ is the batch's directory name, or the SAC run's, hash included) and is written o
   collection env's ``np_random``), the recipe's own state (agent networks, target networks, optimizers,
   alpha, evaluations so far, ...), and the collection's wall time so far (:attr:`CollectionCheckpoint.wall_time_s`).
 
-Every file is written to a temporary name and renamed into place (:func:`~torchrl_bail.io.atomic_path`), so a
+Every file is written to a temporary name and renamed into place (:func:`~torchrl_bail.core.io.atomic_path`), so a
 kill at any moment leaves the previous complete checkpoint (segments named in ``state.pt`` exist before it is
 renamed): nothing half-written ever loads as whole. Each rename is fenced
 (:func:`~torchrl_bail.data.locks.check_fence`): a job whose lock was taken over meanwhile (suspended, or cut off
@@ -21,7 +21,7 @@ it, and its file is never published, so it cannot overwrite the checkpoint of th
 When: only at an episode end (after the agent's gradient steps and any evaluation), when
 ``batch.checkpoint_every_s`` seconds of work passed since the last one (default 120) or
 ``batch.checkpoint_every_steps`` env steps (``null`` by default; tests use it to force checkpoints), or when Ctrl-C
-or SIGTERM asked the entry point to stop (:mod:`torchrl_bail.interrupts`: the run goes on to the episode's end,
+or SIGTERM asked the entry point to stop (:mod:`torchrl_bail.core.interrupts`: the run goes on to the episode's end,
 saves, and stops there; one that came during the batch's last episode waits for the batch itself, or for the
 checkpoint before a recipe's final step such as SAC's final evaluation). MuJoCo envs
 cannot be pickled reliably, but at an episode end none is needed: the next reset is a function of the env's
@@ -50,9 +50,9 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_bail import interrupts
+from torchrl_bail.core import interrupts
+from torchrl_bail.core.io import atomic_path
 from torchrl_bail.data.locks import check_fence, partial_directory
-from torchrl_bail.io import atomic_path
 
 __all__ = ["CollectionCheckpoint", "Resumable", "CheckpointableAgent", "global_rng_state", "set_global_rng_state"]
 
@@ -144,7 +144,7 @@ class CollectionCheckpoint:
     def for_config(cls, cfg, data_dir: Path, key: str) -> CollectionCheckpoint:
         """The checkpoint ``<data_dir>/.partial/<key>`` every ``batch.checkpoint_every_s`` seconds and
         ``batch.checkpoint_every_steps`` env steps (``null``: never) of ``cfg``, a
-        :class:`~torchrl_bail.config_builders.CollectionConfig`."""
+        :class:`~torchrl_bail.configuration.config_builders.CollectionConfig`."""
         return cls(partial_directory(data_dir, key), every_s=cfg.batch.checkpoint_every_s,
                    every_steps=cfg.batch.checkpoint_every_steps)
 
@@ -263,14 +263,14 @@ class Resumable:
         return int(state["loop"]["t"])
 
     def maybe_save(self, t: int) -> None:
-        """Saves a checkpoint if one is due or Ctrl-C/SIGTERM asked for one (:mod:`torchrl_bail.interrupts`), and
+        """Saves a checkpoint if one is due or Ctrl-C/SIGTERM asked for one (:mod:`torchrl_bail.core.interrupts`), and
         then stops the run in the latter case (called by the loop at episode ends only)."""
         if interrupts.requested() is not None or self.checkpoint.due(t):
             self.save()
         self.stop_if_requested()
 
     def stop_if_requested(self) -> None:
-        """Raises :class:`~torchrl_bail.interrupts.Interrupted` naming the checkpoint just saved, if a signal asked
+        """Raises :class:`~torchrl_bail.core.interrupts.Interrupted` naming the checkpoint just saved, if a signal asked
         for a stop."""
         interrupts.stop_if_requested(f"the collection checkpoint at env step {self.runner.t} in "
                                      f"{self.checkpoint.directory}")

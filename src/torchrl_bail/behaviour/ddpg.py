@@ -46,7 +46,6 @@ from torchrl.objectives import DDPGLoss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td0_return_estimate
 
-from torchrl_bail.batch_schemas import BatchConfig, batch_schema, schema_block
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CheckpointableAgent, CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -60,7 +59,17 @@ from torchrl_bail.behaviour.loop import (
     seed_all,
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
-from torchrl_bail.config import Checked, at_least, discount, layers, learning_rate, non_negative, one_of, rule
+from torchrl_bail.configuration.batch_schemas import BatchConfig, batch_schema, schema_block
+from torchrl_bail.configuration.config import (
+    Checked,
+    at_least,
+    discount,
+    layers,
+    learning_rate,
+    non_negative,
+    one_of,
+    rule,
+)
 from torchrl_bail.data.cache import batch_name, behaviour_seed, episode_limit, oracle_settings
 from torchrl_bail.modules import (
     action_spec_from_bounds,
@@ -72,7 +81,8 @@ from torchrl_bail.modules import (
 __all__ = ["LateActionCritic", "make_ddpg_critic", "DDPGAgent", "collect_ddpg"]
 
 
-# -- the schema (conf/batch, recipe: ddpg), read by torchrl_bail.batch_schemas without importing this module --
+# -- the schema (conf/batch, recipe: ddpg), read by torchrl_bail.configuration.batch_schemas without importing this
+# module --
 
 
 @schema_block

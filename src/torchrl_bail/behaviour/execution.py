@@ -18,7 +18,6 @@ from omegaconf import MISSING
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_bail.batch_schemas import BatchConfig, batch_schema
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -32,7 +31,8 @@ from torchrl_bail.behaviour.loop import (
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac_run import SACAgentConfig, ensure_sac_run
-from torchrl_bail.config import one_of
+from torchrl_bail.configuration.batch_schemas import BatchConfig, batch_schema
+from torchrl_bail.configuration.config import one_of
 from torchrl_bail.data.cache import (
     batch_name,
     behaviour_seed,
@@ -44,7 +44,8 @@ from torchrl_bail.data.cache import (
 __all__ = ["EXEC_SEED_OFFSET", "collect_sac_exec"]
 
 
-# -- the schema (conf/batch, recipe: sac_exec), read by torchrl_bail.batch_schemas without importing this module --
+# -- the schema (conf/batch, recipe: sac_exec), read by torchrl_bail.configuration.batch_schemas without importing this
+# module --
 
 
 @batch_schema("sac_exec")

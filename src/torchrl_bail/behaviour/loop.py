@@ -30,11 +30,11 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 
-from torchrl_bail import interrupts
 from torchrl_bail.behaviour.buffers import BatchSink, BehaviourBuffers
+from torchrl_bail.core import interrupts
+from torchrl_bail.core.progress import tqdm
 from torchrl_bail.data.cache import plain
-from torchrl_bail.progress import tqdm
-from torchrl_bail.simulator import make_guarded_env
+from torchrl_bail.evaluation.simulator import make_guarded_env
 
 __all__ = ["TRANSITION_KEYS", "agent_kwargs", "seed_all", "make_collection_env", "env_bounds", "ReturnTracker",
            "BehaviourRun", "collect_timed", "env_steps_per_s"]
@@ -69,7 +69,7 @@ def seed_all(seed: int) -> None:
 def make_collection_env(env_id: str, *, max_episode_steps: int | None, seed: int):
     """One gymnasium env (``GymWrapper`` + ``DoubleToFloat``), seeded; never ``num_envs`` (zero terminal obs).
 
-    The gymnasium env is wrapped in a :class:`~torchrl_bail.simulator.SimulatorGuard`: a step on which MuJoCo
+    The gymnasium env is wrapped in a :class:`~torchrl_bail.evaluation.simulator.SimulatorGuard`: a step on which MuJoCo
     flags an instability ends the episode (``terminated``) instead of continuing from MuJoCo's silent reset;
     ``env.simulator_guard`` keeps it (its ``unstable_episodes`` go into the batch's metadata). Healthy
     transitions are unchanged. ``set_seed`` resets the env with ``seed``; the first episode starts from the reset
@@ -187,7 +187,7 @@ class BehaviourRun:
 
     @property
     def unstable_episodes(self) -> int:
-        """Episodes the :class:`~torchrl_bail.simulator.SimulatorGuard` ended on a simulator instability."""
+        """Episodes the :class:`~torchrl_bail.evaluation.simulator.SimulatorGuard` ended on a simulator instability."""
         return self._unstable_before + self.env.simulator_guard.unstable_episodes
 
     def state_dict(self) -> dict[str, Any]:
@@ -331,7 +331,7 @@ def collect_timed(buffers: BehaviourBuffers, runner: BehaviourRun, *,
     in every case; returns ``(batch, wall seconds)``. With a ``resumable``
     (:class:`~torchrl_bail.behaviour.checkpoint.Resumable`) the run first resumes from its last checkpoint, if
     any, and saves checkpoints as it goes, and at an episode end after Ctrl-C or SIGTERM, before it stops
-    (:mod:`torchrl_bail.interrupts`); the wall seconds then include those of the earlier processes the checkpoint
+    (:mod:`torchrl_bail.core.interrupts`); the wall seconds then include those of the earlier processes the checkpoint
     carried (:attr:`~torchrl_bail.behaviour.checkpoint.CollectionCheckpoint.wall_time_s`)."""
     start = time.perf_counter()
     try:

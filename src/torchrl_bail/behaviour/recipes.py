@@ -11,9 +11,11 @@ Recipes (``cfg.batch.recipe``), each a :class:`Recipe` registered at the end of 
 
 :func:`~torchrl_bail.behaviour.catalogue.collect_batch` asks :func:`recipe_of` for the recipe of ``cfg.batch`` and
 calls its :meth:`Recipe.collect`, :meth:`Recipe.checkpoint` and :meth:`Recipe.remove_checkpoint`; it never names one.
-Adding a recipe is one module and its yamls: its batch schema (a :class:`~torchrl_bail.batch_schemas.BatchConfig`
+Adding a recipe is one module and its yamls: its batch schema (a
+:class:`~torchrl_bail.configuration.batch_schemas.BatchConfig`
 subclass decorated with ``@batch_schema("<recipe>")``, read from the module without importing it, so that
-:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS` stays torch-free; kept equal to :data:`RECIPES` by a test) and a
+:data:`torchrl_bail.configuration.batch_schemas.BATCH_SCHEMAS` stays torch-free; kept equal to :data:`RECIPES` by a
+test) and a
 :class:`Recipe` subclass ending with ``register_recipe(MyRecipe())``; :mod:`torchrl_bail.behaviour` imports the
 recipe modules.
 
@@ -21,8 +23,9 @@ Any recipe can be collected in *oracle* mode (``batch.oracle.enabled=true``, sup
 :class:`~torchrl_bail.behaviour.buffers.BatchSink`. Names, hashes and cache paths are those of
 :mod:`torchrl_bail.data.cache`.
 
-A recipe's values are checked by its schema (:data:`torchrl_bail.batch_schemas.BATCH_SCHEMAS`)
-when :func:`~torchrl_bail.config_builders.collection_config` types a config, which every entry point of this package
+A recipe's values are checked by its schema (:data:`torchrl_bail.configuration.batch_schemas.BATCH_SCHEMAS`)
+when :func:`~torchrl_bail.configuration.config_builders.collection_config` types a config, which every entry point of
+this package
 calls first.
 
 Examples:
@@ -39,7 +42,7 @@ from typing import Any, ClassVar
 from tensordict import TensorDictBase
 
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
-from torchrl_bail.errors import ConfigError
+from torchrl_bail.core.errors import ConfigError
 
 __all__ = ["RECIPES", "Recipe", "recipe_of", "register_recipe"]
 
@@ -84,7 +87,7 @@ def register_recipe(recipe: Recipe, *, replace: bool = False) -> Recipe:
 
 
 def recipe_of(cfg) -> Recipe:
-    """The registered recipe of ``cfg.batch.recipe``; :class:`~torchrl_bail.errors.ConfigError` naming the known
+    """The registered recipe of ``cfg.batch.recipe``; :class:`~torchrl_bail.core.errors.ConfigError` naming the known
     ones otherwise."""
     name = cfg.batch.recipe
     if name not in RECIPES:

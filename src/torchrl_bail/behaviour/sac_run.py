@@ -40,7 +40,6 @@ from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_bail.batch_schemas import BatchConfig, batch_schema, schema_block
 from torchrl_bail.behaviour.buffers import BehaviourBuffers
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint, Resumable
 from torchrl_bail.behaviour.loop import (
@@ -55,7 +54,20 @@ from torchrl_bail.behaviour.loop import (
 )
 from torchrl_bail.behaviour.recipes import Recipe, register_recipe
 from torchrl_bail.behaviour.sac import SACAgent
-from torchrl_bail.config import Checked, at_least, discount, is_number, layers, learning_rate, one_of, positive, rule
+from torchrl_bail.configuration.batch_schemas import BatchConfig, batch_schema, schema_block
+from torchrl_bail.configuration.config import (
+    Checked,
+    at_least,
+    discount,
+    is_number,
+    layers,
+    learning_rate,
+    one_of,
+    positive,
+    rule,
+)
+from torchrl_bail.core.errors import ConfigError
+from torchrl_bail.core.io import atomic_path
 from torchrl_bail.data.batch import save_batch
 from torchrl_bail.data.cache import (
     batch_metadata,
@@ -77,9 +89,7 @@ from torchrl_bail.data.locks import (
     owned_name,
     scratch_directory,
 )
-from torchrl_bail.errors import ConfigError
 from torchrl_bail.evaluation import Evaluator
-from torchrl_bail.io import atomic_path
 from torchrl_bail.modules import action_spec_from_bounds, make_sac_actor
 
 __all__ = [
@@ -95,7 +105,8 @@ __all__ = [
 ]
 
 
-# -- the schema (conf/batch, recipe: sac), read by torchrl_bail.batch_schemas without importing this module --
+# -- the schema (conf/batch, recipe: sac), read by torchrl_bail.configuration.batch_schemas without importing this
+# module --
 
 
 @schema_block

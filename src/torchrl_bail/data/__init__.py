@@ -1,8 +1,8 @@
 """The bottom layer: the offline batch format, Monte-Carlo returns, dataset importers, the on-disk cache (names and
 hashes: ``cache``; multi-host locks: ``locks``; listing: ``listing``) and normalised scores.
 
-Nothing here imports the rest of :mod:`torchrl_bail` (only :mod:`torchrl_bail.io`, the atomic writes, and
-:mod:`torchrl_bail.errors`): the online behaviour agents that *produce* batches live in
+Nothing here imports the rest of :mod:`torchrl_bail` (only :mod:`torchrl_bail.core.io`, the atomic writes, and
+:mod:`torchrl_bail.core.errors`): the online behaviour agents that *produce* batches live in
 :mod:`torchrl_bail.behaviour`, the learners that consume them in :mod:`torchrl_bail.algorithms`.
 """
 

@@ -47,9 +47,9 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_bail.core.errors import BatchValidationError
+from torchrl_bail.core.io import write_json_atomic
 from torchrl_bail.data.locks import check_fence
-from torchrl_bail.errors import BatchValidationError
-from torchrl_bail.io import write_json_atomic
 
 __all__ = [
     "BatchValidationError",

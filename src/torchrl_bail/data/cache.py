@@ -16,7 +16,8 @@ Collecting a batch safely (scratch and partial directories, locks shared by seve
 :mod:`torchrl_bail.data.locks`; listing the cache is :mod:`torchrl_bail.data.listing`.
 
 The functions that name and hash a batch read a typed collection config (``cfg.env``, ``cfg.batch``,
-``cfg.data_dir``: a :class:`torchrl_bail.config_builders.CollectionConfig`, whose schemas checked every value), but
+``cfg.data_dir``: a :class:`torchrl_bail.configuration.config_builders.CollectionConfig`, whose schemas checked every
+value), but
 never produce data: the behaviour agents that fill the cache live in :mod:`torchrl_bail.behaviour`.
 
 Examples:

@@ -1,6 +1,6 @@
 """Collecting a batch safely when several jobs -- on several hosts -- share one ``data_dir``: owner records,
 heartbeats, locks, scratch and partial directories. Training runs lock their run directories with the same
-:func:`file_lock` (``wait=False``: :mod:`torchrl_bail.resume`).
+:func:`file_lock` (``wait=False``: :mod:`torchrl_bail.training.resume`).
 
 Interruption: nothing is ever written under a batch's final name until it is complete (``save_batch`` writes to a
 temporary directory and renames it). Work in progress lives in a scratch directory
@@ -91,7 +91,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from torchrl_bail.interrupts import stop_if_requested
+from torchrl_bail.core.interrupts import stop_if_requested
 
 __all__ = [
     "SCRATCH",

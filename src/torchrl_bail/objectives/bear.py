@@ -319,7 +319,7 @@ class BEARLoss(TwinCriticVAELoss):
 
     def _seed_log_alpha(self) -> torch.Tensor:
         """``log_alpha`` shaped to multiply per-state terms: a scalar, or (one multiplier per seed, stacked by
-        :class:`~torchrl_bail.stacking.SeedStack`) ``[S, 1]`` against ``[S, B]``."""
+        :class:`~torchrl_bail.core.stacking.SeedStack`) ``[S, 1]`` against ``[S, B]``."""
         return self.log_alpha.unsqueeze(-1) if self.log_alpha.ndim else self.log_alpha
 
     @torch.no_grad()

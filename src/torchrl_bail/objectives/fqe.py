@@ -93,7 +93,8 @@ class FQELoss(LossModule):
             :func:`~torchrl_bail.modules.make_qvalue_network`. Its parameters are the loss' parameters (shared);
             a target copy is made.
         policy_network (TensorDictModule): ``pi``; reads ``tensor_keys.observation`` and writes
-            ``tensor_keys.action`` (e.g. a policy from :func:`~torchrl_bail.policy.load_policy`). Its weights are
+            ``tensor_keys.action`` (e.g. a policy from :func:`~torchrl_bail.evaluation.policy.load_policy`). Its weights
+            are
             copied at construction into buffers (``policy_network_params``: they follow ``.to()`` and the
             ``state_dict`` and are never trained). It acts in TorchRL's deterministic mode; a policy that samples
             anyway (BCQ's and BEAR's best-of-N) draws from torch's global generator, one action per state.

@@ -54,7 +54,7 @@ class UpperEnvelopeLoss(LazyInKeysLoss):
     Per element the loss is ``(V - G)^2`` when ``V >= G`` and ``K * (V - G)^2`` when ``V < G`` (the
     authors' code puts ``V == G`` in the weight-1 branch). The regulariser ``lambda * ||phi||^2`` of the
     paper is *not* part of this loss: the authors implement it as coupled L2 in the optimizer,
-    ``torch.optim.Adam(..., weight_decay=0.02)`` (see :func:`~torchrl_bail.envelope.fit_upper_envelope`).
+    ``torch.optim.Adam(..., weight_decay=0.02)`` (see :func:`~torchrl_bail.training.envelope.fit_upper_envelope`).
 
     Args:
         value_network (TensorDictModule): the envelope ``V_phi``; it reads its ``in_keys`` (typically

@@ -18,7 +18,8 @@ Semantics:
   always called on the whole ``[*batch_shape]`` batch (finished episodes keep their last observation), so its
   outputs never depend on which other episodes are still running;
 * a simulator failure scores the episode 0 and is counted in :attr:`EvalResult.failures`: an exception raised by
-  the env, or a step that :class:`~torchrl_bail.simulator.SimulatorGuard` flags (a MuJoCo instability warning --
+  the env, or a step that :class:`~torchrl_bail.evaluation.simulator.SimulatorGuard` flags (a MuJoCo instability warning
+  --
   MuJoCo >= 3 resets the simulation instead of raising -- or a non-finite observation or reward); the run goes on.
 
 Seeding: the ``k``-th call (``k = 0, 1, ...``, :attr:`Evaluator.evaluations`) resets episode ``i`` with the seed
@@ -29,7 +30,7 @@ earlier ones did (set :attr:`Evaluator.evaluations` to resume a stream).
 Seeds: an evaluator plays the training seeds of a list, and :meth:`Evaluator.evaluate` returns one
 :class:`EvalResult` per seed. ``Evaluator(..., seeds=[s_1, ..., s_S])`` runs ``S x N`` episodes in one step loop; the
 policy sees observations of shape ``[S, N, obs_dim]`` (row ``s`` for seed ``s``, e.g. the seed-stacked policies of
-:mod:`torchrl_bail.stacking`), and each seed's result equals what ``Evaluator(..., seeds=[s_j])`` gives for that
+:mod:`torchrl_bail.core.stacking`), and each seed's result equals what ``Evaluator(..., seeds=[s_j])`` gives for that
 seed's policy (as long as the policy computes each row as it would alone: a matrix product's last bits can depend
 on the batch shape). A list of one seed (``seed=s`` is ``seeds=[s]``) is played by one unstacked policy on
 ``[N, obs_dim]`` observations, as a single-seed run's policy always was.
@@ -57,9 +58,9 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_bail.evaluation.simulator import make_guarded_env
 from torchrl_bail.modules import action_spec_from_bounds
 from torchrl_bail.ope import FQESettings
-from torchrl_bail.simulator import make_guarded_env
 
 __all__ = ["EvalResult", "Evaluator", "episode_seed"]
 

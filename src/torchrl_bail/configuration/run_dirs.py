@@ -1,6 +1,6 @@
 """Run-directory naming: which keys a run directory's name leaves out (:data:`RUN_ONLY_KEYS`, :data:`RUN_DIR_KEYS`,
 :func:`run_dir_excluded_keys`) and the ``run_dir_suffix`` / ``batch_label`` resolvers of ``conf/config.yaml``
-(registered by :func:`torchrl_bail.hydra_setup.config_dir`). Torch-free.
+(registered by :func:`torchrl_bail.configuration.hydra_setup.config_dir`). Torch-free.
 """
 
 from __future__ import annotations
@@ -11,14 +11,15 @@ import os
 import typing
 from pathlib import Path
 
-from torchrl_bail.config import Config
+from torchrl_bail.configuration.config import Config
 
 __all__ = ["RUN_DIR_KEYS", "RUN_ONLY_KEYS", "batch_label", "run_dir_excluded_keys", "run_dir_suffix"]
 
 
 
 #: the top-level keys marked :func:`run_only` in :class:`Config`: a checkpoint resumes across them
-#: (:mod:`torchrl_bail.resume`), the report never separates runs by them, run directories leave them out of their names
+#: (:mod:`torchrl_bail.training.resume`), the report never separates runs by them, run directories leave them out of
+# their names
 RUN_ONLY_KEYS = tuple(f.name for f in dataclasses.fields(Config) if f.metadata.get("run_only"))
 #: the other keys a run directory's name leaves out: those already in its path (``conf/config.yaml``'s
 #: ``hydra.run.dir``; ``seeds=``: one directory per seed) and ``dataset`` (a path)

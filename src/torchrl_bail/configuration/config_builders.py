@@ -11,11 +11,11 @@ from typing import Any, Optional  # noqa: UP035 -- OmegaConf reads these annotat
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS, blocks_with
-from torchrl_bail.batch_schemas import BATCH_SCHEMAS
-from torchrl_bail.config import Checked, EnvConfig, validate_config
-from torchrl_bail.errors import ConfigError
-from torchrl_bail.hydra_setup import config_dir
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS, blocks_with
+from torchrl_bail.configuration.batch_schemas import BATCH_SCHEMAS
+from torchrl_bail.configuration.config import Checked, EnvConfig, validate_config
+from torchrl_bail.configuration.hydra_setup import config_dir
+from torchrl_bail.core.errors import ConfigError
 
 __all__ = ["CollectionConfig", "algo_config", "checked_algo_config", "collection_config", "run_length_overrides",
            "tiny_run_overrides"]
@@ -48,7 +48,7 @@ def collection_config(cfg: Any) -> CollectionConfig:
         >>> collection_config({"env": cfg.env, "batch": {**cfg.batch, "recipe": "dqn"}})
         Traceback (most recent call last):
         ...
-        torchrl_bail.errors.ConfigError: config key batch.recipe = 'dqn': expected one of ddpg, sac, sac_exec
+        torchrl_bail.core.errors.ConfigError: config key batch.recipe = 'dqn': expected one of ddpg, sac, sac_exec
     """
     if isinstance(cfg, CollectionConfig):
         return cfg
@@ -83,7 +83,7 @@ def algo_config(name: str, /, **overrides: Any) -> DictConfig:
         >>> algo_config("bail", **{"selection.percentile": 1.5})
         Traceback (most recent call last):
         ...
-        torchrl_bail.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+        torchrl_bail.core.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
     """
     node = _algo_defaults(name)
     for key, value in overrides.items():
@@ -139,7 +139,7 @@ def run_length_overrides(name: str, updates: int, evaluations: Optional[int] = N
 def tiny_run_overrides(name: str, updates: int, hidden: Sequence[int], evaluations: Optional[int] = None) -> list[str]:
     """The command-line overrides of a run of algorithm ``name`` that takes seconds on a tiny batch: ``algo.epochs``
     for ``updates`` mini-batches of its yaml's size (at ``conf/config.yaml``'s ``samples_per_epoch``), every network
-    :func:`~torchrl_bail.algo_schemas.blocks_with` a ``hidden`` key ``hidden`` wide, its registry entry's
+    :func:`~torchrl_bail.configuration.algo_schemas.blocks_with` a ``hidden`` key ``hidden`` wide, its registry entry's
     ``tiny``, and, given ``evaluations``, an evaluation every ``1 / evaluations`` of the run (its length:
     :func:`run_length_overrides`). The contract suite's tiny runs (``tests/_contract.py``: 5 updates) and the kill
     drill (``benchmarks/kill_drill.py``: 300) are this at two lengths.

@@ -6,7 +6,8 @@ checked against its schema before any of them loads, so that a bad one fails in 
 algorithm's module takes to import (:func:`torchrl_bail.cli.run_cli`; ``benchmarks/bench_fail_fast.py`` measures
 both, in fresh processes).
 
-So each registry (:mod:`torchrl_bail.algo_schemas`, :mod:`torchrl_bail.batch_schemas`) reads its package when it is
+So each registry (:mod:`torchrl_bail.configuration.algo_schemas`, :mod:`torchrl_bail.configuration.batch_schemas`) reads
+its package when it is
 imported (:func:`read_schemas`): every module is parsed (:mod:`ast`) and only its schema classes run -- the classes
 decorated with the registry's decorator or :func:`schema_block` -- with the module's imports from
 :data:`TORCH_FREE_MODULES` and the schema classes it imports from its sibling modules. Nothing else of a module
@@ -14,12 +15,13 @@ runs. A class is defined once, so importing the module later gives back the very
 anything else (a constant of its module, a torch type), in its body, a method or a rule's lambda, is refused with
 its file, line and name.
 
-Reading both registries' schemas this way takes 0.045-0.055 s after ``torchrl_bail.config`` (5 fresh processes, one
+Reading both registries' schemas this way takes 0.045-0.055 s after ``torchrl_bail.configuration.config`` (5 fresh
+processes, one
 core, the other training), and ``python -m torchrl_bail.train +exp=hopper_ddpg05 algo=iql algo.batch_size=0``
 exits 2 with its one line in 0.46-0.55 s, torch never imported.
 
 Examples:
-    >>> from torchrl_bail.algo_schemas import ALGO_SCHEMAS
+    >>> from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
     >>> from torchrl_bail.algorithms import bcq
     >>> ALGO_SCHEMAS["bcq"].__module__, ALGO_SCHEMAS["bcq"] is bcq.BCQConfig
     ('torchrl_bail.algorithms.bcq', True)
@@ -39,9 +41,10 @@ from typing import Any
 __all__ = ["TORCH_FREE_MODULES", "SchemaReadError", "read_schemas", "register_as", "schema_block"]
 
 #: the modules whose imports the reader runs: what a schema may use besides the schema classes of its siblings
-TORCH_FREE_MODULES = frozenset({"typing", "dataclasses", "omegaconf", "torchrl_bail.config", "torchrl_bail.errors",
-                                "torchrl_bail.schema_reader", "torchrl_bail.algo_schemas",
-                                "torchrl_bail.batch_schemas"})
+TORCH_FREE_MODULES = frozenset({"typing", "dataclasses", "omegaconf", "torchrl_bail.configuration.config",
+    "torchrl_bail.core.errors",
+                                "torchrl_bail.configuration.schema_reader", "torchrl_bail.configuration.algo_schemas",
+                                "torchrl_bail.configuration.batch_schemas"})
 
 #: (module, class name) -> every schema class defined, read or imported, so that each is defined once
 _DEFINED: dict[tuple[str, str], type] = {}
@@ -135,7 +138,7 @@ def _check_globals(cls: type, namespace: dict, path: Path, module: str) -> None:
     functions += [f for field in getattr(cls, "__dataclass_fields__", {}).values()
                   for f in _functions(field.metadata.get("check"))]
     for function in functions:
-        if function.__globals__ is not namespace:  # defined elsewhere (a rule of torchrl_bail.config)
+        if function.__globals__ is not namespace:  # defined elsewhere (a rule of torchrl_bail.configuration.config)
             continue
         for code in _code_objects(function.__code__):
             for instruction in dis.get_instructions(code):

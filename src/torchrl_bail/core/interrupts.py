@@ -1,6 +1,7 @@
 """Ctrl-C and SIGTERM as "checkpoint now, then stop": a signal becomes a request that the loops honour at a safe point.
 
-A leaf module (it imports nothing from the package), so that the training loop (:mod:`torchrl_bail.trainer`) and the
+A leaf module (it imports nothing from the package), so that the training loop (:mod:`torchrl_bail.training.trainer`)
+and the
 collection loop (:mod:`torchrl_bail.behaviour.loop`) poll it without importing the entry points that install it.
 
 * :func:`handled` installs the handlers; only the entry points (``train``, ``collect``, through

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_bail.io import atomic_path
+from torchrl_bail.core.io import atomic_path
 
 __all__ = ["new_figure", "save_figure", "plot_learning_curve", "plot_envelope", "read_eval_curve", "mean_curve"]
 
@@ -40,7 +40,7 @@ def save_figure(fig, path: Path, dpi: int = 120) -> Path:
 
 
 def __getattr__(name: str):
-    """``from torchrl_bail.plots import plt``: pyplot, imported on first use (its default backend)."""
+    """``from torchrl_bail.reports.plots import plt``: pyplot, imported on first use (its default backend)."""
     if name == "plt":
         import matplotlib.pyplot as plt
 
@@ -84,7 +84,8 @@ def plot_envelope(values, returns, path: str | Path, *, title: str | None = None
     """The paper's Fig. 13: states sorted by ``V`` ascending, the envelope as a line, the returns as dots.
 
     Args:
-        values: ``V(s_i)``, ``[N]`` (a CPU tensor or array, e.g. :func:`~torchrl_bail.envelope.envelope_values`).
+        values: ``V(s_i)``, ``[N]`` (a CPU tensor or array, e.g.
+        :func:`~torchrl_bail.training.envelope.envelope_values`).
         returns: ``G_i``, ``[N]``.
         path (str or Path): the image file (``.png``, ``.pdf``, ...).
 

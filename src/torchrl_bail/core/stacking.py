@@ -14,7 +14,7 @@ serves every seed:
   ``B``) and then average over the seeds, so a gradient hook multiplies every stacked parameter's gradient by
   ``S``: each seed's slice receives exactly its own loss' gradient, and Adam (elementwise) over the stacked tensors
   is per-seed Adam; BEAR's Lagrange multiplier and MARWIL's ``c2`` are one per seed;
-* BAIL fits the ``S`` upper envelopes as one stacked network (:func:`~torchrl_bail.envelope.fit_upper_envelope`
+* BAIL fits the ``S`` upper envelopes as one stacked network (:func:`~torchrl_bail.training.envelope.fit_upper_envelope`
   of ``S`` networks, :class:`SeedModules`): each seed has its own split, epoch shuffles, validation loss, patience
   counter, reverts and best weights, and selects its best actions under its own envelope; Progressive BAIL keeps
   per-seed validation sets and early-stopping trackers on slices of the stacked envelopes and selects inside each
@@ -25,7 +25,8 @@ serves every seed:
 
 One seed is not a stack of one. A seed dimension of size 1 would send every layer through a batched matrix product,
 which rounds differently from the plain one, so the functions that take a list of seeds keep a list of one
-unstacked: :func:`torchrl_bail.trainer.make_trainee` trains one algorithm itself, :class:`SeedModules` of one module
+unstacked: :func:`torchrl_bail.training.trainer.make_trainee` trains one algorithm itself, :class:`SeedModules` of one
+module
 is that module, and an :class:`~torchrl_bail.evaluation.Evaluator` of one seed plays a ``[N, obs_dim]`` policy. A
 single-seed run is thereby the run it was before seeds could be stacked, to every digit.
 
@@ -38,7 +39,7 @@ Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-    >>> from torchrl_bail.config_builders import algo_config
+    >>> from torchrl_bail.configuration.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("bc", batch_size=8, policy={"hidden": [16]})
     >>> def build(seed):
@@ -130,7 +131,8 @@ class SeedSlice:
     """Seed ``s``'s view of a seed-stacked module, as far as saving and loading weights goes: ``state_dict()`` holds
     views of its slices of the parameters (the buffers as they are) under the single module's keys, and
     ``load_state_dict`` writes into those slices. What per-seed early stopping
-    (:class:`~torchrl_bail.envelope.EarlyStoppingTracker`, :class:`~torchrl_bail.envelope.BestWeights`) records and
+    (:class:`~torchrl_bail.training.envelope.EarlyStoppingTracker`,
+    :class:`~torchrl_bail.training.envelope.BestWeights`) records and
     restores.
 
     Examples:
@@ -161,7 +163,7 @@ class SeedSlice:
 
 class SeedModules:
     """``S`` modules of one architecture, one per seed, as one module to train (BAIL's envelopes in
-    :func:`~torchrl_bail.envelope.fit_upper_envelope`).
+    :func:`~torchrl_bail.training.envelope.fit_upper_envelope`).
 
     For ``S > 1``, :attr:`module` holds the modules' parameters stacked along a leading seed dimension
     (:func:`stack_modules`: inputs ``[S, *B, in]``, row ``s`` through ``modules[s]``), :attr:`seeds` is each seed's
@@ -269,7 +271,7 @@ def _other_buffers(algorithm, stacked_ids: set[int]) -> dict[str, torch.Tensor]:
 
 class SeedStack:
     """``S`` independently initialised copies of one algorithm, trained by one update step (see the module
-    docstring); :class:`StackedTrainee` trains it (:func:`torchrl_bail.trainer.train`).
+    docstring); :class:`StackedTrainee` trains it (:func:`torchrl_bail.training.trainer.train`).
 
     Args:
         algorithms: ``S`` algorithms of one class and config, each built (and prepared) as its single-seed run
@@ -362,7 +364,7 @@ class SeedStack:
     def seed_checkpoints(self, state: dict[str, Any]) -> list[dict[str, Any]]:
         """The training loop's checkpoint ``state`` of the stack (per-seed ``evaluations``, ``[S]`` metric sums, the
         :class:`SeedBatchSampler`'s generators) split into one checkpoint per seed in the single-seed format of
-        :func:`torchrl_bail.trainer.train`: the seed's own ``algorithm`` state (after :meth:`unstack`), and as
+        :func:`torchrl_bail.training.trainer.train`: the seed's own ``algorithm`` state (after :meth:`unstack`), and as
         ``rng["torch"]`` (or ``"torch_cuda"``) its mini-batch stream, where a single-seed run keeps it. Each can
         be resumed by the single-seed run of that seed, or all of them by the stacked run (:meth:`merge_checkpoints`;
         the stack's own global streams ride along under ``"stack_rng"``)."""
@@ -503,7 +505,7 @@ class SeedBatchSampler:
 
 
 class StackedTrainee:
-    """``S`` seeds trained as one (:func:`torchrl_bail.trainer.train`' trainee): ``stack``'s update on the
+    """``S`` seeds trained as one (:func:`torchrl_bail.training.trainer.train`' trainee): ``stack``'s update on the
     ``[S, B]`` mini-batches of ``sampler``, each seed's checkpoint a single-seed one
     (:meth:`SeedStack.seed_checkpoints`).
 

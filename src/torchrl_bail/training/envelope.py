@@ -11,7 +11,7 @@ It is built from named steps that Progressive BAIL (:mod:`torchrl_bail.algorithm
 one early-stopping rule, :class:`EarlyStoppingTracker`, with its :class:`BestWeights` record ``phi'``.
 
 :func:`envelope_values` evaluates a fitted envelope over a whole batch and :func:`fraction_below` measures how
-many returns it fails to cover (:func:`torchrl_bail.plots.plot_envelope` draws the paper's Fig. 13).
+many returns it fails to cover (:func:`torchrl_bail.reports.plots.plot_envelope` draws the paper's Fig. 13).
 
 Examples:
     >>> import torch
@@ -40,9 +40,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from torchrl_bail.core.progress import tqdm
+from torchrl_bail.core.stacking import SeedModules
 from torchrl_bail.objectives.upper_envelope import UpperEnvelopeLoss
-from torchrl_bail.progress import tqdm
-from torchrl_bail.stacking import SeedModules
 
 __all__ = [
     "EarlyStopping",
@@ -352,7 +352,7 @@ def envelope_step(loss_module: UpperEnvelopeLoss, optimizer: torch.optim.Optimiz
                   batch: TensorDictBase) -> torch.Tensor:
     """One Adam step on the penalty loss of ``batch``; returns the detached loss.
 
-    Seed-stacked envelopes (:func:`~torchrl_bail.stacking.stack_modules`, a ``[S, B]`` batch, a loss with
+    Seed-stacked envelopes (:func:`~torchrl_bail.core.stacking.stack_modules`, a ``[S, B]`` batch, a loss with
     ``reduction="none"``): the loss is each seed's mean ``[S]``, and their sum is back-propagated, so each seed's
     slice receives exactly its own gradient.
     """
@@ -463,7 +463,7 @@ def fit_upper_envelope(
       Without a validation set (``val_fraction=0`` or a tiny batch) there is no early stopping and the last
       weights are returned in every mode.
 
-    **Seeds.** The ``S`` networks are fitted as one (:class:`~torchrl_bail.stacking.SeedModules`): their parameters
+    **Seeds.** The ``S`` networks are fitted as one (:class:`~torchrl_bail.core.stacking.SeedModules`): their parameters
     stacked along a seed dimension, the mini-batches of all seeds through one batched step, each seed's mean loss
     back-propagated into its own slice. Each seed keeps its own split, shuffles, validation losses, early stopping
     (patience count, best weights) and returned weights: those of its own fit with its generator, to float rounding

@@ -4,21 +4,21 @@
 update step, evaluates the deterministic policy every ``eval_every_epochs`` (an epoch is 10^6 samples
 consumed, the paper's unit), logs scalars, shows a progress bar with ETA and the latest evaluation return,
 and writes an atomic checkpoint before the first update, after each evaluation and every few minutes, and, when
-the entry point turned Ctrl-C or SIGTERM into a request (:mod:`torchrl_bail.interrupts`), after the update during
-which it came, before it raises :class:`~torchrl_bail.interrupts.Interrupted`. Given
+the entry point turned Ctrl-C or SIGTERM into a request (:mod:`torchrl_bail.core.interrupts`), after the update during
+which it came, before it raises :class:`~torchrl_bail.core.interrupts.Interrupted`. Given
 that checkpoint back (``resume_from``), it continues where the checkpoint left off and produces the same numbers
 as a run that was never interrupted (docs: "Interrupted runs and preemption").
 
 :func:`train` trains a :class:`Trainee` of ``S >= 1`` seeds and keeps every per-seed value (loggers, callbacks,
 histories, checkpoint paths) in lists of ``S``; one seed is a list of one. :func:`make_trainee` makes the trainee of
 a list of algorithms: one algorithm trains itself (:class:`AlgorithmTrainee`), ``S > 1`` train stacked
-(:class:`~torchrl_bail.stacking.StackedTrainee`).
+(:class:`~torchrl_bail.core.stacking.StackedTrainee`).
 
 Examples:
     >>> import torch
     >>> from tensordict import TensorDict
     >>> from torchrl_bail.algorithms.bc import BehaviourCloning
-    >>> from torchrl_bail.config_builders import algo_config
+    >>> from torchrl_bail.configuration.config_builders import algo_config
     >>> from torchrl_bail.modules import action_spec_from_bounds
     >>> config = algo_config("bc", batch_size=10, epochs=100 / 1e6, policy={"hidden": [8]})
     >>> algo = BehaviourCloning(3, action_spec_from_bounds([-1.0], [1.0]), config)
@@ -45,13 +45,13 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import RandomSampler, TensorStorage
 
-from torchrl_bail import interrupts
 from torchrl_bail.algorithms.base import Algorithm
+from torchrl_bail.core import interrupts
+from torchrl_bail.core.io import write_atomic
+from torchrl_bail.core.progress import tqdm
+from torchrl_bail.core.stacking import SeedBatchSampler, SeedStack, StackedTrainee
 from torchrl_bail.data.local_buffer import local_replay_buffer
 from torchrl_bail.data.locks import check_fence
-from torchrl_bail.io import write_atomic
-from torchrl_bail.progress import tqdm
-from torchrl_bail.stacking import SeedBatchSampler, SeedStack, StackedTrainee
 
 __all__ = ["CHECKPOINT_FORMAT", "AlgorithmTrainee", "EvalPoint", "TrainHistory", "Trainee", "evaluation_count",
            "make_trainee", "rng_state", "save_checkpoint", "set_rng_state", "snapshot_indices", "train"]
@@ -153,8 +153,9 @@ class Trainee(Protocol):
     """What :func:`train` trains: ``S >= 1`` seeds of one algorithm, seen as one learner (:func:`make_trainee`).
 
     :class:`AlgorithmTrainee` is one seed's algorithm with TorchRL's replay buffer;
-    :class:`~torchrl_bail.stacking.StackedTrainee` is a :class:`~torchrl_bail.stacking.SeedStack` of ``S`` seeds with
-    its :class:`~torchrl_bail.stacking.SeedBatchSampler`. Per-seed values travel as lists of ``S``.
+    :class:`~torchrl_bail.core.stacking.StackedTrainee` is a :class:`~torchrl_bail.core.stacking.SeedStack` of ``S``
+    seeds with
+    its :class:`~torchrl_bail.core.stacking.SeedBatchSampler`. Per-seed values travel as lists of ``S``.
     """
 
     name: str
@@ -257,8 +258,9 @@ def make_trainee(algorithms: Sequence[Algorithm], datas: Sequence[TensorDictBase
 
     One algorithm trains itself (:class:`AlgorithmTrainee`): its mini-batches come from TorchRL's replay buffer on
     the global random stream, and its update is the plain one, so a list of one is the single-seed run to every
-    digit (a seed-stacked update of one seed would round differently, see :mod:`torchrl_bail.stacking`). ``S > 1``
-    train as one :class:`~torchrl_bail.stacking.SeedStack` on a :class:`~torchrl_bail.stacking.SeedBatchSampler`
+    digit (a seed-stacked update of one seed would round differently, see :mod:`torchrl_bail.core.stacking`). ``S > 1``
+    train as one :class:`~torchrl_bail.core.stacking.SeedStack` on a
+    :class:`~torchrl_bail.core.stacking.SeedBatchSampler`
     whose ``streams`` (per seed, the generator on the algorithms' device its mini-batch indices come from) give
     each seed its single-seed run's mini-batches.
     """

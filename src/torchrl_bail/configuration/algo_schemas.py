@@ -1,11 +1,14 @@
 """The algorithms' registry (:data:`ALGO_SCHEMAS`): each algorithm's schema (``conf/algo``), named
-``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`), is its registry entry
+``algo/base_<name>_schema`` in Hydra (:func:`torchrl_bail.configuration.hydra_setup.register_schemas`), is its registry
+entry
 (:class:`AlgoConfig`'s class variables): what the study, the drills, the contract suite and the docs know of an
-algorithm besides its keys. The rules come from :mod:`torchrl_bail.config`; this module holds the keys every
+algorithm besides its keys. The rules come from :mod:`torchrl_bail.configuration.config`; this module holds the keys
+every
 algorithm has, the blocks several share and the registration (:func:`algo_schema`, :func:`schema_block`).
 
 A schema is written in its algorithm's module (``algorithms/<name>.py``), beside the update step, and read from
-there without importing it when this module is imported (:mod:`torchrl_bail.schema_reader`: why, and what a schema
+there without importing it when this module is imported (:mod:`torchrl_bail.configuration.schema_reader`: why, and what
+a schema
 may use); importing the module later gives back the same classes.
 """
 
@@ -18,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, List, Optional  # noqa: UP035 -- OmegaConf reads these annotations at runtime
 
-from torchrl_bail.config import (
+from torchrl_bail.configuration.config import (
     Checked,
     at_least,
     fraction,
@@ -29,7 +32,7 @@ from torchrl_bail.config import (
     registry_name,
     rule,
 )
-from torchrl_bail.schema_reader import read_schemas, register_as, schema_block
+from torchrl_bail.configuration.schema_reader import read_schemas, register_as, schema_block
 
 __all__ = ["ALGO_SCHEMAS", "AlgoConfig", "CriticConfig", "EnvelopeConfig", "NetConfig", "SelectionConfig",
            "algo_schema", "blocks_with", "entry_gaps", "envelope_algorithm", "schema_block", "study_algorithms"]
@@ -120,7 +123,7 @@ def algo_schema(name: str) -> Callable[[type], type]:
     """Registers the decorated class as algorithm ``name``'s schema and registry entry (``algo=<name>``,
     ``conf/algo/<name>.yaml``) in :data:`ALGO_SCHEMAS`, made a dataclass. It is written in the algorithm's own
     module, beside its update step, and read from there without importing the module
-    (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads.
+    (:mod:`torchrl_bail.configuration.schema_reader`), so a bad command line fails before torch loads.
 
     Examples:
         >>> from torchrl_bail.algorithms import iql
@@ -133,7 +136,7 @@ def algo_schema(name: str) -> Callable[[type], type]:
 def _read_algorithm_schemas() -> None:
     """Fills :data:`ALGO_SCHEMAS` from the modules of :mod:`torchrl_bail.algorithms` without importing them, in
     :attr:`AlgoConfig.column` order."""
-    read_schemas(Path(__file__).with_name("algorithms"), f"{__package__}.algorithms", {"algo_schema"},
+    read_schemas(Path(__file__).parents[1] / "algorithms", "torchrl_bail.algorithms", {"algo_schema"},
                  ALGO_SCHEMAS, key=lambda name, schema: (schema.column, name))
 
 

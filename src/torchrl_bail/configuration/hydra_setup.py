@@ -9,10 +9,10 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from torchrl_bail.algo_schemas import ALGO_SCHEMAS
-from torchrl_bail.batch_schemas import BATCH_SCHEMAS
-from torchrl_bail.config import Config
-from torchrl_bail.run_dirs import batch_label, run_dir_suffix
+from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
+from torchrl_bail.configuration.batch_schemas import BATCH_SCHEMAS
+from torchrl_bail.configuration.config import Config
+from torchrl_bail.configuration.run_dirs import batch_label, run_dir_suffix
 
 __all__ = ["config_dir", "group_options", "register_schemas"]
 
@@ -127,8 +127,9 @@ def config_dir() -> Path:
 
     An installed wheel ships them as ``torchrl_bail/conf``; a source checkout (editable install) keeps
     them at the repository's top-level ``conf/``. The typed schemas the yaml files name
-    (:mod:`torchrl_bail.algo_schemas`,
-    :mod:`torchrl_bail.batch_schemas`) are registered with Hydra's ConfigStore on the way, and the resolvers
+    (:mod:`torchrl_bail.configuration.algo_schemas`,
+    :mod:`torchrl_bail.configuration.batch_schemas`) are registered with Hydra's ConfigStore on the way, and the
+    resolvers
     ``conf/config.yaml`` uses (:func:`run_dir_suffix`, :func:`batch_label`; ``config_groups``, :func:`group_options`
     for ``--help``).
     """
@@ -137,10 +138,10 @@ def config_dir() -> Path:
                            ("config_groups", _groups_help), ("command_help", _command_help)):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
-    packaged = Path(__file__).resolve().parent / "conf"
+    packaged = Path(__file__).resolve().parents[1] / "conf"
     if packaged.is_dir():
         return packaged
-    repo = Path(__file__).resolve().parents[2] / "conf"
+    repo = Path(__file__).resolve().parents[3] / "conf"
     if repo.is_dir():
         return repo
     raise FileNotFoundError(

@@ -53,7 +53,7 @@ import torch
 from torch import nn
 
 from torchrl_bail.algorithms import ALGORITHMS
-from torchrl_bail.io import atomic_path, write_atomic
+from torchrl_bail.core.io import atomic_path, write_atomic
 from torchrl_bail.modules import action_spec_from_bounds
 
 __all__ = ["POLICY_FORMAT", "EXPORT_FORMATS", "PolicyFileError", "save_policy", "read_policy_file", "load_policy",

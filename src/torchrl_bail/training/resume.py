@@ -11,7 +11,7 @@ the remaining command-line overrides; see ``conf/config.yaml``), so the same com
 * ``<run_dir>``: continue another directory's checkpoint (its scalar logs come along) into this run directory.
 
 A checkpoint whose config differs from the command's in anything but the run-only keys
-(:data:`~torchrl_bail.run_dirs.RUN_ONLY_KEYS`, marked in the schema)
+(:data:`~torchrl_bail.configuration.run_dirs.RUN_ONLY_KEYS`, marked in the schema)
 is refused with one line naming the differing keys (exit status 2), never silently mixed. Resuming truncates the
 CSV scalar logs to their sizes when the checkpoint was written, so rows are neither lost nor repeated. The run
 directory is locked while a run uses it, with the batches' owner-file lock (:data:`RUN_LOCK`): a second process on
@@ -25,7 +25,7 @@ Damaged files: a ``checkpoint.pt`` that does not load (a truncated copy, a disk 
 ``resume=<run_dir>`` stop with one line instead). A ``summary.json`` that does not parse is set aside as
 ``summary.json.corrupt`` when a whole finished checkpoint can write it again; without one, one line says to train
 the run again (``resume=false``). A file-system fault while the run writes (full disk, permissions, read-only) ends
-in one :class:`~torchrl_bail.io.FileSystemError` line naming the file, or the run directory.
+in one :class:`~torchrl_bail.core.io.FileSystemError` line naming the file, or the run directory.
 
 Examples:
     >>> diff_configs({"a": 1, "b": {"c": 2}}, {"a": 1, "b": {"c": 3}})
@@ -44,10 +44,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_bail.configuration.run_dirs import RUN_ONLY_KEYS
+from torchrl_bail.core.errors import ResumeError
+from torchrl_bail.core.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
 from torchrl_bail.data.locks import HEARTBEAT, LockHeld, LockLost, file_lock
-from torchrl_bail.errors import ResumeError
-from torchrl_bail.io import FileSystemError, describe_file_error, file_fault, write_text_atomic
-from torchrl_bail.run_dirs import RUN_ONLY_KEYS
 
 __all__ = ["ADDED_KEYS", "RENAMED_KEYS", "RUN_ONLY_KEYS", "ResumeError", "Resumption", "diff_configs",
            "record_config"]
@@ -190,7 +190,7 @@ class Resumption:
 
     def _raise_file_system_error(self, err: BaseException | None) -> None:
         """A file-system fault without a file of its own (e.g. a full disk under a logger's write) is raised as one
-        :class:`~torchrl_bail.io.FileSystemError` line naming the run directory."""
+        :class:`~torchrl_bail.core.io.FileSystemError` line naming the run directory."""
         fault = None if isinstance(err, FileSystemError) else file_fault(err)
         if fault is not None:
             raise FileSystemError(describe_file_error(fault, fault.filename or self.run_dir)) from err
@@ -398,7 +398,7 @@ class Resumption:
     def checkpoint_extra(self) -> dict[str, Any]:
         """Run-level entries of every checkpoint: config, CSV log sizes, resume history, batch fingerprint.
 
-        Raises :class:`~torchrl_bail.errors.ResumeError` instead when another job took the run directory over."""
+        Raises :class:`~torchrl_bail.core.errors.ResumeError` instead when another job took the run directory over."""
         if self._lock is not None:
             self._check_lock()
         extra = {"config": self.config, "resumed_from": self.resumed_from, "data_fingerprint": self._fingerprint}

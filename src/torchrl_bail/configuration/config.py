@@ -11,8 +11,9 @@ The yaml files hold every value (one default per constant, with its comment); a 
 the allowed ranges, written with the rules of this module (:func:`positive`, :func:`one_of`, ...). The
 groups' schemas live beside what they configure: each algorithm's in its module of :mod:`torchrl_bail.algorithms`,
 each batch recipe's in its module of :mod:`torchrl_bail.behaviour`, read torch-free into their registries,
-:mod:`torchrl_bail.algo_schemas` and :mod:`torchrl_bail.batch_schemas` (:mod:`torchrl_bail.schema_reader`);
-:mod:`torchrl_bail.hydra_setup` registers them with Hydra. Hydra rejects a wrong type (``seed=abc``) or an
+:mod:`torchrl_bail.configuration.algo_schemas` and :mod:`torchrl_bail.configuration.batch_schemas`
+(:mod:`torchrl_bail.configuration.schema_reader`);
+:mod:`torchrl_bail.configuration.hydra_setup` registers them with Hydra. Hydra rejects a wrong type (``seed=abc``) or an
 unknown key (``algo.foo=1``) while it composes;
 :func:`validate_config` then instantiates every schema node bottom-up, so each ``__post_init__`` range check runs
 and the first failure raises :class:`ConfigError` naming the full key and what was expected. The top level checks
@@ -24,13 +25,13 @@ command-line front that turns its errors into one line is :mod:`torchrl_bail.cli
 Examples:
     >>> from hydra import compose, initialize_config_dir
     >>> from torchrl_bail import config_dir
-    >>> from torchrl_bail.config import validate_config
+    >>> from torchrl_bail.configuration.config import validate_config
     >>> with initialize_config_dir(str(config_dir()), version_base="1.3"):
     ...     cfg = compose("config", overrides=["+exp=hopper_ddpg05", "algo.selection.percentile=1.5"])
     >>> validate_config(cfg)
     Traceback (most recent call last):
     ...
-    torchrl_bail.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
+    torchrl_bail.core.errors.ConfigError: config key algo.selection.percentile = 1.5: expected a fraction in (0, 1]
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from typing import Any, Optional  # noqa: UP035 -- OmegaConf reads these annotat
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_bail.errors import ConfigError
+from torchrl_bail.core.errors import ConfigError
 
 __all__ = ["COMPILE_MODES", "Config", "ConfigError", "DDPG_ENVS", "EnvConfig", "RESUME_MODES",
            "is_compile_setting", "option_name", "registry_name", "run_only", "validate_config"]
@@ -118,8 +119,8 @@ def learning_rate():
 
 def registry_name(registry: str):
     """A key holding its schema's name in a registry (``algo.name`` in
-    :data:`~torchrl_bail.algo_schemas.ALGO_SCHEMAS`, ``batch.recipe`` in
-    :data:`~torchrl_bail.batch_schemas.BATCH_SCHEMAS`), checked by :meth:`Checked._registered_as`."""
+    :data:`~torchrl_bail.configuration.algo_schemas.ALGO_SCHEMAS`, ``batch.recipe`` in
+    :data:`~torchrl_bail.configuration.batch_schemas.BATCH_SCHEMAS`), checked by :meth:`Checked._registered_as`."""
     return field(default=MISSING, metadata={"registry": registry, "expected": f"this schema's name in {registry}"})
 
 
@@ -223,7 +224,7 @@ def _device_name(v: str) -> bool:
     return v in ("cpu", "cuda", "auto") or (v.startswith("cuda:") and v[5:].isdigit())
 
 
-#: the ``resume`` key's words; any other value must be an existing run directory (:mod:`torchrl_bail.resume`)
+#: the ``resume`` key's words; any other value must be an existing run directory (:mod:`torchrl_bail.training.resume`)
 RESUME_MODES = ("auto", "true", "false")
 _RESUME_EXPECTED = " | ".join(RESUME_MODES) + " | an existing run directory"
 
@@ -250,7 +251,7 @@ class Config(Checked):
     data_dir: Optional[str] = run_only()
     dataset: Optional[str] = MISSING
     progress: bool = run_only()
-    resume: str = run_only(_resume_rule())   # auto | true | false | <run_dir> (see torchrl_bail.resume)
+    resume: str = run_only(_resume_rule())   # auto | true | false | <run_dir> (see torchrl_bail.training.resume)
     threads: Optional[int] = run_only(rule(lambda v: v is None or v >= 1,  # noqa: UP045
                                             "null or a number of threads >= 1"))
     returns: ReturnsConfig = MISSING

@@ -1,8 +1,10 @@
 """The batch recipes' registry (:data:`BATCH_SCHEMAS`, ``conf/batch``): one schema per recipe, named
-``batch/base_<recipe>_schema`` in Hydra (:func:`torchrl_bail.hydra_setup.register_schemas`); the rules come from
-:mod:`torchrl_bail.config`. This module holds the keys every batch has; a recipe's schema is written in its module of
+``batch/base_<recipe>_schema`` in Hydra (:func:`torchrl_bail.configuration.hydra_setup.register_schemas`); the rules
+come from
+:mod:`torchrl_bail.configuration.config`. This module holds the keys every batch has; a recipe's schema is written in
+its module of
 :mod:`torchrl_bail.behaviour` (``@batch_schema("<recipe>")``) beside the collection, and read from there without
-importing it (:mod:`torchrl_bail.schema_reader`), so a bad command line fails before torch loads.
+importing it (:mod:`torchrl_bail.configuration.schema_reader`), so a bad command line fails before torch loads.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Optional  # noqa: UP035 -- OmegaConf reads these annotations 
 
 from omegaconf import MISSING
 
-from torchrl_bail.config import (
+from torchrl_bail.configuration.config import (
     Checked,
     at_least,
     discount,
@@ -23,8 +25,8 @@ from torchrl_bail.config import (
     positive,
     registry_name,
 )
-from torchrl_bail.errors import ConfigError
-from torchrl_bail.schema_reader import read_schemas, register_as, schema_block
+from torchrl_bail.configuration.schema_reader import read_schemas, register_as, schema_block
+from torchrl_bail.core.errors import ConfigError
 
 __all__ = ["BATCH_SCHEMAS", "BatchConfig", "OracleConfig", "batch_schema", "schema_block"]
 
@@ -68,12 +70,12 @@ BATCH_SCHEMAS: dict[str, type[BatchConfig]] = {}
 def batch_schema(name: str) -> Callable[[type], type]:
     """Registers the decorated class as the schema of recipe ``name`` (``batch.recipe``) in :data:`BATCH_SCHEMAS`,
     made a dataclass; written in the recipe's own module and read from there without importing it
-    (:mod:`torchrl_bail.schema_reader`)."""
+    (:mod:`torchrl_bail.configuration.schema_reader`)."""
     return register_as(BATCH_SCHEMAS, name)
 
 
 def _read_recipe_schemas() -> None:
-    read_schemas(Path(__file__).with_name("behaviour"), f"{__package__}.behaviour", {"batch_schema"}, BATCH_SCHEMAS)
+    read_schemas(Path(__file__).parents[1] / "behaviour", "torchrl_bail.behaviour", {"batch_schema"}, BATCH_SCHEMAS)
 
 
 _read_recipe_schemas()
