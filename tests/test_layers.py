@@ -1,8 +1,11 @@
 """The package's layering, read from its source with ``ast`` (no import is executed).
 
-Data flows one way: entry points (``train``, ``collect``, ``report``) -> ``trainer`` -> ``algorithms`` ->
-``envelope`` / ``objectives`` / ``transforms`` / ``modules`` -> ``data`` (+ ``io``); the online side ``behaviour``
--> ``data``, ``modules``, ``evaluation``; only the entry points reach ``behaviour``.
+The layers are folders (docs/guides/layout.md draws them): the top level holds only the entry points and a few
+modules that every layer shares (:data:`TOP_LEVEL`); ``core`` is the bottom and imports nothing of the package;
+``configuration`` (torch-free) imports only ``core``; ``data`` only ``core``. Data flows one way: entry points
+(``train``, ``collect``, ``report``, ``evaluate``, ``ope``) -> ``training.trainer`` -> ``algorithms`` ->
+``training.envelope`` / ``objectives`` / ``transforms`` / ``modules`` -> ``data`` (+ ``core``); the online side
+``behaviour`` -> ``data``, ``modules``, ``evaluation``; only the entry points reach ``behaviour``.
 """
 
 from __future__ import annotations
@@ -17,9 +20,15 @@ import torchrl_bail
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
 ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate",
                 "torchrl_bail.ope"}
-# the atomic writes, the one-line error classes and the interrupt requests: part of the bottom layer, they import
-# nothing from the package
-BOTTOM = {"torchrl_bail.core.io", "torchrl_bail.core.errors", "torchrl_bail.core.interrupts"}
+# the bottom layer (atomic writes, the one-line error classes, the interrupt requests, progress bars, seed stacks):
+# it imports nothing from the package
+BOTTOM = "torchrl_bail.core"
+#: the only modules directly in src/torchrl_bail/: the package face, the entry points and the modules every layer
+#: shares (the network builders, the command-line front, the "bail:" dataset source)
+TOP_LEVEL = {"torchrl_bail", *ENTRY_POINTS, "torchrl_bail.cli", "torchrl_bail.modules", "torchrl_bail.datasets"}
+#: the layer packages
+LAYERS = {"core", "configuration", "data", "modules", "objectives", "transforms", "algorithms", "training",
+          "behaviour", "evaluation", "reports"}
 
 
 def _module_name(path: Path) -> str:
@@ -90,8 +99,8 @@ def _in(module: str, package: str) -> bool:
 
 def test_the_scan_sees_the_package():
     assert {"torchrl_bail.data.batch", "torchrl_bail.behaviour.catalogue", "torchrl_bail.training.envelope"} <= MODULES
-    assert any(i.source == "torchrl_bail.algorithms.bail" and i.target == "torchrl_bail.training.envelope" for i in
-        IMPORTS)
+    assert any(i.source == "torchrl_bail.algorithms.bail" and i.target == "torchrl_bail.training.envelope"
+               for i in IMPORTS)
 
 
 def test_no_import_cycle():
@@ -118,12 +127,28 @@ def test_no_import_cycle():
             visit(module)
 
 
-def test_data_is_the_bottom_layer():
+def test_the_top_level_shows_the_layers():
+    """At most ten modules directly in src/torchrl_bail/ (the face, the entry points, the shared ones); every other
+    module sits in the package of its layer."""
+    top = {m for m in MODULES if m.count(".") <= 1 and not (PACKAGE / m.rsplit(".", 1)[-1]).is_dir()}
+    assert top == TOP_LEVEL and len(top) <= 10, sorted(top ^ TOP_LEVEL)
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    assert packages <= LAYERS, sorted(packages - LAYERS)
+
+
+def test_core_and_data_are_the_bottom_layer():
     bad = [i for i in IMPORTS if _in(i.source, "torchrl_bail.data")
-           and not (_in(i.target, "torchrl_bail.data") or i.target in BOTTOM)]
-    assert not bad, f"torchrl_bail.data may import only itself and {sorted(BOTTOM)}: {bad}"
-    bad = [i for i in IMPORTS if i.source in BOTTOM]
-    assert not bad, f"{sorted(BOTTOM)} must import nothing from the package: {bad}"
+           and not (_in(i.target, "torchrl_bail.data") or _in(i.target, BOTTOM))]
+    assert not bad, f"torchrl_bail.data may import only itself and {BOTTOM}: {bad}"
+    bad = [i for i in IMPORTS if _in(i.source, BOTTOM) and not _in(i.target, BOTTOM)]
+    assert not bad, f"{BOTTOM} must import nothing else from the package: {bad}"
+
+
+def test_configuration_imports_only_core():
+    """The configuration layer stays torch-free: it imports itself and the bottom layer, no layer of tensors."""
+    bad = [i for i in IMPORTS if _in(i.source, "torchrl_bail.configuration")
+           and not (_in(i.target, "torchrl_bail.configuration") or _in(i.target, BOTTOM))]
+    assert not bad, f"torchrl_bail.configuration may import only itself and {BOTTOM}: {bad}"
 
 
 def test_only_entry_points_reach_the_behaviour_package():
@@ -142,6 +167,11 @@ def test_only_entry_points_reach_the_behaviour_package():
     ("torchrl_bail.behaviour", "torchrl_bail.algorithms"),
     ("torchrl_bail.behaviour", "torchrl_bail.objectives"),
     ("torchrl_bail.behaviour", "torchrl_bail.training.trainer"),
+    ("torchrl_bail.evaluation", "torchrl_bail.training.trainer"),
+    ("torchrl_bail.reports", "torchrl_bail.training"),
+    ("torchrl_bail.reports", "torchrl_bail.algorithms"),
+    ("torchrl_bail.reports", "torchrl_bail.evaluation"),
+    ("torchrl_bail.training.resume", "torchrl_bail.algorithms"),
 ])
 def test_no_upward_import(lower, upper):
     bad = [i for i in IMPORTS if _in(i.source, lower) and _in(i.target, upper)]
