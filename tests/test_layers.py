@@ -27,7 +27,7 @@ BOTTOM = "torchrl_bail.core"
 #: shares (the network builders, the command-line front, the "bail:" dataset source)
 TOP_LEVEL = {"torchrl_bail", *ENTRY_POINTS, "torchrl_bail.cli", "torchrl_bail.modules", "torchrl_bail.datasets"}
 #: the layer packages
-LAYERS = {"core", "configuration", "data", "modules", "objectives", "transforms", "algorithms", "training",
+LAYERS = {"core", "configuration", "data", "objectives", "transforms", "algorithms", "training",
           "behaviour", "evaluation", "reports"}
 
 
@@ -134,6 +134,20 @@ def test_the_top_level_shows_the_layers():
     assert top == TOP_LEVEL and len(top) <= 10, sorted(top ^ TOP_LEVEL)
     packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
     assert packages <= LAYERS, sorted(packages - LAYERS)
+
+
+def test_the_layout_page_draws_the_folders():
+    """docs/guides/layout.md names every layer folder, every top-level module, and every module of the folders the
+    move made (core, configuration, training, evaluation, reports)."""
+    page = (PACKAGE.parents[1] / "docs" / "guides" / "layout.md").read_text()
+    tree = page[page.index("src/torchrl_bail/"):page.index("docs/ ")]
+    missing = [f"{p}/" for p in LAYERS if f"  {p}/ " not in tree]
+    files = {f"{m.rsplit('.', 1)[1]}.py" for m in TOP_LEVEL - {"torchrl_bail"}}
+    missing += [f for f in sorted(files) if f not in tree]
+    for layer in ("core", "configuration", "training", "evaluation", "reports"):
+        missing += [f"{layer}/{p.name}" for p in (PACKAGE / layer).glob("*.py")
+                    if p.name != "__init__.py" and p.name not in tree]
+    assert not missing, f"docs/guides/layout.md does not draw {missing}"
 
 
 def test_core_and_data_are_the_bottom_layer():

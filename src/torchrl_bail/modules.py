@@ -171,7 +171,8 @@ class ConditionalVAE(nn.Module):
     Args:
         obs_dim (int): observation size.
         act_dim (int): action size.
-        action_low, action_high: the action bounds (scalars or ``[act_dim]``).
+        action_low (float or Tensor): the lower action bound (a scalar or ``[act_dim]``).
+        action_high (float or Tensor): the upper action bound (a scalar or ``[act_dim]``).
         hidden (sequence of int): hidden sizes of the encoder and of the decoder. Defaults to ``(750, 750)``.
 
     Keyword Args:

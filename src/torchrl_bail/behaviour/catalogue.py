@@ -18,7 +18,7 @@ from torchrl_bail.behaviour import ddpg, execution, sac_run  # noqa: F401  (each
 from torchrl_bail.behaviour.recipes import recipe_of
 from torchrl_bail.configuration.config_builders import collection_config
 from torchrl_bail.core import interrupts
-from torchrl_bail.data.batch import save_batch
+from torchrl_bail.data.batch import OfflineBatch, save_batch
 from torchrl_bail.data.cache import batch_metadata, batch_name, batch_path, load_cached_batch
 from torchrl_bail.data.locks import HEARTBEAT, LOCKS, clean_stale, file_lock, liveness_settings, scratch_directory
 
@@ -27,7 +27,7 @@ __all__ = ["ensure_batch", "collect_batch"]
 log = logging.getLogger("torchrl_bail")
 
 
-def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | None = None):
+def ensure_batch(cfg, *, progress: bool = True, data_dir: str | os.PathLike | None = None) -> OfflineBatch:
     """Loads the cached batch for ``cfg.env`` x ``cfg.batch``, collecting it first when it is not there yet.
 
     ``cfg``: a composed config (or its ``env``/``batch``/``data_dir``), typed and checked first

@@ -84,9 +84,9 @@ def plot_envelope(values, returns, path: str | Path, *, title: str | None = None
     """The paper's Fig. 13: states sorted by ``V`` ascending, the envelope as a line, the returns as dots.
 
     Args:
-        values: ``V(s_i)``, ``[N]`` (a CPU tensor or array, e.g.
-        :func:`~torchrl_bail.training.envelope.envelope_values`).
-        returns: ``G_i``, ``[N]``.
+        values (Tensor or array): ``V(s_i)``, ``[N]`` (a CPU tensor or array, e.g.
+            :func:`~torchrl_bail.training.envelope.envelope_values`).
+        returns (Tensor or array): ``G_i``, ``[N]``.
         path (str or Path): the image file (``.png``, ``.pdf``, ...).
 
     Keyword Args:
