@@ -69,6 +69,23 @@ def test_a_pickle_naming_an_old_module_loads():
     assert out.split() == ["torchrl_bail.core.errors", "ResumeError"]
 
 
+def test_a_schema_written_against_the_old_names_reads(tmp_path, monkeypatch):
+    """An algorithm module of a user's, ``from torchrl_bail.algo_schemas import ...``, reads as before the move."""
+    from torchrl_bail.configuration import algo_schemas, schema_reader
+
+    monkeypatch.setattr(algo_schemas, "ALGO_SCHEMAS", {})
+    monkeypatch.setattr(schema_reader, "_DEFINED", {})
+    folder = tmp_path / "algorithms"
+    folder.mkdir()
+    (folder / "mine.py").write_text(
+        "from __future__ import annotations\n\nimport torch\n\n"
+        "from torchrl_bail.algo_schemas import AlgoConfig, algo_schema\n"
+        "from torchrl_bail.config import discount\n\n\n"
+        "@algo_schema('mine')\nclass MineConfig(AlgoConfig):\n    column = 0.5\n    gamma: float = discount()\n")
+    schema_reader.read_schemas(folder, "torchrl_bail.algorithms", {"algo_schema"})
+    assert algo_schemas.ALGO_SCHEMAS["mine"].__mro__[1] is algo_schemas.AlgoConfig
+
+
 KEPT_POLICIES = sorted((REPO / "results" / "ope_headline" / "runs").glob("**/policy.pt"))
 
 

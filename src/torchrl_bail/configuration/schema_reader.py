@@ -42,9 +42,12 @@ __all__ = ["TORCH_FREE_MODULES", "SchemaReadError", "read_schemas", "register_as
 
 #: the modules whose imports the reader runs: what a schema may use besides the schema classes of its siblings
 TORCH_FREE_MODULES = frozenset({"typing", "dataclasses", "omegaconf", "torchrl_bail.configuration.config",
-    "torchrl_bail.core.errors",
-                                "torchrl_bail.configuration.schema_reader", "torchrl_bail.configuration.algo_schemas",
-                                "torchrl_bail.configuration.batch_schemas"})
+                                "torchrl_bail.core.errors", "torchrl_bail.configuration.schema_reader",
+                                "torchrl_bail.configuration.algo_schemas", "torchrl_bail.configuration.batch_schemas"})
+#: the same modules under their names before the layer folders (``torchrl_bail.MOVED``): a schema written against
+#: ``from torchrl_bail.algo_schemas import ...`` still reads
+_OLD_NAMES = frozenset({"torchrl_bail.config", "torchrl_bail.errors", "torchrl_bail.schema_reader",
+                        "torchrl_bail.algo_schemas", "torchrl_bail.batch_schemas"})
 
 #: (module, class name) -> every schema class defined, read or imported, so that each is defined once
 _DEFINED: dict[tuple[str, str], type] = {}
@@ -179,8 +182,8 @@ def _run(node: ast.stmt, path: Path, namespace: dict) -> None:
 
 def _is_torch_free_import(node: ast.stmt) -> bool:
     if isinstance(node, ast.ImportFrom):
-        return node.module in TORCH_FREE_MODULES and not node.level
-    return isinstance(node, ast.Import) and all(alias.name in TORCH_FREE_MODULES for alias in node.names)
+        return node.module in TORCH_FREE_MODULES | _OLD_NAMES and not node.level
+    return isinstance(node, ast.Import) and all(alias.name in TORCH_FREE_MODULES | _OLD_NAMES for alias in node.names)
 
 
 def _sibling(node: ast.stmt, package: str) -> str | None:
