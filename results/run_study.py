@@ -528,16 +528,27 @@ COST_PEERS = {"paper_batches": ("paper_hopper",), "paper_hopper": ("paper_batche
               "paper_exec": ("paper_batches", "paper_hopper")}
 
 
+#: a collect job's batch kind -> how it is made, which sets its cost: a DDPG run, the shared SAC run (10^6 steps of
+#: SAC updates), or an execution batch (a frozen SAC policy acting, no update)
+COLLECTION_KINDS = (("_sac", "sac run"), ("_med_", "execution"), ("_opt_", "execution"))
+
+
+def collection_kind(name: str) -> str:
+    """How the batch of the collect job ``name`` is made (:data:`COLLECTION_KINDS`; ``"ddpg"`` otherwise):
+    ``collect/hopper_sac_b1`` -> ``"sac run"``, ``collect/walker_med_det_b1`` -> ``"execution"``."""
+    return next((kind for token, kind in COLLECTION_KINDS if token in name), "ddpg")
+
+
 def _recorded_cost(name: str, timings: dict, elsewhere: dict) -> float | None:
     """What ``name`` should cost: the median recorded seconds of the jobs of its kind in ``timings`` (its study's
-    ``timings.json``) on its batch (``<batch>/<algo>/seed…`` without the seed; ``collect/…``: any collection), else of
-    its algorithm on the study's other batches, else in ``elsewhere`` (the records of its :data:`COST_PEERS`);
-    ``None`` where nothing of its kind is recorded."""
+    ``timings.json``) on its batch (``<batch>/<algo>/seed…`` without the seed; ``collect/…``: any collection made the
+    same way, :func:`collection_kind`), else of its algorithm on the study's other batches, else in ``elsewhere`` (the
+    records of its :data:`COST_PEERS`); ``None`` where nothing of its kind is recorded."""
     parts = name.split("/")
 
     def same_algo(records: dict) -> list[str]:
         if parts[0] == "collect":
-            return [k for k in records if k.startswith("collect/")]
+            return [k for k in records if k.startswith("collect/") and collection_kind(k) == collection_kind(name)]
         return [k for k in records if k.split("/")[-2:-1] == parts[-2:-1]
                 and k.startswith("ope/") == name.startswith("ope/")]
 

@@ -200,3 +200,37 @@ def test_the_random_references_are_the_measured_ones():
     measured = json.loads(RESULTS.read_text())["scores"]
     assert {env: s["ref_min_score"] for env, s in measured.items()} == V5_RANDOM_SCORES
     assert all(s["episodes"] >= 100 for s in measured.values())
+
+
+def test_the_expert_references_are_the_recorded_ones_and_fill_from_the_opt_det_batches(tmp_path, monkeypatch):
+    """``V5_EXPERT_SCORES`` equals ``reference_scores.json``'s ``ref_max_score`` (null there, absent here);
+    ``reference_scores.py --expert-only`` takes an env's from its kept ``opt_det_b1`` batch metadata and leaves the
+    others null with the reason; a v5 env with both references is normalised by them, the others as before."""
+    import importlib.util
+
+    from torchrl_bail.data import scores
+
+    measured = json.loads(RESULTS.read_text())["scores"]
+    assert {env: s["ref_max_score"] for env, s in measured.items() if s["ref_max_score"] is not None} == \
+        scores.V5_EXPERT_SCORES
+    spec = importlib.util.spec_from_file_location("reference_scores", RESULTS.with_suffix(".py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    study = tmp_path / "results" / "paper_exec"
+    (study / "batches").mkdir(parents=True)
+    (study / "batches" / "hopper_opt_det_b1-feed0001.metadata.json").write_text(
+        json.dumps({"episode_return_mean": 3300.12345, "num_episodes": 304}))
+    (study / "batches" / "walker_med_det_b1-feed0002.metadata.json").write_text(json.dumps({"episode_return_mean": 1}))
+    out = tmp_path / "reference_scores.json"
+    out.write_text(RESULTS.read_text())
+    module.main(["--expert-only", "--out", str(out), "--expert-from", str(study)])
+    filled = json.loads(out.read_text())["scores"]
+    assert filled["Hopper-v5"]["ref_max_score"] == 3300.123 and filled["Hopper-v5"]["ref_max_score_episodes"] == 304
+    assert filled["Hopper-v5"]["ref_max_score_source"] == ("results/paper_exec/batches/"
+                                                           "hopper_opt_det_b1-feed0001.metadata.json")
+    assert filled["Walker2d-v5"]["ref_max_score"] is None and "opt_det" in filled["Walker2d-v5"]["ref_max_score_reason"]
+    assert filled["Hopper-v5"]["ref_min_score"] == measured["Hopper-v5"]["ref_min_score"]  # untouched
+    monkeypatch.setattr(scores, "V5_EXPERT_SCORES", {"Hopper-v5": 3300.123})
+    assert scores.score_reference("Hopper-v5") == (16.669, 3300.123, "v5")
+    assert scores.normalized_score("Hopper-v5", (16.669 + 3300.123) / 2) == pytest.approx(50.0)
+    assert scores.score_reference("Walker2d-v5")[2] == "d4rl" and scores.score_reference("hopper")[2] == "d4rl"

@@ -1095,6 +1095,22 @@ def test_status_estimates_the_work_left_from_the_recorded_costs(run_study):
     assert run_study.work_left([("b1/bail/seed1", state("done"))], {}) == "nothing left to run"
 
 
+def test_status_prices_a_collection_by_how_its_batch_is_made(run_study):
+    """A SAC run's collection (10^6 SAC updates) and an execution batch's (a frozen policy acting) are priced from
+    collections made the same way, never from DDPG's: with only DDPG collections recorded they have no recorded cost."""
+    timings = {"collect/hopper_ddpg05_b1": 1600.0, "collect/hopper_ddpg01_b1": 1500.0}
+    state = run_study.JobState
+    states = [("collect/walker_ddpg05_b1", state("left")), ("collect/hopper_sac_b1", state("left")),
+              ("collect/hopper_med_det_b1", state("left"))]
+    seconds = run_study.seconds_left(states, timings)
+    assert seconds == {"collect/walker_ddpg05_b1": 1550.0, "collect/hopper_sac_b1": None,
+                       "collect/hopper_med_det_b1": None}
+    timings |= {"collect/hopper_sac_b1": 10000.0, "collect/hopper_opt_det_b1": 6000.0}
+    seconds = run_study.seconds_left([("collect/walker_sac_b1", state("left")),
+                                      ("collect/walker_med_stoch_b1", state("left"))], timings)
+    assert seconds == {"collect/walker_sac_b1": 10000.0, "collect/walker_med_stoch_b1": 6000.0}
+
+
 def test_status_prices_the_queue_in_wall_time_as_its_workers_would_run_it(run_study):
     """``--status``'s wall-time line: a running job holds its worker for its time left, a free worker takes the
     first job :func:`next_ready` allows, so a batch's jobs wait for its collection while the other worker goes on."""

@@ -29,9 +29,9 @@ versions at collection, or the import's source), the library versions of the exp
 obtained, the unfinished final episode, the keys left out.
 
 Reference scores (v5, measured here; see ``results/reference_scores.json``): ``ref_min_score`` is the mean return
-of a uniform-random policy over 100 episodes (:data:`V5_RANDOM_SCORES`); ``ref_max_score`` is meant to be the best
-policy return this library's SAC run reaches on the env, and no paper-scale SAC run exists yet, so it is only
-written when given (``--ref-max-score``); for an env outside the table, a given ``ref_max_score`` makes Minari
+of a uniform-random policy over 100 episodes (:data:`V5_RANDOM_SCORES`); ``ref_max_score`` is the mean return of this
+library's paper-scale SAC run's final policy (:data:`~torchrl_bail.data.scores.V5_EXPERT_SCORES`), written once the
+env has one, or when given (``--ref-max-score``); for an env outside the table, a given ``ref_max_score`` makes Minari
 measure ``ref_min_score`` itself (its random policy, 100 episodes). Minari itself stores ``ref_min_score`` only
 together with ``ref_max_score``; here the random reference is written either way (Minari's
 ``get_normalized_score`` still needs both).
@@ -60,6 +60,7 @@ import numpy as np
 
 from torchrl_bail.data.batch import REQUIRED_KEYS, OfflineBatch, library_versions
 from torchrl_bail.data.importers import EXPORT_KEY, MINARI_INSTALL
+from torchrl_bail.data.scores import V5_EXPERT_SCORES, V5_RANDOM_SCORES
 
 __all__ = [
     "EXPORT_KEY",
@@ -72,20 +73,12 @@ __all__ = [
 ]
 
 MINARI_ROOT_ENV = "MINARI_DATASETS_PATH"
-#: uniform-random policy, mean undiscounted return over 100 episodes on the gymnasium v5 envs (1000-step limit),
-#: measured by ``python results/reference_scores.py`` (the record, with seeds and versions:
-#: ``results/reference_scores.json``; a test checks the two agree)
-V5_RANDOM_SCORES: dict[str, float] = {
-    "Hopper-v5": 16.669,
-    "Walker2d-v5": 1.77,
-    "HalfCheetah-v5": -282.487,
-    "Ant-v5": -48.048,
-    "Humanoid-v5": 112.599,
-}
 RANDOM_HOW = ("uniform-random policy, mean return over 100 episodes on the registered v5 env "
               "(results/reference_scores.json, python results/reference_scores.py)")
-MAX_MISSING = ("not set: it is the best policy return this library's SAC run reaches on the env, and no paper-scale "
-               "SAC run exists yet (give one with --ref-max-score)")
+MAX_MISSING = ("not set: it is the mean return of this library's paper-scale SAC run's final policy on the env (its "
+               "opt_det batch), and none exists yet for this env (give one with --ref-max-score)")
+EXPERT_HOW = ("the mean episode return of the env's opt_det batch: this library's paper-scale SAC run's final policy, "
+              "deterministic, over 10^6 steps (results/reference_scores.json)")
 
 
 class MinariExportError(ValueError):
@@ -144,7 +137,9 @@ def check_dataset_id(dataset_id: str, *, force: bool = False) -> Path:
 
 def reference_scores(env_id: str, ref_max_score: float | None = None) -> dict[str, Any]:
     """``{"ref_min_score", "ref_max_score", "how"}`` for ``env_id``: the measured random reference
-    (:data:`V5_RANDOM_SCORES`, ``None`` for another env) and ``ref_max_score`` as given (``None`` when not).
+    (:data:`V5_RANDOM_SCORES`, ``None`` for another env) and ``ref_max_score`` as given, else the measured expert
+    reference (:data:`~torchrl_bail.data.scores.V5_EXPERT_SCORES`, once the env's paper-scale SAC run exists), else
+    ``None``.
 
     Examples:
         >>> reference_scores("Hopper-v5")["ref_min_score"], reference_scores("Hopper-v5")["ref_max_score"]
@@ -152,13 +147,15 @@ def reference_scores(env_id: str, ref_max_score: float | None = None) -> dict[st
         >>> reference_scores("Pendulum-v1", 3.0)["ref_min_score"] is None
         True
     """
-    low = V5_RANDOM_SCORES.get(env_id)
+    low, expert = V5_RANDOM_SCORES.get(env_id), V5_EXPERT_SCORES.get(env_id)
+    high = ref_max_score if ref_max_score is not None else expert
     return {
         "ref_min_score": low,
-        "ref_max_score": None if ref_max_score is None else float(ref_max_score),
+        "ref_max_score": None if high is None else float(high),
         "how": {
             "ref_min_score": RANDOM_HOW if low is not None else f"not measured for {env_id}",
-            "ref_max_score": MAX_MISSING if ref_max_score is None else "given at export (--ref-max-score)",
+            "ref_max_score": ("given at export (--ref-max-score)" if ref_max_score is not None else
+                              MAX_MISSING if expert is None else EXPERT_HOW),
         },
     }
 
