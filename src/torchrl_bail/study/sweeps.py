@@ -1,0 +1,53 @@
+"""A study's step as a Hydra multirun: the command line of each step, and what the study sweeper launches.
+
+``python -m torchrl_bail.study run`` runs each step as::
+
+    python -m torchrl_bail.<command> -m hydra/sweeper=study hydra.sweeper.study=<study> hydra.sweeper.step=<i>
+        hydra.sweep.dir=<workdir>/outputs data_dir=<data dir> progress=false [the user's overrides]
+
+(:func:`step_command`). The sweeper (``hydra_plugins.torchrl_bail_study``) composes each job of the step with the
+command line's overrides, leaves out the jobs already done (:func:`finished`: a training run's ``summary.json``, a
+batch in the data dir) and hands the others, in the study's order, to the launcher the command line names: Hydra's
+basic launcher by default (one job after another, in the sweeper's process), ``hydra/launcher=joblib``,
+``hydra/launcher=slurm``. A training job's directory is ``<workdir>/outputs/<batch>/<algo>/seed<s>[,<overrides>]``
+(``conf/config.yaml``'s ``hydra.sweep.subdir``, derived from the config), so a job stopped anywhere (a killed
+process, a Slurm time limit, a session's end) continues from its checkpoint when the step runs again; a
+collection continues from its partial collection in the data dir.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from torchrl_bail.configuration.config_builders import collection_config
+from torchrl_bail.data.cache import batch_path
+
+#: where a collect step's Hydra files go, under the sweep dir: one folder per batch
+COLLECT_SUBDIR = "${env.name}_${batch.kind}_b${batch.index}"
+
+
+def step_command(study: str | Path, step: int, command: str, workdir: Path, data_dir: Path,
+                 overrides: list[str]) -> list[str]:
+    """The command line that runs step ``step`` of ``study`` (:mod:`torchrl_bail.study.sweeps`)."""
+    outputs = workdir / "outputs"
+    where = ([f"hydra.sweep.dir={outputs / 'collect'}", f"hydra.sweep.subdir={COLLECT_SUBDIR}"]
+             if command == "collect" else [f"hydra.sweep.dir={outputs}"])
+    return [sys.executable, "-m", f"torchrl_bail.{command}", "-m", "hydra/sweeper=study",
+            f"hydra.sweeper.study={study}", f"hydra.sweeper.step={step}", *where, f"data_dir={data_dir}",
+            "progress=false", *overrides]
+
+
+def job_dir(cfg: DictConfig) -> Path:
+    """The directory of a composed job of a sweep (``hydra.sweep.dir`` / ``hydra.sweep.subdir``)."""
+    return Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
+
+
+def finished(command: str, cfg: DictConfig) -> bool:
+    """Whether the job of the composed ``cfg`` is done: a training run whose ``summary.json`` is written (last, so
+    it marks the run complete), or a batch already in the data dir (written whole or not at all)."""
+    if command == "collect":
+        return batch_path(collection_config(cfg)).exists()
+    return (job_dir(cfg) / "summary.json").is_file()
