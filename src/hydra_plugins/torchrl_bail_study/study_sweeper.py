@@ -8,7 +8,7 @@ launches, and why, is :mod:`torchrl_bail.study.sweeps`'s to say.
 # where a dataclass cannot look string annotations up
 import logging
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -24,8 +24,8 @@ log = logging.getLogger(__name__)
 class StudySweeperConf:
     _target_: str = "hydra_plugins.torchrl_bail_study.study_sweeper.StudySweeper"
     study: str = "???"                    #: a declared study's name or the path of a study's YAML file
-    step: int = 0                         #: which of its steps (0 is the first)
-    max_batch_size: Optional[int] = None  #: jobs handed to the launcher at once (null: the whole step)
+    step: int = 1                         #: which of its steps (1 is the first, as `study list` numbers them)
+    max_batch_size: int | None = None  #: jobs handed to the launcher at once (null: the whole step)
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="study", node=StudySweeperConf, provider="torchrl_bail")
@@ -35,11 +35,11 @@ class StudySweeper(Sweeper):
     """Launches the jobs of step ``step`` of ``study`` that are not done yet, in the study's order, each with the
     command line's overrides after its own; a failed job fails the sweep once every job of its batch has ended."""
 
-    def __init__(self, study: str, step: int, max_batch_size: Optional[int] = None) -> None:
+    def __init__(self, study: str, step: int, max_batch_size: int | None = None) -> None:
         super().__init__()
         self.study, self.step, self.max_batch_size = study, int(step), max_batch_size
-        self.hydra_context: Optional[HydraContext] = None
-        self.config: Optional[DictConfig] = None
+        self.hydra_context: HydraContext | None = None
+        self.config: DictConfig | None = None
         self.launcher = None
 
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
@@ -56,9 +56,9 @@ class StudySweeper(Sweeper):
         if swept:
             raise StudyError(f"a study's jobs are its declaration's; {swept[0]!r} sweeps (give one value)")
         study = load_study(self.study)
-        if not 0 <= self.step < len(study.steps):
-            raise StudyError(f"study {study.name} has steps 0-{len(study.steps) - 1}, not {self.step}")
-        step = study.steps[self.step]
+        if not 1 <= self.step <= len(study.steps):
+            raise StudyError(f"study {study.name} has steps 1-{len(study.steps)}, not {self.step}")
+        step = study.steps[self.step - 1]
         command = str(self.config.hydra.job.name)
         if step.command != command:
             raise StudyError(f"step {self.step} of study {study.name} runs {step.command}, not {command}")

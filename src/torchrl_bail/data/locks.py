@@ -284,6 +284,17 @@ def owner_alive(owner: Mapping[str, Any] | None, heartbeat_age_s: float, stale_a
     return heartbeat_age_s < stale_after_s
 
 
+def lock_is_held(path: Path, stale_after_s: float) -> bool:
+    """Whether the lock file ``path`` has an owner that may still be working (:func:`owner_alive`, its heartbeat
+    aged on the file system's clock): how another process tells a running job from a stopped one (``python -m
+    torchrl_bail.study status``)."""
+    found = _read_lock(path)
+    if found is None:
+        return False
+    owner, st = found
+    return owner_alive(owner, _fs_now(path.parent) - st.st_mtime, stale_after_s)
+
+
 class LockLost(RuntimeError):
     """Another job took over a lock this process held (its heartbeat stopped for too long): it must publish nothing
     more (:func:`check_fence`)."""

@@ -44,6 +44,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_bail.configuration.algo_schemas import ALGO_SCHEMAS
 from torchrl_bail.configuration.config_builders import run_length_overrides
+from torchrl_bail.core.errors import CommandLineError
 
 #: the studies this package declares (``python -m torchrl_bail.study list``)
 DECLARED = Path(__file__).resolve().parent / "declared"
@@ -52,9 +53,9 @@ COMMANDS = ("collect", "train")
 LABEL = re.compile(r"^(?P<exp>[A-Za-z0-9_]+?)_b(?P<index>[1-9][0-9]*)$")
 
 
-class StudyError(ValueError):
+class StudyError(CommandLineError):
     """A study's declaration is malformed, or a study's name is unknown: the message says where and what is
-    expected (the study command prints it as one line)."""
+    expected (the study command, and ``train``/``collect`` running a step, print it as one line)."""
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,7 @@ class StudyJob:
     """One job of a study: ``python -m torchrl_bail.<command> <args>``."""
 
     name: str                  #: ``collect/<batch>`` or ``<batch>/<algo>[/<tag>]/seed<s>``
-    args: tuple[str, ...]      #: the job's command-line overrides (the study's ``every_job`` included)
+    args: tuple[str, ...]      #: the job's command-line overrides (a cell's win over the study's ``every_job``)
     command: str = "train"     #: ``collect`` or ``train``
 
     @property
@@ -130,6 +131,21 @@ def _value(value) -> str:
     return str(value)
 
 
+def _merged(*groups: list[str]) -> tuple[str, ...]:
+    """The overrides of ``groups`` in order, a key given again replacing its earlier value (a cell's override wins
+    over the study's ``every_job``), so that no key reaches the command line (and the run directory's name) twice.
+
+    Examples:
+        >>> _merged(["preset=quick", "eval.episodes=1"], ["algo=bc"], ["eval.episodes=5"])
+        ('preset=quick', 'eval.episodes=5', 'algo=bc')
+    """
+    merged: dict[str, str] = {}
+    for group in groups:
+        for override in group:
+            merged[override.split("=", 1)[0]] = override
+    return tuple(merged.values())
+
+
 def _cell_jobs(study: str, step: int, command: str, cell: DictConfig, every_job: list[str]) -> list[StudyJob]:
     where = f"study {study}, step {step + 1}"
     unknown = set(cell) - {"grid", "schedule", "tag", "overrides"}
@@ -160,7 +176,7 @@ def _cell_jobs(study: str, step: int, command: str, cell: DictConfig, every_job:
             if schedule is not None and ALGO_SCHEMAS[algo].cost == "offline_rl":
                 overrides += run_length_overrides(algo, int(schedule.updates), schedule.get("evaluations"))
         overrides += [f"{k}={_value(v)}" for k, v in point.items() if k not in ("batch", "algo", "seed")]
-        jobs.append(StudyJob(name, tuple(overrides + extra + every_job), command))
+        jobs.append(StudyJob(name, _merged(every_job, overrides, extra), command))
     return jobs
 
 
@@ -194,7 +210,8 @@ def load_study(name_or_path: str | Path) -> Study:
             raise StudyError(f"study {path.stem}, step {i + 1}: job {twice[0]} is declared twice")
         steps.append(Step(str(step.get("name") or f"step {i + 1}"), str(step.command), tuple(jobs)))
     results = spec.get("results")
-    return Study(path.stem, path, str(spec.get("description") or ""), None if results is None else Path(results),
+    return Study(path.stem, path.absolute(), str(spec.get("description") or ""),
+                 None if results is None else Path(results),
                  spec.get("report"), tuple(steps))
 
 

@@ -31,13 +31,19 @@ COLLECT_SUBDIR = "${env.name}_${batch.kind}_b${batch.index}"
 
 def step_command(study: str | Path, step: int, command: str, workdir: Path, data_dir: Path,
                  overrides: list[str]) -> list[str]:
-    """The command line that runs step ``step`` of ``study`` (:mod:`torchrl_bail.study.sweeps`)."""
+    """The command line that runs step ``step`` (from 1) of ``study`` (:mod:`torchrl_bail.study.sweeps`)."""
+    return [sys.executable, "-m", f"torchrl_bail.{command}", "-m", "hydra/sweeper=study",
+            f"hydra.sweeper.study={study}", f"hydra.sweeper.step={step}", *where_overrides(command, workdir, data_dir),
+            "progress=false", *overrides]
+
+
+def where_overrides(command: str, workdir: Path, data_dir: Path) -> list[str]:
+    """Where a step's jobs write: run directories under ``<workdir>/outputs`` (a collection's Hydra files under
+    ``outputs/collect/<batch>``), batches in ``data_dir``."""
     outputs = workdir / "outputs"
     where = ([f"hydra.sweep.dir={outputs / 'collect'}", f"hydra.sweep.subdir={COLLECT_SUBDIR}"]
              if command == "collect" else [f"hydra.sweep.dir={outputs}"])
-    return [sys.executable, "-m", f"torchrl_bail.{command}", "-m", "hydra/sweeper=study",
-            f"hydra.sweeper.study={study}", f"hydra.sweeper.step={step}", *where, f"data_dir={data_dir}",
-            "progress=false", *overrides]
+    return [*where, f"data_dir={data_dir}"]
 
 
 def job_dir(cfg: DictConfig) -> Path:
