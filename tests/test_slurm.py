@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 import torch
 from _contract import TINY_RUN
+from _study import run_study, summaries, tiny_study
 from _summaries import comparable
 
 pytestmark = pytest.mark.slurm
@@ -157,6 +158,32 @@ def test_the_documented_sweep_completes_on_slurm_and_equals_local_runs(slurm, da
     assert _sacct_states(env, jobs) == ["COMPLETED"] * 4
 
 
+def test_a_study_on_slurm_equals_the_same_study_run_here(slurm, tmp_path):
+    """``python -m torchrl_bail.study run`` of a tiny study (2 batches x 2 algorithms x 2 seeds) with
+    ``hydra/launcher=slurm``: its collections, then its trainings, each step one Slurm array; every job COMPLETED in
+    sacct, every summary equal to the same study run by the basic launcher on this machine, and run again it
+    launches nothing."""
+    study = tiny_study(tmp_path / "tiny.yaml")
+    locally = run_study("run", str(study), "--workdir", str(tmp_path / "local"), "--data-dir",
+                        str(tmp_path / "local_data"))
+    assert locally.returncode == 0, locally.stderr[-3000:]
+    env = _cluster_env(slurm)
+    args = ["run", str(study), "--workdir", str(tmp_path / "slurm"), "--data-dir", str(tmp_path / "slurm_data"),
+            *LAUNCHER]
+    on_slurm = run_study(*args, env=env, timeout=900)
+    assert on_slurm.returncode == 0, on_slurm.stdout[-3000:] + on_slurm.stderr[-3000:]
+    outputs = tmp_path / "slurm" / "outputs"
+    assert "Traceback" not in _job_logs(outputs) + _job_logs(outputs / "collect"), _job_logs(outputs)
+    slurm_runs = summaries(outputs)
+    assert len(slurm_runs) == 8 and slurm_runs == summaries(tmp_path / "local" / "outputs")
+    jobs = sorted(p.name for d in (outputs / ".submitit", outputs / "collect" / ".submitit") for p in d.iterdir()
+                  if re.fullmatch(r"\d+_\d+", p.name))
+    assert len(jobs) == 10 and _sacct_states(env, jobs) == ["COMPLETED"] * 10
+    again = run_study(*args, env=env)
+    assert again.returncode == 0 and "2 of 2 jobs done, launching 0" in again.stdout
+    assert "8 of 8 jobs done, launching 0" in again.stdout
+
+
 def _drill(slurm: str, data_dir: Path, sweep: Path, *launcher: str, job: list[str] = DRILL):
     """Starts the drill's ``job`` through the Slurm launcher and returns (launcher process, job id, run directory)
     once the job is training: its first checkpoint (before the first update) is written."""
@@ -228,7 +255,7 @@ def test_a_preemption_saves_the_work_at_once_and_the_requeued_job_ends_as_if_nev
     _sigterm_drill(slurm, data_dir, drill_reference, tmp_path, preempt)
 
 
-@pytest.mark.timeout(1800)  # its reference, then many starts on a loaded core (32 and over 10 minutes for 40000 updates)
+@pytest.mark.timeout(1800)  # its reference, then many starts on a loaded core (32, over 10 minutes, for 40000 updates)
 def test_a_time_limit_checkpoints_on_submitits_signal_requeues_and_ends_as_if_never_stopped(
         slurm, data_dir, tmp_path_factory, tmp_path):
     """A 2-minute limit with the signal asked 80 s before it: Slurm checks time limits every 30 s and sends the signal
