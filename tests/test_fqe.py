@@ -135,11 +135,13 @@ def test_gamma_out_of_range_is_refused():
 
 
 def test_fqelosss_default_discount_is_fqesettings():
-    """FQE's discount has one default, :attr:`FQESettings.gamma`; FQELoss' own default (ope imports the loss'
-    module, so the loss cannot import it back) is held equal to it here."""
+    """FQE's discount has one default, ``objectives.fqe.FQE_GAMMA``: FQELoss' own; :attr:`FQESettings.gamma` repeats
+    it (ope loads no torch at import, so it cannot import the loss' module) and is held equal to it here."""
     import inspect
 
-    assert inspect.signature(FQELoss).parameters["gamma"].default == FQESettings.gamma
+    from torchrl_bail.objectives.fqe import FQE_GAMMA
+
+    assert inspect.signature(FQELoss).parameters["gamma"].default == FQE_GAMMA == FQESettings.gamma
 
 
 # -- issue 53, item 2: the stopping rule and several fits -------------------------------------------------------

@@ -86,8 +86,8 @@ class FQESettings:
         hidden: the Q network's hidden sizes (ReLU). Defaults to ``(256, 256)``.
         target_update_period: the target network is copied from the network every this many updates.
             Defaults to ``100``.
-        gamma: discount. Defaults to ``0.99``, the one place this default is set: the evaluation's discounted
-            return (:class:`~torchrl_bail.evaluation.Evaluator`) takes it from here.
+        gamma: discount. Defaults to :data:`~torchrl_bail.objectives.fqe.FQE_GAMMA` (``0.99``, the value the
+            evaluation's discounted return (:class:`~torchrl_bail.evaluation.Evaluator`) takes too).
         log_every: a point of the fitting curve (estimate, mean TD loss) every this many updates, and at the last.
             Defaults to ``1000``.
         stop_window: the stopping rule's window, in points of the curve (:func:`curve_converged`); ``0`` turns the
@@ -109,7 +109,7 @@ class FQESettings:
     lr: float = 1e-4
     hidden: tuple[int, ...] = (256, 256)
     target_update_period: int = 100
-    gamma: float = 0.99
+    gamma: float = 0.99  # = objectives.fqe.FQE_GAMMA (tests/test_fqe.py): this module loads no torch at import
     log_every: int = 1000
     stop_window: int = 20
     stop_tol: float = 0.02

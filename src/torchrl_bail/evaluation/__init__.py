@@ -12,7 +12,7 @@ Semantics:
   the others go on;
 * beside it, each episode's *discounted* return from its start, ``sum_t gamma^t r_t`` over the same steps
   (:attr:`EvalResult.discounted_returns`), at the ``gamma`` off-policy evaluation estimates (FQE's,
-  :attr:`torchrl_bail.ope.FQESettings.gamma`, ``0.99``, unless ``gamma=`` says otherwise): the value an FQE estimate
+  :data:`torchrl_bail.objectives.fqe.FQE_GAMMA`, ``0.99``, unless ``gamma=`` says otherwise): the value an FQE estimate
   of the same policy aims at, from this evaluation's start states rather than the batch's;
 * the policy acts deterministically (:class:`~torchrl.envs.utils.ExplorationType` ``DETERMINISTIC``) and is
   always called on the whole ``[*batch_shape]`` batch (finished episodes keep their last observation), so its
@@ -60,7 +60,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_bail.evaluation.simulator import make_guarded_env
 from torchrl_bail.modules import action_spec_from_bounds
-from torchrl_bail.ope import FQESettings
+from torchrl_bail.objectives.fqe import FQE_GAMMA
 
 __all__ = ["EvalResult", "Evaluator", "episode_seed"]
 
@@ -123,7 +123,7 @@ class Evaluator:
         env_kwargs (dict, optional): extra keyword arguments of ``gymnasium.make`` (e.g.
             ``{"terminate_when_unhealthy": False}``). Defaults to ``None``.
         gamma (float): discount of :attr:`EvalResult.discounted_returns`, in ``[0, 1]``. Defaults to FQE's
-            (:attr:`torchrl_bail.ope.FQESettings.gamma`, ``0.99``).
+            (:data:`torchrl_bail.objectives.fqe.FQE_GAMMA`, ``0.99``).
     """
 
     def __init__(
@@ -137,7 +137,7 @@ class Evaluator:
         max_episode_steps: int | None = None,
         device="cpu",
         env_kwargs: Mapping[str, Any] | None = None,
-        gamma: float = FQESettings.gamma,
+        gamma: float = FQE_GAMMA,
     ) -> None:
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma = {gamma!r}: expected a discount in [0, 1]")

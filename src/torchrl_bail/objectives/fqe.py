@@ -52,6 +52,13 @@ def episode_starts(episode: torch.Tensor) -> torch.Tensor:
     return starts
 
 
+#: FQE's discount: :class:`FQELoss`'s default and the gamma of the evaluation's discounted return
+#: (:class:`torchrl_bail.evaluation.Evaluator`), so that every OPE estimate is judged against the true return it
+#: estimates; :attr:`torchrl_bail.ope.FQESettings.gamma` repeats it (that module loads no torch; tests/test_fqe.py
+#: holds the two equal). ``0.99``: d3rlpy's FQE default
+FQE_GAMMA = 0.99
+
+
 class FQELoss(LossModule):
     r"""Fitted Q Evaluation of a fixed policy ``pi``: the squared TD error of ``Q(s, a)`` against ``Q'(s', pi(s'))``.
 
@@ -100,9 +107,8 @@ class FQELoss(LossModule):
             anyway (BCQ's and BEAR's best-of-N) draws from torch's global generator, one action per state.
 
     Keyword Args:
-        gamma (float): discount, in ``[0, 1]``. Defaults to ``0.99``, FQE's default
-            (:attr:`torchrl_bail.ope.FQESettings.gamma`, the one place it is set; a test holds the two equal, as
-            :mod:`torchrl_bail.ope` imports this module and this one cannot import it back).
+        gamma (float): discount, in ``[0, 1]``. Defaults to :data:`FQE_GAMMA` (``0.99``), FQE's default, which
+            :class:`torchrl_bail.ope.FQESettings` and the evaluation's discounted return take too.
         reduction (str, optional): ``"none"`` | ``"mean"`` | ``"sum"``. Defaults to ``"mean"``. ``"none"`` gives one
             value per transition (``[B]`` or ``[S, B]``); ``"mean"`` averages over the last batch dimension and then
             over the leading ones.
@@ -205,7 +211,7 @@ class FQELoss(LossModule):
         qvalue_network: TensorDictModule,
         policy_network: TensorDictModule,
         *,
-        gamma: float = 0.99,  # = torchrl_bail.ope.FQESettings.gamma (tests/test_fqe.py; ope imports this module)
+        gamma: float = FQE_GAMMA,
         reduction: Literal["mean", "sum", "none"] | None = None,
     ) -> None:
         reduction = check_reduction(reduction)
