@@ -5,7 +5,9 @@ modules that every layer shares (:data:`TOP_LEVEL`); ``core`` is the bottom and 
 ``configuration`` (torch-free) imports only ``core``; ``data`` only ``core``. Data flows one way: entry points
 (``train``, ``collect``, ``report``, ``evaluate``, ``ope``) -> ``training.trainer`` -> ``algorithms`` ->
 ``training.envelope`` / ``objectives`` / ``transforms`` / ``modules`` -> ``data`` (+ ``core``); the online side
-``behaviour`` -> ``data``, ``modules``, ``evaluation``; only the entry points reach ``behaviour``.
+``behaviour`` -> ``data``, ``modules``, ``evaluation``; only the entry points reach ``behaviour``. ``study`` (the
+paper's studies: their declarations, runner and reports) sits on top: every module of it is an entry point, and no
+other module of the package imports it.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import torchrl_bail
 PACKAGE = Path(torchrl_bail.__file__).resolve().parent
 ENTRY_POINTS = {"torchrl_bail.train", "torchrl_bail.collect", "torchrl_bail.report", "torchrl_bail.evaluate",
                 "torchrl_bail.ope"}
+#: the package on top of the entry points: each of its modules counts as one (it runs them, follows them and reports)
+STUDY = "torchrl_bail.study"
 # the bottom layer (atomic writes, the one-line error classes, the interrupt requests, progress bars, seed stacks):
 # it imports nothing from the package
 BOTTOM = "torchrl_bail.core"
@@ -28,7 +32,7 @@ BOTTOM = "torchrl_bail.core"
 TOP_LEVEL = {"torchrl_bail", *ENTRY_POINTS, "torchrl_bail.cli", "torchrl_bail.modules", "torchrl_bail.datasets"}
 #: the layer packages
 LAYERS = {"core", "configuration", "data", "objectives", "transforms", "algorithms", "training",
-          "behaviour", "evaluation", "reports"}
+          "behaviour", "evaluation", "reports", "study"}
 
 
 def _module_name(path: Path) -> str:
@@ -95,6 +99,10 @@ def _edges() -> dict[str, set[str]]:
 
 def _in(module: str, package: str) -> bool:
     return module == package or module.startswith(package + ".")
+
+
+def _entry_point(module: str) -> bool:
+    return module in ENTRY_POINTS or _in(module, STUDY)
 
 
 def test_the_scan_sees_the_package():
@@ -167,8 +175,13 @@ def test_configuration_imports_only_core():
 
 def test_only_entry_points_reach_the_behaviour_package():
     bad = [i for i in IMPORTS if _in(i.target, "torchrl_bail.behaviour")
-           and not _in(i.source, "torchrl_bail.behaviour") and i.source not in ENTRY_POINTS]
-    assert not bad, f"only {sorted(ENTRY_POINTS)} may import torchrl_bail.behaviour: {bad}"
+           and not _in(i.source, "torchrl_bail.behaviour") and not _entry_point(i.source)]
+    assert not bad, f"only {sorted(ENTRY_POINTS)} and {STUDY} may import torchrl_bail.behaviour: {bad}"
+
+
+def test_the_study_package_is_the_top():
+    bad = [i for i in IMPORTS if _in(i.target, STUDY) and not _in(i.source, STUDY)]
+    assert not bad, f"{STUDY} sits on top of the package: nothing else may import it: {bad}"
 
 
 @pytest.mark.parametrize("lower, upper", [
@@ -194,7 +207,7 @@ def test_no_upward_import(lower, upper):
 
 def test_no_function_level_package_imports_outside_entry_points():
     # the package root may re-export lazily (module ``__getattr__``) so that ``import torchrl_bail`` stays light
-    bad = [i for i in IMPORTS if i.in_function and i.source not in ENTRY_POINTS | {"torchrl_bail"}]
+    bad = [i for i in IMPORTS if i.in_function and not (_entry_point(i.source) or i.source == "torchrl_bail")]
     assert not bad, f"package imports hidden inside functions (move them to the top of the module): {bad}"
 
 

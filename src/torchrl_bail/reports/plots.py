@@ -116,7 +116,7 @@ def plot_envelope(values, returns, path: str | Path, *, title: str | None = None
     return save_figure(fig, Path(path))
 
 
-def _read_scalar_csv(path: Path) -> dict[int, float]:
+def read_scalar_csv(path: Path) -> dict[int, float]:
     """A TorchRL ``CSVLogger`` scalar file: one ``step,value`` line per logged value."""
     out = {}
     for line in Path(path).read_text().splitlines():
@@ -136,7 +136,7 @@ def read_eval_curve(run_dir: Path):
     scalars = Path(run_dir) / "logs" / "scalars" / "eval"
     if not (scalars / "return.csv").is_file() or not (scalars / "epoch.csv").is_file():
         return None
-    returns, epochs = _read_scalar_csv(scalars / "return.csv"), _read_scalar_csv(scalars / "epoch.csv")
+    returns, epochs = read_scalar_csv(scalars / "return.csv"), read_scalar_csv(scalars / "epoch.csv")
     steps = sorted(set(returns) & set(epochs))
     return np.array([epochs[s] for s in steps]), np.array([returns[s] for s in steps])
 
