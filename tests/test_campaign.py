@@ -1,7 +1,8 @@
-"""``results/campaign.sh``, the background runner of a study's long queue: what it refuses and what ``stop`` reaches.
+"""``results/campaign.sh``, which keeps ``python -m torchrl_bail.study run`` going in the background and commits
+what it makes: what it refuses and what ``stop`` reaches.
 
-Its whole path (a worktree, the runner, the watcher's commit after each job) is the one the paper-scale campaigns
-run on; these tests hold the parts that guard the queue, in seconds and with no job run."""
+Its whole path (a worktree, the runner, the watcher's commit after each finished job) is the one the paper-scale
+campaigns run on; these tests hold the parts that guard it, in seconds and with no job run."""
 
 import subprocess
 import sys
@@ -43,7 +44,7 @@ def _ended(pid: int, within: float = 10.0) -> bool:
 def test_without_a_command_it_prints_its_usage():
     done = _campaign()
     assert done.returncode == 2
-    assert "campaign.sh start STUDY DIR [REGEX ...]" in done.stderr and "campaign.sh stop DIR" in done.stderr
+    assert "campaign.sh start STUDY DIR" in done.stderr and "campaign.sh stop DIR" in done.stderr
 
 
 def test_start_refuses_while_a_runner_of_the_dir_is_alive(tmp_path):
@@ -51,7 +52,7 @@ def test_start_refuses_while_a_runner_of_the_dir_is_alive(tmp_path):
     (The study named is no study: were the refusal gone, ``start`` would stop at the study's check, not start one.)"""
     runner = _session(tmp_path, "runner")
     try:
-        done = _campaign("start", "no_such_study", str(tmp_path), "^collect/")
+        done = _campaign("start", "no_such_study", str(tmp_path))
         assert done.returncode == 1
         assert f"a runner of {tmp_path.resolve()} is alive (pid {runner.pid}); stop it first" in done.stderr
         assert not (tmp_path / "tree").exists() and not (tmp_path / "watcher.pid").exists()
@@ -60,21 +61,22 @@ def test_start_refuses_while_a_runner_of_the_dir_is_alive(tmp_path):
         runner.wait()
 
 
-def test_stop_ends_the_runners_whole_session_and_the_watcher(tmp_path):
-    """SIGTERM reaches every process of the runner's session (the jobs, which checkpoint on it), not the runner
-    alone; the watcher stops too, so nothing commits after the stop."""
+def test_stop_sends_the_runner_sigterm_and_ends_the_watchers_session(tmp_path):
+    """The runner (``python -m torchrl_bail.study run``) gets SIGTERM, which it passes on to the running job, which
+    checkpoints (tests/test_study.py); the watcher's whole session ends, a report under way included, so nothing
+    commits after the stop."""
     runner, watcher = _session(tmp_path, "runner"), _session(tmp_path, "watcher")
-    for _ in range(100):  # the job's start
-        job = subprocess.run(["pgrep", "-s", str(runner.pid), "sleep"], capture_output=True, text=True)
-        if job.stdout.strip():
+    for _ in range(100):  # the watcher's child's start
+        child = subprocess.run(["pgrep", "-s", str(watcher.pid), "sleep"], capture_output=True, text=True)
+        if child.stdout.strip():
             break
         time.sleep(0.05)
     try:
         done = _campaign("stop", str(tmp_path))
         assert done.returncode == 0 and f"stopped {tmp_path.resolve()}" in done.stdout
         assert runner.wait(timeout=10) == -15 and watcher.wait(timeout=10) == -15
-        [job_pid] = job.stdout.split()
-        assert _ended(int(job_pid)), "the job in the runner's session did not get the SIGTERM"
+        [child_pid] = child.stdout.split()
+        assert _ended(int(child_pid)), "the report under way in the watcher's session did not get the SIGTERM"
     finally:
         for proc in (runner, watcher):
             proc.kill()
@@ -82,12 +84,11 @@ def test_stop_ends_the_runners_whole_session_and_the_watcher(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_watcher_commits_the_studys_results_alone_after_a_job_ends(tmp_path):
-    """In a clone of this checkout: a job's line in the queue log and its cost in the worktree's ``timings.json``
-    (the runner ended) make the watcher merge the cost into the clone's record, rebuild the reports there with the
-    clone's code and commit ``results/<study>`` alone, named by that line; a file staged elsewhere stays uncommitted.
-    (About a minute: one ``--report-only`` of the paper cell.)"""
-    import json
+def test_the_watcher_commits_the_studys_results_alone_when_a_run_has_finished(tmp_path):
+    """In a clone of this checkout: a finished run in the campaign's work dir (a kept run of the cross-batch study,
+    copied there) and the runner ended make the watcher rebuild the study's report with the clone's code and commit
+    ``results/paper_batches`` alone, named by the run; a file staged elsewhere stays uncommitted. (A minute or two:
+    one report of the cross-batch study.)"""
     import shutil
 
     root = Path(__file__).resolve().parents[1]
@@ -98,22 +99,14 @@ def test_the_watcher_commits_the_studys_results_alone_after_a_job_ends(tmp_path)
     shutil.copy2(SCRIPT, clone / "results" / "campaign.sh")  # the script under test, as this checkout has it
     subprocess.run(["git", "-C", str(clone), "commit", "-q", "--allow-empty", "-m", "the script under test", "--",
                     "results/campaign.sh"], check=True)
-    ran = campaign / "tree" / "results" / "paper_hopper" / "timings.json"
-    ran.parent.mkdir(parents=True)
-    kept = json.loads((clone / "results" / "paper_hopper" / "timings.json").read_text())
-    ran.write_text(json.dumps({**kept, "planted/job": {"wall_s": 1.0}}))
-    (campaign / "queue.log").write_text("[1/1] planted/job: ok in 1 s\n")
+    run = "walker_ddpg05_b1/bail/seed1"
+    shutil.copytree(clone / "results" / "paper_batches" / "runs" / run, campaign / "work" / "outputs" / run)
     (clone / "README.md").write_text("changed and staged, not the study's\n")
     subprocess.run(["git", "-C", str(clone), "add", "README.md"], check=True)
-    done = subprocess.run(["bash", str(clone / "results" / "campaign.sh"), "watch", "paper_hopper", str(campaign)],
-                          capture_output=True, text=True, timeout=600)
+    done = subprocess.run(["bash", str(clone / "results" / "campaign.sh"), "watch", "paper_batches", str(campaign)],
+                          capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert "committed: [1/1] planted/job: ok in 1 s" in done.stdout
-    log = subprocess.run(["git", "-C", str(clone), "show", "--name-only", "--format=%s", "HEAD"], capture_output=True,
-                         text=True, check=True).stdout.split("\n")
-    assert log[0].startswith("Campaign (paper_hopper): [1/1] planted/job: ok in 1 s")
-    assert [f for f in log[1:] if f] == ["results/paper_hopper/timings.json"]  # the reports rebuilt the same
-    merged = json.loads((clone / "results" / "paper_hopper" / "timings.json").read_text())
-    assert merged == {**kept, "planted/job": {"wall_s": 1.0}}
+    assert f"committed: {run}" in done.stdout
+    assert (campaign / "committed.list").read_text() == f"{run}/summary.json\n"
     status = subprocess.run(["git", "-C", str(clone), "status", "--short"], capture_output=True, text=True).stdout
     assert status.split() == ["M", "README.md"]

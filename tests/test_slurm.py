@@ -161,8 +161,8 @@ def test_the_documented_sweep_completes_on_slurm_and_equals_local_runs(slurm, da
 def test_a_study_on_slurm_equals_the_same_study_run_here(slurm, tmp_path):
     """``python -m torchrl_bail.study run`` of a tiny study (2 batches x 2 algorithms x 2 seeds) with
     ``hydra/launcher=slurm``: its collections, then its trainings, each step one Slurm array; every job COMPLETED in
-    sacct, every summary equal to the same study run by the basic launcher on this machine, and run again it
-    launches nothing."""
+    sacct, every summary equal to the same study run by the basic launcher on this machine, run again it launches
+    nothing, and its report is the local run's."""
     study = tiny_study(tmp_path / "tiny.yaml")
     locally = run_study("run", str(study), "--workdir", str(tmp_path / "local"), "--data-dir",
                         str(tmp_path / "local_data"))
@@ -182,6 +182,13 @@ def test_a_study_on_slurm_equals_the_same_study_run_here(slurm, tmp_path):
     again = run_study(*args, env=env)
     assert again.returncode == 0 and "2 of 2 jobs done, launching 0" in again.stdout
     assert "8 of 8 jobs done, launching 0" in again.stdout
+    tables = []
+    for where in ("local", "slurm"):
+        report = run_study("report", str(study), "--workdir", str(tmp_path / where), "--data-dir",
+                           str(tmp_path / f"{where}_data"), "--results", str(tmp_path / f"results_{where}"))
+        assert report.returncode == 0, report.stderr[-3000:]
+        tables.append((tmp_path / f"results_{where}" / "study.md").read_text())
+    assert tables[0] == tables[1]
 
 
 def _drill(slurm: str, data_dir: Path, sweep: Path, *launcher: str, job: list[str] = DRILL):

@@ -75,7 +75,7 @@ def test_a_malformed_study_is_refused_with_where_and_what(tmp_path, change, mess
 def test_a_study_runs_resumes_and_equals_the_same_jobs_on_joblib(tmp_path):
     """The tiny study through the basic launcher (one job after another), then again (nothing is left: no job
     runs), then through joblib with two workers in another work dir: the same runs, summary for summary; ``status``
-    says every job is done."""
+    says every job is done, and ``report`` gathers the 8 runs and writes the same table from either work dir."""
     study = tiny_study(tmp_path / "tiny.yaml")
     data = tmp_path / "data"
     first = run_study("run", str(study), "--workdir", str(tmp_path / "basic"), "--data-dir", str(data))
@@ -91,6 +91,13 @@ def test_a_study_runs_resumes_and_equals_the_same_jobs_on_joblib(tmp_path):
     assert len(basic_runs) == 8 and basic_runs == joblib_runs
     status = run_study("status", str(study), "--workdir", str(tmp_path / "basic"), "--data-dir", str(data))
     assert status.stdout.splitlines()[-1] == "10 done, 0 running, 0 left of 10 jobs", status.stdout
+    for launcher in ("basic", "joblib"):
+        report = run_study("report", str(study), "--workdir", str(tmp_path / launcher), "--data-dir", str(data),
+                           "--results", str(tmp_path / f"results_{launcher}"))
+        assert report.returncode == 0, report.stderr[-3000:]
+    tables = [(tmp_path / f"results_{launcher}" / "study.md").read_text() for launcher in ("basic", "joblib")]
+    assert tables[0] == tables[1] and "| hopper_ddpg05_b2 |" in tables[0]
+    assert len(list((tmp_path / "results_basic" / "runs").glob("*/*/*/summary.json"))) == 8
 
 
 def test_a_study_stopped_by_sigterm_mid_job_resumes_where_it_stopped(tmp_path):

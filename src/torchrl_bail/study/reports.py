@@ -132,14 +132,14 @@ def curve_check(results: Path) -> list[dict]:
 
 def write_report(study: Study, results: Path, **options) -> list[Path]:
     """Every report of ``study`` from the runs and batch metadata kept in ``results``: :func:`report_runs` (no
-    ablations), :func:`curve_check` and the study's own (:data:`REPORTS`, by its ``report`` key; ``options`` go to
-    it: the cross-batch report's ``headline`` and ``headline_jobs``); returns the files written."""
-    if study.report not in REPORTS:
+    ablations), :func:`curve_check` and the study's own, if it names one (:data:`REPORTS`, by its ``report`` key;
+    ``options`` go to it: the cross-batch report's ``headline`` and ``headline_jobs``); returns the files written."""
+    if study.report is not None and study.report not in REPORTS:
         raise StudyError(f"study {study.name}: report {study.report!r} is not one of {', '.join(REPORTS)}")
     written = report_runs(results, ablations=False)
     curve_check(results)
-    return [*written, results / "curves.md", results / "curves.json", *REPORTS[study.report](study, results,
-                                                                                             **options)]
+    own = REPORTS[study.report](study, results, **options) if study.report is not None else []
+    return [*written, results / "curves.md", results / "curves.json", *own]
 
 
 def build_report(study: Study, workdir: Path, results: Path, data_dir: Path, **options) -> list[Path]:

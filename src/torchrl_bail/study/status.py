@@ -5,8 +5,8 @@ A job is **done** when :func:`torchrl_bail.study.sweeps.finished` says so (its `
 **running** while a live process holds its lock (a training run's directory lock, a batch's lock in the data dir:
 :func:`torchrl_bail.data.locks.lock_is_held`, on any host that shares the directories), else **left**. A job with a
 checkpoint gives its progress (updates done of scheduled, or transitions kept of wanted) and the time the rest takes
-at its own pace so far; one without is priced at the median cost of the finished jobs like it (the same algorithm's training
-runs, collections made the same way: :func:`collection_kind`), read from their records (``summary.json``'s
+at its own pace so far; one without is priced at the median cost of the finished jobs like it (the same algorithm's
+training runs, collections made the same way: :func:`collection_kind`), read from their records (``summary.json``'s
 ``wall_time_s``, a batch's ``collection_wall_time_s``) in the work dir and in the study's results.
 """
 
