@@ -126,6 +126,7 @@ def test_a_study_stopped_by_sigterm_mid_job_resumes_where_it_stopped(tmp_path):
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 143 and "stopped by SIGTERM in step 2" in err, err[-3000:]
+    assert f"continue with: python -m torchrl_bail.study run {study} --workdir {stopped}" in err  # not the step's
     iteration = torch.load(checkpoints[0], map_location="cpu", weights_only=False)["iteration"]
     assert 2000 <= iteration < 20000
     status = run_study("status", str(study), "--workdir", str(stopped), "--data-dir", str(data))

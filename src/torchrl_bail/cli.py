@@ -175,6 +175,11 @@ def exit_on_config_error() -> Iterator[None]:
         sys.exit(2)
 
 
+#: the environment variable in which a command that runs an entry point for its own names the command line that
+#: continues it, for the line an interrupted run ends with (:func:`describe_interrupt`)
+CONTINUE_WITH = "TORCHRL_BAIL_CONTINUE_WITH"
+
+
 def continue_command(command: str, argv: list[str]) -> str:
     """The command line that continues an interrupted ``command argv``: the same, without a ``resume=`` override
     (``resume=false`` would start over, ``resume=<dir>`` is refused once the run directory has a checkpoint of its
@@ -300,7 +305,9 @@ def run_cli(hydra_main: Callable[[], Any], extra_overrides: list[str] | None = N
                 sys.argv = [sys.argv[0], *argv]
                 hydra_main()
         except Interrupted as err:
-            again = continue_command(command or f"python {sys.argv[0]}", user_argv)
+            # a command that runs this one for its own (python -m torchrl_bail.study run) names itself instead
+            again = (os.environ.get(CONTINUE_WITH)
+                     or continue_command(command or f"python {sys.argv[0]}", user_argv))
             sys.stdout.flush()
             print(f"torchrl_bail: {describe_interrupt(err, again)}", file=sys.stderr, flush=True)
             sys.exit(err.exit_status)

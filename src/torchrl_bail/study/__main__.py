@@ -21,14 +21,15 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+from torchrl_bail.cli import CONTINUE_WITH
 from torchrl_bail.study.declaration import Study, StudyError, declared_studies, load_study
-from torchrl_bail.study.sweeps import step_command
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -112,7 +113,9 @@ def _run_step(command: list[str], workdir: Path, env: dict[str, str]) -> tuple[i
     return rc, (received[0] if received else None)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+    from torchrl_bail.study.sweeps import step_command  # loads torch: not for `list`
+
     study = load_study(args.study)
     workdir = args.workdir.absolute()
     workdir.mkdir(parents=True, exist_ok=True)
@@ -122,7 +125,8 @@ def _run(args: argparse.Namespace) -> int:
         if shutil.which("taskset") is None:
             raise StudyError("--cpus needs taskset (util-linux)")
         pinned = ["taskset", "-c", str(args.cpus)]
-    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    again = " ".join(["python -m torchrl_bail.study", *map(shlex.quote, sys.argv[1:] if argv is None else argv)])
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"), CONTINUE_WITH: again}
     for i in _steps(study, args.steps):
         step = study.steps[i]
         print(f"study {study.name}, step {i + 1} of {len(study.steps)}: {step.name} ({len(step.jobs)} jobs)",
@@ -175,7 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.action == "list":
             return _list(args.study)
-        return {"run": _run, "status": _status, "report": _report}[args.action](args)
+        if args.action == "run":
+            return _run(args, argv)
+        return {"status": _status, "report": _report}[args.action](args)
     except StudyError as err:
         print(f"python -m torchrl_bail.study: {err}", file=sys.stderr)
         return 2
