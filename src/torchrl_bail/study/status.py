@@ -59,7 +59,8 @@ class JobState:
     def __str__(self) -> str:
         parts = [] if self.progress is None else [f"{self.progress[0]}/{self.progress[1]} {self.unit}"]
         if self.state != "done" and self.seconds_left is not None:
-            parts.append(f"about {_duration(self.seconds_left)} left" + (" (its kind's cost)" if self.priced else ""))
+            parts.append(f"about {_duration(self.seconds_left)} left"
+                         + (" at the recorded cost of its kind" if self.priced else ""))
         return self.state + (f" ({', '.join(parts)})" if parts else "")
 
 
