@@ -46,7 +46,7 @@ class _MovedModuleLoader(importlib.abc.Loader):
         return importlib.import_module(MOVED[spec.name])
 
     def exec_module(self, module) -> None:
-        pass  # already executed under its new name
+        """Nothing to execute: :meth:`create_module` returned the module already executed under its new name."""
 
 
 class _MovedModuleFinder(importlib.abc.MetaPathFinder):

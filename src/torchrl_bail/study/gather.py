@@ -23,15 +23,10 @@ import shutil
 from collections.abc import Iterable
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-
-from torchrl_bail.configuration.config_builders import collection_config
-from torchrl_bail.configuration.hydra_setup import config_dir
 from torchrl_bail.core.io import write_json_atomic
 from torchrl_bail.data.batch import STATISTICS_KEYS
-from torchrl_bail.data.cache import batch_path
 from torchrl_bail.study.declaration import Study, StudyJob
-from torchrl_bail.study.sweeps import where_overrides
+from torchrl_bail.study.sweeps import job_batch, job_configs
 
 #: what a collect job prints once its batch is in the cache (``torchrl_bail.collect``): the batch's cache entry
 CACHED_AT = re.compile(r"^\S+: (?:collected|already cached) at (.+)$", re.MULTILINE)
@@ -163,19 +158,13 @@ def gather(workdir: Path, results: Path, jobs: Iterable[StudyJob] = (), policies
 
 def study_batches(study: Study, workdir: Path, data_dir: Path) -> list[Path]:
     """The batch directory in ``data_dir`` of each collect job of ``study`` whose batch is there (its
-    ``metadata.json`` written), as ``python -m torchrl_bail.study run`` in ``workdir`` makes it: the job's config
-    composed with the step's overrides (:func:`~torchrl_bail.study.sweeps.where_overrides`), its path
-    :func:`~torchrl_bail.data.cache.batch_path` of the recipe."""
+    ``metadata.json`` written), as ``python -m torchrl_bail.study run`` in ``workdir`` makes it
+    (:func:`~torchrl_bail.study.sweeps.job_configs`, :func:`~torchrl_bail.study.sweeps.job_batch`)."""
     batches = []
-    for step in study.steps:
-        if step.command != "collect":
-            continue
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3", job_name=step.command):
-            for job in step.jobs:
-                cfg = compose("config", overrides=[*job.args, *where_overrides(step.command, workdir, data_dir)])
-                path = batch_path(collection_config(cfg))
-                if (path / "metadata.json").is_file():
-                    batches.append(path)
+    for _, _, cfg in job_configs(study, workdir, data_dir, "collect"):
+        path = job_batch(cfg)
+        if (path / "metadata.json").is_file():
+            batches.append(path)
     return batches
 
 

@@ -18,16 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig
 
 from torchrl_bail.behaviour.checkpoint import CollectionCheckpoint
-from torchrl_bail.configuration.config_builders import collection_config
-from torchrl_bail.configuration.hydra_setup import config_dir
-from torchrl_bail.data.cache import batch_path
 from torchrl_bail.data.locks import LOCKS, PARTIAL, liveness_settings, lock_is_held
 from torchrl_bail.study.declaration import Study, StudyJob
-from torchrl_bail.study.sweeps import finished, job_dir, where_overrides
+from torchrl_bail.study.sweeps import finished, job_batch, job_configs, job_dir
 from torchrl_bail.training.resume import RUN_LOCK, RUN_LOCK_STALE_AFTER_S
 
 #: a collection's batch kind -> how it is made, which sets its cost: a DDPG run, a SAC run (10^6 steps of SAC
@@ -134,22 +129,18 @@ def job_states(study: Study, workdir: Path, data_dir: Path) -> list[tuple[StudyJ
     """Every job of ``study`` (run in ``workdir`` with batches in ``data_dir``) with where it stands."""
     costs = recorded_costs([workdir / "outputs", *([study.results] if study.results else [])], [data_dir])
     out = []
-    for step in study.steps:
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3", job_name=step.command):
-            for job in step.jobs:
-                cfg: DictConfig = compose("config", overrides=[*job.args, *where_overrides(
-                    step.command, workdir, data_dir)], return_hydra_config=True)
-                if finished(step.command, cfg):
-                    state = JobState("done")
-                elif step.command == "collect":
-                    state = _collection_state(job.batch, batch_path(collection_config(cfg)))
-                else:
-                    state = _training_state(job_dir(cfg))
-                if state.state != "done" and state.seconds_left is None and costs.get(_kind(job)):
-                    share = 1 - state.progress[0] / state.progress[1] if state.progress else 1.0
-                    state = JobState(state.state, state.progress, state.unit,
-                                     statistics.median(costs[_kind(job)]) * share, priced=True)
-                out.append((job, state))
+    for step, job, cfg in job_configs(study, workdir, data_dir):
+        if finished(step.command, cfg):
+            state = JobState("done")
+        elif step.command == "collect":
+            state = _collection_state(job.batch, job_batch(cfg))
+        else:
+            state = _training_state(job_dir(cfg))
+        if state.state != "done" and state.seconds_left is None and costs.get(_kind(job)):
+            share = 1 - state.progress[0] / state.progress[1] if state.progress else 1.0
+            state = JobState(state.state, state.progress, state.unit,
+                             statistics.median(costs[_kind(job)]) * share, priced=True)
+        out.append((job, state))
     return out
 
 

@@ -18,12 +18,16 @@ collection continues from its partial collection in the data dir.
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
+from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from torchrl_bail.configuration.config_builders import collection_config
+from torchrl_bail.configuration.hydra_setup import config_dir
 from torchrl_bail.data.cache import batch_path
+from torchrl_bail.study.declaration import Step, Study, StudyJob
 
 #: where a collect step's Hydra files go, under the sweep dir: one folder per batch
 COLLECT_SUBDIR = "${env.name}_${batch.kind}_b${batch.index}"
@@ -46,6 +50,25 @@ def where_overrides(command: str, workdir: Path, data_dir: Path) -> list[str]:
     return [*where, f"data_dir={data_dir}"]
 
 
+def job_configs(study: Study, workdir: Path, data_dir: Path, command: str | None = None
+                ) -> Iterator[tuple[Step, StudyJob, DictConfig]]:
+    """Each job of ``study`` (of its ``command`` steps only, if given) with its config as ``run`` composes it in
+    ``workdir`` with batches in ``data_dir`` (the ``hydra`` node included: :func:`job_dir`)."""
+    for step in study.steps:
+        if command is not None and step.command != command:
+            continue
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3", job_name=step.command):
+            for job in step.jobs:
+                yield step, job, compose("config", overrides=[*job.args, *where_overrides(step.command, workdir,
+                                                                                           data_dir)],
+                                         return_hydra_config=True)
+
+
+def job_batch(cfg: DictConfig) -> Path:
+    """Where the batch of a composed collect job lies (:func:`~torchrl_bail.data.cache.batch_path` of its recipe)."""
+    return batch_path(collection_config(cfg))
+
+
 def job_dir(cfg: DictConfig) -> Path:
     """The directory of a composed job of a sweep (``hydra.sweep.dir`` / ``hydra.sweep.subdir``)."""
     return Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
@@ -55,5 +78,5 @@ def finished(command: str, cfg: DictConfig) -> bool:
     """Whether the job of the composed ``cfg`` is done: a training run whose ``summary.json`` is written (last, so
     it marks the run complete), or a batch already in the data dir (written whole or not at all)."""
     if command == "collect":
-        return batch_path(collection_config(cfg)).exists()
+        return job_batch(cfg).exists()
     return (job_dir(cfg) / "summary.json").is_file()
